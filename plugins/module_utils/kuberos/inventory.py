@@ -1,0 +1,253 @@
+"""The resource model: robots, fleets, edge and cloud machines, and the links between them.
+
+The Ansible inventory is the truth. ``load_inventory`` takes its plain-data form::
+
+    {"hosts": {"fetch-1": {"kuberos_fleet": "test-fleet", "kuberos_cpu": 4, ...}, ...},
+     "groups": {"robots": ["fetch-1", ...], "edge": [...], "cloud": [...]}}
+
+and returns an ``Inventory`` or raises ``SpecError`` naming each host, variable and reason.
+Host variables are documented in ``docs/inventory.md``.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+from . import quantities
+from .errors import Problem, SpecError, describe, did_you_mean
+
+TIER_GROUPS = {"robots": "onboard", "edge": "edge", "cloud": "cloud"}
+DEFAULT_LATENCY_MS = {"onboard": 0.0, "edge": 5.0, "cloud": 50.0}
+_NAME = re.compile(r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?$")
+_LABEL_VALUE = re.compile(r"^[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?$")
+
+
+@dataclass(frozen=True)
+class Node:
+    """A machine that runs modules: a robot's onboard computer, an edge server or a cloud VM."""
+
+    name: str
+    tier: str
+    cpu_millis: int
+    memory_bytes: int
+    gpu: int = 0
+    pods: int = 110
+    arch: str = "amd64"
+    devices: frozenset = frozenset()
+    robot: str | None = None
+    fleet: str | None = None
+    fleets: tuple[str, ...] = ()
+    shared: bool = True
+    resource_group: str = ""
+    latency_ms: float = 0.0
+
+    def serves_fleet(self, fleet: str) -> bool:
+        if self.tier == "onboard":
+            return self.fleet == fleet
+        return self.shared or fleet in self.fleets
+
+
+@dataclass(frozen=True)
+class Robot:
+    name: str
+    fleet: str
+    node: str
+    link_latency_ms: tuple[tuple[str, float], ...] = ()
+
+
+class Inventory:
+    """Nodes, robots and fleets with the latency between each robot and each node."""
+
+    def __init__(self, nodes: dict[str, Node], robots: dict[str, Robot]):
+        self.nodes = dict(sorted(nodes.items()))
+        self.robots = dict(sorted(robots.items()))
+        fleets: dict[str, list[str]] = {}
+        for robot in self.robots.values():
+            fleets.setdefault(robot.fleet, []).append(robot.name)
+        self.fleets = {name: tuple(sorted(members)) for name, members in sorted(fleets.items())}
+        self._links = {robot.name: dict(robot.link_latency_ms) for robot in self.robots.values()}
+        self._tiers: dict[tuple[str, str], tuple[Node, ...]] = {}
+
+    def latency_ms(self, robot: str, node: str) -> float:
+        """One-way-agnostic network latency between a robot and a node, in milliseconds."""
+        target = self.nodes[node]
+        own = self.robots[robot].node
+        if node == own:
+            return 0.0
+        override = self._links[robot].get(node)
+        if override is not None:
+            return override
+        if target.tier == "onboard":
+            return math.inf
+        return target.latency_ms
+
+    def tier_nodes(self, tier: str, fleet: str) -> tuple[Node, ...]:
+        """Edge or cloud nodes the fleet may use, by name."""
+        key = (tier, fleet)
+        if key not in self._tiers:
+            self._tiers[key] = tuple(n for n in self.nodes.values() if n.tier == tier and n.serves_fleet(fleet))
+        return self._tiers[key]
+
+
+def _host_problem(source, host, var, message):
+    return Problem(source, f"hosts.{host}.{var}" if var else f"hosts.{host}", message)
+
+
+def _parse_number(value, parser, source, host, var, problems, default=None):
+    if value is None:
+        if default is None:
+            problems.append(_host_problem(source, host, var, "is required; " + _EXPECTED[parser]))
+            return 0
+        value = default
+    try:
+        return parser(value)
+    except ValueError as exc:
+        problems.append(_host_problem(source, host, var, f"{describe(value)} is not valid; {exc}"))
+        return 0
+
+
+_EXPECTED = {
+    quantities.parse_cpu: quantities.CPU_EXPECTED,
+    quantities.parse_memory: quantities.MEMORY_EXPECTED,
+    quantities.parse_latency_ms: quantities.LATENCY_EXPECTED,
+}
+
+
+def _count(value, source, host, var, problems, default):
+    if value is None:
+        return default
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        if isinstance(value, str) and value.isdigit():
+            return int(value)
+        problems.append(_host_problem(source, host, var, f"{describe(value)} is not valid; expected a whole number >= 0"))
+        return default
+    return value
+
+
+def _string_list(value, source, host, var, problems) -> tuple[str, ...]:
+    if value is None:
+        return ()
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) and v for v in value):
+        problems.append(_host_problem(source, host, var, f"{describe(value)} is not valid; expected a list of names"))
+        return ()
+    return tuple(value)
+
+
+def _name(value, source, host, var, problems, what):
+    if not isinstance(value, str) or not _NAME.match(value) or len(value) > 63:
+        problems.append(
+            _host_problem(
+                source, host, var,
+                f"{describe(value)} is not valid; expected a {what} of lowercase letters, digits, '-' and '.'",
+            )
+        )
+    return str(value)
+
+
+def _tier_of(host, groups, source, problems):
+    tiers = [tier for group, tier in TIER_GROUPS.items() if host in groups.get(group, ())]
+    if len(tiers) > 1:
+        names = [g for g in TIER_GROUPS if host in groups.get(g, ())]
+        problems.append(_host_problem(source, host, "", f"is in groups {', '.join(names)}; expected exactly one of robots, edge, cloud"))
+    return tiers[0]
+
+
+def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
+    """Build the resource model from inventory data; every problem at once."""
+    problems: list[Problem] = []
+    if not isinstance(raw, dict):
+        raise SpecError([Problem(source, "", f"{describe(raw)} is not an inventory; expected a mapping with hosts and groups")])
+    hosts = raw.get("hosts") or {}
+    groups = raw.get("groups") or {}
+    defaults = dict(DEFAULT_LATENCY_MS)
+    for tier, value in (raw.get("default_latency_ms") or {}).items():
+        if tier not in defaults:
+            problems.append(Problem(source, f"kuberos_default_latency_ms.{tier}", f"unknown tier{did_you_mean(tier, defaults)}; expected onboard, edge or cloud"))
+            continue
+        try:
+            defaults[tier] = quantities.parse_latency_ms(value)
+        except ValueError as exc:
+            problems.append(Problem(source, f"kuberos_default_latency_ms.{tier}", f"{describe(value)} is not valid; {exc}"))
+    members = sorted({h for g in TIER_GROUPS for h in groups.get(g, ())})
+    if not members:
+        problems.append(Problem(source, "groups", "no hosts in the groups robots, edge or cloud; expected at least one robot"))
+
+    nodes: dict[str, Node] = {}
+    robots: dict[str, Robot] = {}
+    links: dict[str, tuple[str, dict]] = {}
+    host_to_node: dict[str, str] = {}
+    for host in members:
+        hv = hosts.get(host) or {}
+        tier = _tier_of(host, groups, source, problems)
+        node_name = _name(hv.get("kuberos_node_name", host), source, host, "kuberos_node_name", problems, "node name")
+        if node_name in nodes:
+            problems.append(_host_problem(source, host, "kuberos_node_name", f"'{node_name}' is already the node name of another host; expected unique node names"))
+        host_to_node[host] = node_name
+        cpu = _parse_number(hv.get("kuberos_cpu"), quantities.parse_cpu, source, host, "kuberos_cpu", problems)
+        memory = _parse_number(hv.get("kuberos_memory"), quantities.parse_memory, source, host, "kuberos_memory", problems)
+        gpu = _count(hv.get("kuberos_gpu"), source, host, "kuberos_gpu", problems, 0)
+        pods = _count(hv.get("kuberos_pods"), source, host, "kuberos_pods", problems, 110)
+        arch = hv.get("kuberos_arch", "amd64")
+        if not isinstance(arch, str) or not _LABEL_VALUE.match(arch):
+            problems.append(_host_problem(source, host, "kuberos_arch", f"{describe(arch)} is not valid; expected e.g. amd64 or arm64"))
+        devices = _string_list(hv.get("kuberos_devices"), source, host, "kuberos_devices", problems)
+        for device in devices:
+            if not _NAME.match(device):
+                problems.append(_host_problem(source, host, "kuberos_devices", f"{describe(device)} is not valid; expected device names of lowercase letters, digits and '-'"))
+        common = dict(name=node_name, tier=tier, cpu_millis=cpu, memory_bytes=memory, gpu=gpu, pods=pods, arch=str(arch), devices=frozenset(devices))
+        if tier == "onboard":
+            robot = _name(hv.get("kuberos_robot", host), source, host, "kuberos_robot", problems, "robot name")
+            fleet = hv.get("kuberos_fleet")
+            if fleet is None:
+                problems.append(_host_problem(source, host, "kuberos_fleet", "is required for a robot; expected the name of its fleet"))
+            else:
+                fleet = _name(fleet, source, host, "kuberos_fleet", problems, "fleet name")
+            if robot in robots:
+                problems.append(_host_problem(source, host, "kuberos_robot", f"'{robot}' names another robot already; expected unique robot names"))
+            nodes[node_name] = Node(**common, robot=robot, fleet=fleet, shared=False, resource_group=str(fleet), latency_ms=0.0)
+            robots[robot] = Robot(robot, str(fleet), node_name)
+            link = hv.get("kuberos_link_latency_ms") or {}
+            if not isinstance(link, dict):
+                problems.append(_host_problem(source, host, "kuberos_link_latency_ms", f"{describe(link)} is not valid; expected a mapping of node names to latencies"))
+                link = {}
+            links[robot] = (host, link)
+        else:
+            fleets = _string_list(hv.get("kuberos_fleets"), source, host, "kuberos_fleets", problems)
+            shared = hv.get("kuberos_shared", not fleets)
+            if not isinstance(shared, bool):
+                problems.append(_host_problem(source, host, "kuberos_shared", f"{describe(shared)} is not valid; expected true or false"))
+                shared = False
+            latency = _parse_number(hv.get("kuberos_latency_ms"), quantities.parse_latency_ms, source, host, "kuberos_latency_ms", problems, default=defaults[tier])
+            group = hv.get("kuberos_resource_group", tier)
+            if not isinstance(group, str) or not _LABEL_VALUE.match(group):
+                problems.append(_host_problem(source, host, "kuberos_resource_group", f"{describe(group)} is not valid; expected a name of letters, digits, '-', '_' and '.'"))
+            nodes[node_name] = Node(**common, fleets=fleets, shared=shared, resource_group=str(group), latency_ms=latency)
+
+    known_fleets = {r.fleet for r in robots.values()}
+    for node in nodes.values():
+        for fleet in node.fleets:
+            if fleet not in known_fleets:
+                host = next(h for h, n in host_to_node.items() if n == node.name)
+                problems.append(_host_problem(source, host, "kuberos_fleets", f"'{fleet}' is not a fleet of any robot{did_you_mean(fleet, known_fleets)}"))
+
+    resolved: dict[str, Robot] = {}
+    for name, robot in robots.items():
+        host, link = links[name]
+        overrides = []
+        for target, value in sorted(link.items(), key=lambda kv: str(kv[0])):
+            node_name = host_to_node.get(target, target)
+            if node_name not in nodes:
+                problems.append(_host_problem(source, host, f"kuberos_link_latency_ms.{target}", f"is not a host or node in the inventory{did_you_mean(target, list(host_to_node) + list(nodes))}"))
+                continue
+            try:
+                overrides.append((node_name, quantities.parse_latency_ms(value)))
+            except ValueError as exc:
+                problems.append(_host_problem(source, host, f"kuberos_link_latency_ms.{target}", f"{describe(value)} is not valid; {exc}"))
+        resolved[name] = Robot(robot.name, robot.fleet, robot.node, tuple(overrides))
+    if problems:
+        raise SpecError(problems, title=f"{source} is not a valid KubeROS inventory")
+    return Inventory(nodes, resolved)

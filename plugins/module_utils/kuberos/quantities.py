@@ -1,0 +1,94 @@
+"""Parsing of the units users write: CPU, memory and latency.
+
+All functions return integers or floats in one canonical unit (millicores, bytes,
+milliseconds) and raise ``ValueError`` with a message naming what is expected.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+_CPU = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(m?)\s*$")
+_MEMORY = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(Ki|Mi|Gi|Ti|k|K|M|G|T)?\s*$")
+_LATENCY = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(ms|s)?\s*$")
+
+_MEMORY_FACTORS = {
+    None: 1,
+    "k": 1000,
+    "K": 1000,
+    "M": 1000**2,
+    "G": 1000**3,
+    "T": 1000**4,
+    "Ki": 1024,
+    "Mi": 1024**2,
+    "Gi": 1024**3,
+    "Ti": 1024**4,
+}
+
+CPU_EXPECTED = "expected a CPU quantity such as 2, 0.5 or '500m'"
+MEMORY_EXPECTED = "expected a memory quantity such as '512Mi', '2Gi' or '1G'"
+LATENCY_EXPECTED = "expected a latency such as '200 ms', '0.5 s' or a number of milliseconds"
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def parse_cpu(value) -> int:
+    """CPU in millicores: ``2`` -> 2000, ``'500m'`` -> 500."""
+    if _is_number(value):
+        if value < 0:
+            raise ValueError(CPU_EXPECTED)
+        return int(round(value * 1000))
+    if isinstance(value, str):
+        match = _CPU.match(value)
+        if match:
+            number, milli = float(match.group(1)), match.group(2)
+            return int(round(number if milli else number * 1000))
+    raise ValueError(CPU_EXPECTED)
+
+
+def parse_memory(value) -> int:
+    """Memory in bytes: ``'512Mi'`` -> 536870912, plain numbers are bytes."""
+    if _is_number(value):
+        if value < 0:
+            raise ValueError(MEMORY_EXPECTED)
+        return int(value)
+    if isinstance(value, str):
+        match = _MEMORY.match(value)
+        if match:
+            return int(float(match.group(1)) * _MEMORY_FACTORS[match.group(2)])
+    raise ValueError(MEMORY_EXPECTED)
+
+
+def parse_latency_ms(value) -> float:
+    """Latency in milliseconds: ``'200 ms'`` -> 200.0, ``'0.5 s'`` -> 500.0, ``20`` -> 20.0."""
+    if _is_number(value):
+        if value < 0:
+            raise ValueError(LATENCY_EXPECTED)
+        return float(value)
+    if isinstance(value, str):
+        match = _LATENCY.match(value)
+        if match:
+            number = float(match.group(1))
+            return number * 1000.0 if match.group(2) == "s" else number
+    raise ValueError(LATENCY_EXPECTED)
+
+
+def format_cpu(millis: int) -> str:
+    """Kubernetes form of a CPU amount: ``1500`` -> ``'1500m'``, ``2000`` -> ``'2'``."""
+    return str(millis // 1000) if millis % 1000 == 0 else f"{millis}m"
+
+
+def format_memory(size: int) -> str:
+    """Kubernetes form of a memory amount, in the largest binary unit that divides it."""
+    for unit in ("Ti", "Gi", "Mi", "Ki"):
+        factor = _MEMORY_FACTORS[unit]
+        if size and size % factor == 0:
+            return f"{size // factor}{unit}"
+    return str(size)
+
+
+def format_latency(ms: float) -> str:
+    return f"{ms:g} ms"

@@ -1,0 +1,453 @@
+"""Placement of every module of every robot, and of each fleet's discovery servers.
+
+``place_modules(deployments, inventory, allocated)`` is pure and deterministic:
+
+1. hard requirements filter the nodes (onboard pins to the robot's own computer; max_latency;
+   cpu, memory, GPU and pod slots against what remains after every earlier placement and
+   what ``allocated`` says is already used; arch; devices);
+2. tiers are tried in preference order, falling back only when a tier has no feasible node;
+3. among feasible nodes of a tier the one left with the most free capacity wins (spreading
+   load), ties broken by lower latency and then by name.
+
+Shared modules pack robots onto instances up to ``robotsPerInstance``. Every placement
+carries a short reason; an infeasible module raises ``PlacementError`` with a per-node
+account of why each candidate was rejected.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from . import naming, quantities
+from .errors import PlacementError, Problem, SpecError, did_you_mean
+from .inventory import Inventory, Node
+from .spec import RosDeployment, RosModule
+
+DISCOVERY_CPU_MILLIS = 100
+DISCOVERY_MEMORY_BYTES = 64 * 1024**2
+PLACEMENT_API_VERSION = "kuberos.io/v1alpha1"
+
+
+@dataclass
+class _Free:
+    cpu: int
+    memory: int
+    gpu: int
+    pods: int
+
+
+@dataclass(frozen=True)
+class Instance:
+    """One running copy of a module: where it runs and which robots it serves."""
+
+    name: str
+    deployment: str
+    fleet: str
+    namespace: str
+    module: str
+    node: str
+    tier: str
+    robots: tuple[str, ...]
+    reason: str
+    latency_ms: float
+    cpu_millis: int
+    memory_bytes: int
+    gpu: int
+    shared: bool = False
+
+
+@dataclass(frozen=True)
+class DiscoveryServer:
+    fleet: str
+    namespace: str
+    server_id: int
+    name: str
+    node: str
+    tier: str
+    port: int
+    reason: str
+
+
+@dataclass
+class Placement:
+    instances: list[Instance] = field(default_factory=list)
+    discovery: dict[str, list[DiscoveryServer]] = field(default_factory=dict)
+    deployments: list[dict] = field(default_factory=list)
+
+    def rows(self) -> list[dict]:
+        """One row per (robot, module): the answer to 'where does this run for that robot?'."""
+        rows = []
+        for inst in self.instances:
+            for robot in inst.robots:
+                rows.append(
+                    {
+                        "deployment": inst.deployment,
+                        "fleet": inst.fleet,
+                        "robot": robot,
+                        "module": inst.module,
+                        "instance": inst.name,
+                        "node": inst.node,
+                        "tier": inst.tier,
+                        "robots": list(inst.robots),
+                        "shared": inst.shared,
+                        "reason": inst.reason,
+                    }
+                )
+        rows.sort(key=lambda r: (r["deployment"], r["robot"], r["module"]))
+        return rows
+
+    def to_dict(self) -> dict:
+        return {
+            "apiVersion": PLACEMENT_API_VERSION,
+            "kind": "Placement",
+            "deployments": self.deployments,
+            "discovery": [
+                {
+                    "fleet": fleet,
+                    "namespace": servers[0].namespace,
+                    "port": servers[0].port,
+                    "servers": [
+                        {"id": s.server_id, "name": s.name, "node": s.node, "tier": s.tier, "reason": s.reason}
+                        for s in servers
+                    ],
+                }
+                for fleet, servers in self.discovery.items()
+            ],
+            "instances": [
+                {**{k: v for k, v in asdict(inst).items() if k not in ("robots",)}, "robots": list(inst.robots)}
+                for inst in self.instances
+            ],
+            "placements": self.rows(),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Placement:
+        """Read back ``to_dict`` output (e.g. a placement.json, or a filter result)."""
+        try:
+            instances = [Instance(**{**inst, "robots": tuple(inst["robots"])}) for inst in data["instances"]]
+            discovery = {
+                entry["fleet"]: [
+                    DiscoveryServer(
+                        entry["fleet"], entry["namespace"], s["id"], s["name"], s["node"], s["tier"], entry["port"], s["reason"]
+                    )
+                    for s in entry["servers"]
+                ]
+                for entry in data["discovery"]
+            }
+        except (KeyError, TypeError) as exc:
+            raise SpecError([Problem("placement", "", f"not a placement produced by place_modules ({exc!r})")]) from None
+        return cls(instances, discovery, list(data.get("deployments", [])))
+
+
+def _initial_free(inventory: Inventory, allocated: dict | None) -> dict[str, _Free]:
+    free = {n.name: _Free(n.cpu_millis, n.memory_bytes, n.gpu, n.pods) for n in inventory.nodes.values()}
+    problems = []
+    for node, used in sorted((allocated or {}).items()):
+        if node not in free:
+            continue  # workloads on nodes outside the inventory do not constrain placement
+        try:
+            free[node].cpu -= quantities.parse_cpu(used.get("cpu", 0))
+            free[node].memory -= quantities.parse_memory(used.get("memory", 0))
+            free[node].gpu -= int(used.get("gpu", 0))
+            free[node].pods -= int(used.get("pods", 0))
+        except (ValueError, AttributeError, TypeError) as exc:
+            problems.append(Problem("allocated", node, f"{used!r} is not valid; expected cpu, memory, gpu and pods ({exc})"))
+    if problems:
+        raise SpecError(problems, title="invalid allocation data")
+    return free
+
+
+def _fmt_cpu(millis: int) -> str:
+    return f"{millis / 1000:g}"
+
+
+def _fmt_mem(size: int) -> str:
+    return f"{size / 1024**3:.3g}Gi" if size >= 1024**3 else f"{size / 1024**2:.3g}Mi"
+
+
+class _Scheduler:
+    def __init__(self, inventory: Inventory, allocated: dict | None):
+        self.inventory = inventory
+        self.free = _initial_free(inventory, allocated)
+        self.failures: list[str] = []
+
+    # -- feasibility -------------------------------------------------------------------------
+    def rejection(self, node: Node, module: RosModule, robots, cpu: int, memory: int, gpu: int) -> str | None:
+        """Why ``node`` cannot run this instance for ``robots``, or None when it can."""
+        req = module.requirements if module is not None else None
+        if req is not None:
+            if req.arch and node.arch not in req.arch:
+                return f"arch {node.arch}, needs {'/'.join(req.arch)}"
+            missing = [d for d in req.devices if d not in node.devices]
+            if missing:
+                return f"lacks device(s) {', '.join(missing)}"
+            if req.max_latency_ms is not None:
+                for robot in robots:
+                    latency = self.inventory.latency_ms(robot, node.name)
+                    if latency > req.max_latency_ms:
+                        return f"latency {latency:g} ms to {robot} > max_latency {req.max_latency_ms:g} ms"
+        free = self.free[node.name]
+        if free.pods < 1:
+            return "no pod slots left"
+        if free.cpu < cpu:
+            return f"cpu: needs {_fmt_cpu(cpu)}, {_fmt_cpu(max(free.cpu, 0))} free of {_fmt_cpu(node.cpu_millis)}"
+        if free.memory < memory:
+            return f"memory: needs {_fmt_mem(memory)}, {_fmt_mem(max(free.memory, 0))} free of {_fmt_mem(node.memory_bytes)}"
+        if free.gpu < gpu:
+            return f"gpu: needs {gpu}, {max(free.gpu, 0)} free of {node.gpu}"
+        return None
+
+    def score(self, node: Node, cpu: int, memory: int, gpu: int) -> float:
+        """Fraction of the node left free after this placement, on its scarcest resource."""
+        free = self.free[node.name]
+        parts = [(free.cpu - cpu) / node.cpu_millis if node.cpu_millis else 0.0]
+        parts.append((free.memory - memory) / node.memory_bytes if node.memory_bytes else 0.0)
+        if gpu:
+            parts.append((free.gpu - gpu) / node.gpu)
+        return min(parts)
+
+    def take(self, node: str, cpu: int, memory: int, gpu: int):
+        free = self.free[node]
+        free.cpu -= cpu
+        free.memory -= memory
+        free.gpu -= gpu
+        free.pods -= 1
+
+    def candidates(self, tier: str, fleet: str, robot: str | None) -> tuple[Node, ...]:
+        if tier == "onboard":
+            return (self.inventory.nodes[self.inventory.robots[robot].node],) if robot else ()
+        return self.inventory.tier_nodes(tier, fleet)
+
+    def choose(self, deployment: RosDeployment, module: RosModule, robots: tuple[str, ...]):
+        """Pick a node for one instance serving ``robots``: (node, tier, reason) or None."""
+        res = module.resources
+        accounts: list[str] = []
+        skipped: list[str] = []
+        robot = robots[0] if len(robots) == 1 else None
+        for tier in module.tiers:
+            best = None
+            feasible = 0
+            for node in self.candidates(tier, deployment.fleet, robot):
+                why = self.rejection(node, module, robots, res.cpu_millis, res.memory_bytes, res.gpu)
+                if why is not None:
+                    accounts.append(f"{node.name} ({tier}): {why}")
+                    continue
+                feasible += 1
+                latency = max(self.inventory.latency_ms(r, node.name) for r in robots)
+                key = (-self.score(node, res.cpu_millis, res.memory_bytes, res.gpu), latency, node.name)
+                if best is None or key < best[0]:
+                    best = (key, node, latency)
+            if not self.candidates(tier, deployment.fleet, robot):
+                accounts.append(f"({tier}): no {tier} nodes available to fleet {deployment.fleet}")
+            if best is not None:
+                _, node, latency = best
+                self.take(node.name, res.cpu_millis, res.memory_bytes, res.gpu)
+                return node, tier, latency, self._reason(module, tier, skipped, feasible, latency)
+            skipped.append(tier)
+        return None, None, None, accounts
+
+    @staticmethod
+    def _reason(module: RosModule, tier: str, skipped: list[str], feasible: int, latency: float) -> str:
+        if module.requirements.onboard:
+            head = "onboard required"
+        elif skipped:
+            head = f"fallback to {tier} ({', '.join(skipped)}: no feasible node)"
+        else:
+            head = f"preferred tier {tier}"
+        parts = [head]
+        if tier != "onboard":
+            parts.append(f"most free of {feasible} feasible")
+        if module.requirements.max_latency_ms is not None:
+            parts.append(f"{latency:g} ms <= {module.requirements.max_latency_ms:g} ms")
+        return "; ".join(parts)
+
+    def fail(self, deployment: RosDeployment, module: RosModule, robots, accounts):
+        line = deployment.line_of(module.path)
+        where = f"{deployment.source}:{line}" if line else deployment.source
+        who = f"robot {robots[0]}" if len(robots) == 1 else f"robots {', '.join(robots)}"
+        head = (
+            f"{where}: {module.path} '{module.name}' of {deployment.name} has no feasible node for {who} "
+            f"(tiers tried: {', '.join(module.tiers)})"
+        )
+        self.failures.append("\n".join([head] + [f"    {a}" for a in accounts]))
+
+    # -- modules -----------------------------------------------------------------------------
+    def place_module(self, deployment: RosDeployment, module: RosModule, robots: tuple[str, ...], out: list[Instance]):
+        namespace = naming.fleet_namespace(deployment.fleet)
+        res = module.resources
+        if module.strategy != "shared":
+            for robot in robots:
+                node, tier, latency, detail = self.choose(deployment, module, (robot,))
+                if node is None:
+                    self.fail(deployment, module, (robot,), detail)
+                    continue
+                out.append(
+                    Instance(
+                        naming.dedicated_instance_name(deployment.name, module.name, robot),
+                        deployment.name, deployment.fleet, namespace, module.name, node.name, tier,
+                        (robot,), detail, latency, res.cpu_millis, res.memory_bytes, res.gpu,
+                    )
+                )
+            return
+        open_instances: list[dict] = []
+        for robot in robots:
+            joined = False
+            for inst in open_instances:
+                if len(inst["robots"]) >= module.robots_per_instance:
+                    continue
+                latency = self.inventory.latency_ms(robot, inst["node"].name)
+                limit = module.requirements.max_latency_ms
+                if limit is not None and latency > limit:
+                    continue
+                inst["robots"].append(robot)
+                inst["latency"] = max(inst["latency"], latency)
+                joined = True
+                break
+            if joined:
+                continue
+            node, tier, latency, detail = self.choose(deployment, module, (robot,))
+            if node is None:
+                self.fail(deployment, module, (robot,), detail)
+                continue
+            open_instances.append({"node": node, "tier": tier, "robots": [robot], "latency": latency, "reason": detail})
+        for index, inst in enumerate(open_instances):
+            out.append(
+                Instance(
+                    naming.shared_instance_name(deployment.name, module.name, index),
+                    deployment.name, deployment.fleet, namespace, module.name, inst["node"].name, inst["tier"],
+                    tuple(inst["robots"]),
+                    f"{inst['reason']}; shared by {len(inst['robots'])}/{module.robots_per_instance} robots",
+                    inst["latency"], res.cpu_millis, res.memory_bytes, res.gpu, shared=True,
+                )
+            )
+
+    # -- discovery servers -------------------------------------------------------------------
+    def place_discovery(self, fleet: str, count: int, port: int) -> list[DiscoveryServer]:
+        namespace = naming.fleet_namespace(fleet)
+        robots = self.inventory.fleets[fleet]
+        tiers = [
+            ("edge", self.inventory.tier_nodes("edge", fleet)),
+            ("cloud", self.inventory.tier_nodes("cloud", fleet)),
+            ("onboard", tuple(self.inventory.nodes[self.inventory.robots[r].node] for r in robots)),
+        ]
+        servers: list[DiscoveryServer] = []
+        used: set[str] = set()
+        accounts: list[str] = []
+        for server_id in range(count):
+            chosen = None
+            for distinct in (True, False):
+                for tier, nodes in tiers:
+                    options = []
+                    for node in nodes:
+                        if distinct and node.name in used:
+                            continue
+                        why = self.rejection(node, None, (), DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+                        if why is None:
+                            options.append((-self.score(node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0), node.name, node, tier))
+                        elif distinct:
+                            accounts.append(f"{node.name} ({tier}): {why}")
+                    if options:
+                        chosen = min(options)
+                        break
+                if chosen:
+                    break
+            if chosen is None:
+                self.failures.append(
+                    "\n".join(
+                        [f"discovery server {server_id} of fleet {fleet} has no node with room for it"]
+                        + [f"    {a}" for a in accounts]
+                    )
+                )
+                continue
+            _, _, node, tier = chosen
+            shares = node.name in used
+            used.add(node.name)
+            self.take(node.name, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+            reason = f"{tier} node; distinct from other servers" if not shares else f"{tier} node; shares it with another server (too few nodes)"
+            servers.append(
+                DiscoveryServer(fleet, namespace, server_id, naming.discovery_server_name(server_id), node.name, tier, port, reason)
+            )
+        return servers
+
+
+def _check_against_inventory(deployments: list[RosDeployment], inventory: Inventory) -> list[Problem]:
+    problems = []
+    ports: dict[str, tuple[int, str]] = {}
+    for dep in deployments:
+        if dep.fleet not in inventory.fleets:
+            problems.append(
+                Problem(
+                    dep.source, "metadata.targetFleet",
+                    f"'{dep.fleet}' is not a fleet in the inventory{did_you_mean(dep.fleet, inventory.fleets)} "
+                    f"(fleets: {', '.join(inventory.fleets) or 'none'})",
+                    dep.line_of("metadata.targetFleet"),
+                )
+            )
+            continue
+        members = inventory.fleets[dep.fleet]
+        for index, robot in enumerate(dep.robots or ()):
+            if robot in members:
+                continue
+            path = f"metadata.robotSelector.robot[{index}]"
+            if robot in inventory.robots:
+                detail = f"it belongs to fleet {inventory.robots[robot].fleet}"
+            else:
+                detail = f"robots of {dep.fleet}: {', '.join(members)}{did_you_mean(robot, members)}"
+            problems.append(Problem(dep.source, path, f"'{robot}' is not a robot of fleet {dep.fleet} ({detail})", dep.line_of(path)))
+        if dep.fleet in ports and ports[dep.fleet][0] != dep.discovery_port:
+            problems.append(
+                Problem(
+                    dep.source, "discovery.port",
+                    f"{dep.discovery_port} differs from port {ports[dep.fleet][0]} set by {ports[dep.fleet][1]} "
+                    f"for the same fleet; expected one port per fleet",
+                    dep.line_of("discovery.port"),
+                )
+            )
+        ports.setdefault(dep.fleet, (dep.discovery_port, dep.source))
+    return problems
+
+
+def place_modules(deployments: list[RosDeployment], inventory: Inventory, allocated: dict | None = None) -> Placement:
+    """Place every module instance of every deployment; see the module docstring."""
+    problems = _check_against_inventory(deployments, inventory)
+    if problems:
+        raise SpecError(problems, title="the RosDeployment does not match the inventory")
+    scheduler = _Scheduler(inventory, allocated)
+    placement = Placement()
+    fleets: dict[str, list[RosDeployment]] = {}
+    for dep in deployments:
+        fleets.setdefault(dep.fleet, []).append(dep)
+    for fleet in sorted(fleets):
+        count = max(d.discovery_servers for d in fleets[fleet])
+        placement.discovery[fleet] = scheduler.place_discovery(fleet, count, fleets[fleet][0].discovery_port)
+    for dep in deployments:
+        robots = tuple(sorted(dep.robots)) if dep.robots else inventory.fleets[dep.fleet]
+        placement.deployments.append(
+            {
+                "name": dep.name,
+                "fleet": dep.fleet,
+                "namespace": naming.fleet_namespace(dep.fleet),
+                "robots": list(robots),
+                "source": dep.source,
+            }
+        )
+        for module in dep.modules:
+            scheduler.place_module(dep, module, robots, placement.instances)
+    if scheduler.failures:
+        raise PlacementError(scheduler.failures)
+    return placement
+
+
+def placement_table(placement: Placement) -> str:
+    """A fixed-width table of where every module of every robot runs, and the discovery servers."""
+    header = ("DEPLOYMENT", "ROBOT", "MODULE", "TIER", "NODE", "REASON")
+    rows = [(r["deployment"], r["robot"], r["module"], r["tier"], r["node"], r["reason"]) for r in placement.rows()]
+    for fleet, servers in placement.discovery.items():
+        for s in servers:
+            rows.append((f"(fleet {fleet})", "-", s.name, s.tier, s.node, s.reason))
+    widths = [max(len(str(row[i])) for row in [header] + rows) for i in range(len(header) - 1)]
+    lines = []
+    for row in [header] + rows:
+        cells = [str(cell).ljust(width) for cell, width in zip(row, widths)]
+        lines.append("  ".join(cells + [str(row[-1])]).rstrip())
+    return "\n".join(lines)

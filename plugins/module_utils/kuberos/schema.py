@@ -1,0 +1,249 @@
+"""The JSON Schema of a RosDeployment.
+
+This dictionary is the single definition of the spec's shape: the validator uses it, and
+``docs/rosdeployment.schema.json`` is generated from it (``make schema``; a test keeps the
+two equal). ``x-expected`` holds the phrase error messages use to say what is expected.
+"""
+
+from __future__ import annotations
+
+API_VERSION = "kuberos.io/v1alpha1"
+KIND = "RosDeployment"
+TIERS = ("onboard", "edge", "cloud")
+STRATEGIES = ("dedicated", "shared")
+
+DNS_LABEL = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
+ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
+LATENCY = r"^\s*[0-9]+(\.[0-9]+)?\s*(ms|s)?\s*$"
+CPU = r"^\s*[0-9]+(\.[0-9]+)?\s*m?\s*$"
+MEMORY = r"^\s*[0-9]+(\.[0-9]+)?\s*(Ki|Mi|Gi|Ti|k|K|M|G|T)?\s*$"
+
+_TIER = {"type": "string", "enum": list(TIERS), "x-expected": "one of onboard, edge, cloud"}
+
+SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "$id": "https://kuberos.io/schemas/rosdeployment-v1alpha1.json",
+    "title": "RosDeployment",
+    "description": "Deploys ROS 2 modules to the robots of one fleet, onboard, at the edge or in the cloud.",
+    "type": "object",
+    "x-expected": "a mapping with metadata and rosModules",
+    "additionalProperties": False,
+    "required": ["metadata", "rosModules"],
+    "properties": {
+        "apiVersion": {"const": API_VERSION, "x-expected": f"'{API_VERSION}'"},
+        "kind": {"const": KIND, "x-expected": f"'{KIND}'"},
+        "metadata": {
+            "type": "object",
+            "x-expected": "a mapping with name and targetFleet",
+            "additionalProperties": False,
+            "required": ["name", "targetFleet"],
+            "properties": {
+                "name": {
+                    "type": "string",
+                    "pattern": DNS_LABEL,
+                    "maxLength": 40,
+                    "description": "Name of the deployment; lowercase letters, digits and '-'.",
+                    "x-expected": "a name of at most 40 lowercase letters, digits and '-', such as 'picking-demo'",
+                },
+                "targetFleet": {
+                    "type": "string",
+                    "minLength": 1,
+                    "description": "The fleet (from the inventory) whose robots this deployment serves.",
+                    "x-expected": "the name of a fleet in the inventory",
+                },
+                "robotSelector": {
+                    "type": "object",
+                    "x-expected": "a mapping with a 'robot' list",
+                    "additionalProperties": False,
+                    "properties": {
+                        "robot": {
+                            "type": "array",
+                            "minItems": 1,
+                            "uniqueItems": True,
+                            "items": {"type": "string", "minLength": 1, "x-expected": "a robot name"},
+                            "description": "Robots of the fleet to deploy to; all robots of the fleet when absent.",
+                            "x-expected": "a non-empty list of distinct robot names",
+                        }
+                    },
+                },
+                "labels": {
+                    "type": "object",
+                    "additionalProperties": {"type": "string", "maxLength": 63, "x-expected": "a string label value"},
+                    "description": "Extra labels put on every object of the deployment.",
+                    "x-expected": "a mapping of label names to strings",
+                },
+            },
+        },
+        "rosDomainId": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 232,
+            "default": 0,
+            "description": "ROS_DOMAIN_ID of every module.",
+            "x-expected": "an integer from 0 to 232",
+        },
+        "discovery": {
+            "type": "object",
+            "x-expected": "a mapping with servers and port",
+            "additionalProperties": False,
+            "properties": {
+                "servers": {
+                    "type": "integer",
+                    "minimum": 1,
+                    "maximum": 8,
+                    "default": 2,
+                    "description": "Number of redundant Fast DDS discovery servers for the fleet.",
+                    "x-expected": "an integer from 1 to 8",
+                },
+                "port": {
+                    "type": "integer",
+                    "minimum": 1024,
+                    "maximum": 65535,
+                    "default": 11811,
+                    "description": "UDP port of the discovery servers.",
+                    "x-expected": "a port number from 1024 to 65535",
+                },
+            },
+        },
+        "rosModules": {
+            "type": "array",
+            "minItems": 1,
+            "x-expected": "a non-empty list of modules",
+            "items": {
+                "type": "object",
+                "x-expected": "a mapping with name, image and launch",
+                "additionalProperties": False,
+                "required": ["name", "image", "launch"],
+                "properties": {
+                    "name": {
+                        "type": "string",
+                        "pattern": DNS_LABEL,
+                        "maxLength": 40,
+                        "description": "Module name, unique in the deployment.",
+                        "x-expected": "a name of at most 40 lowercase letters, digits and '-', such as 'motion-planner'",
+                    },
+                    "image": {
+                        "type": "string",
+                        "minLength": 1,
+                        "pattern": r"^\S+$",
+                        "description": "Container image of the module.",
+                        "x-expected": "a container image reference without spaces, such as 'registry/planner:1.0'",
+                    },
+                    "launch": {
+                        "anyOf": [
+                            {"type": "string", "minLength": 1},
+                            {"type": "array", "minItems": 1, "items": {"type": "string", "minLength": 1}},
+                        ],
+                        "description": "Command line(s) that start the module, e.g. 'ros2 launch pkg file.launch.py'.",
+                        "x-expected": "a command line or a non-empty list of command lines",
+                    },
+                    "preference": {
+                        "anyOf": [
+                            _TIER,
+                            {"type": "array", "minItems": 1, "uniqueItems": True, "items": _TIER},
+                        ],
+                        "description": (
+                            "Where the module should run. A single tier falls back to the others in a fixed "
+                            "order; a list is the exact order of tiers to try."
+                        ),
+                        "x-expected": "one of onboard, edge, cloud, or an ordered list of them without repeats",
+                    },
+                    "requirements": {
+                        "type": "object",
+                        "x-expected": "a mapping of requirements",
+                        "additionalProperties": False,
+                        "properties": {
+                            "onboard": {
+                                "type": "boolean",
+                                "description": "The module must run on the robot's own computer.",
+                                "x-expected": "true or false",
+                            },
+                            "max_latency": {
+                                "type": ["string", "number"],
+                                "pattern": LATENCY,
+                                "minimum": 0,
+                                "description": "Largest network latency allowed between the robot and the node.",
+                                "x-expected": "a latency such as '200 ms', '0.5 s' or a number of milliseconds",
+                            },
+                            "arch": {
+                                "anyOf": [
+                                    {"type": "string", "minLength": 1},
+                                    {"type": "array", "minItems": 1, "items": {"type": "string", "minLength": 1}},
+                                ],
+                                "description": "CPU architecture(s) the image runs on, e.g. amd64 or [amd64, arm64].",
+                                "x-expected": "an architecture such as 'amd64' or a list of them",
+                            },
+                            "devices": {
+                                "type": "array",
+                                "uniqueItems": True,
+                                "items": {"type": "string", "minLength": 1},
+                                "description": "Devices the node must carry, e.g. [camera, lidar].",
+                                "x-expected": "a list of distinct device names",
+                            },
+                        },
+                    },
+                    "resources": {
+                        "type": "object",
+                        "x-expected": "a mapping with cpu, memory and gpu",
+                        "additionalProperties": False,
+                        "properties": {
+                            "cpu": {
+                                "type": ["string", "number"],
+                                "pattern": CPU,
+                                "minimum": 0,
+                                "default": "100m",
+                                "description": "CPU requested, e.g. 2 or '500m'.",
+                                "x-expected": "a CPU quantity such as 2, 0.5 or '500m'",
+                            },
+                            "memory": {
+                                "type": ["string", "integer"],
+                                "pattern": MEMORY,
+                                "minimum": 0,
+                                "default": "128Mi",
+                                "description": "Memory requested and limited to, e.g. '512Mi'.",
+                                "x-expected": "a memory quantity such as '512Mi', '2Gi' or '1G'",
+                            },
+                            "gpu": {
+                                "type": "integer",
+                                "minimum": 0,
+                                "maximum": 16,
+                                "default": 0,
+                                "description": "Number of GPUs (nvidia.com/gpu).",
+                                "x-expected": "a whole number of GPUs from 0 to 16",
+                            },
+                        },
+                    },
+                    "strategy": {
+                        "type": "string",
+                        "enum": list(STRATEGIES),
+                        "default": "dedicated",
+                        "description": "dedicated: one instance per robot; shared: one instance serves several robots.",
+                        "x-expected": "dedicated or shared",
+                    },
+                    "robotsPerInstance": {
+                        "type": "integer",
+                        "minimum": 1,
+                        "maximum": 1000,
+                        "description": "With strategy shared: most robots one instance serves (default 4).",
+                        "x-expected": "a whole number from 1 to 1000",
+                    },
+                    "env": {
+                        "type": "object",
+                        "propertyNames": {"pattern": ENV_NAME},
+                        "additionalProperties": {
+                            "type": ["string", "number", "boolean"],
+                            "x-expected": "a string, number or boolean",
+                        },
+                        "description": "Extra environment variables of the module's container.",
+                        "x-expected": "a mapping of variable names to values",
+                    },
+                    "rosParameters": {
+                        "type": "object",
+                        "description": "ROS parameters, written to a ConfigMap and mounted as a parameter file.",
+                        "x-expected": "a mapping of parameter names to values",
+                    },
+                },
+            },
+        },
+    },
+}
