@@ -141,7 +141,9 @@ def _name(value, source, host, var, problems, what):
     if not isinstance(value, str) or not _NAME.match(value) or len(value) > 63:
         problems.append(
             _host_problem(
-                source, host, var,
+                source,
+                host,
+                var,
                 f"{describe(value)} is not valid; expected a {what} of lowercase letters, digits, '-' and '.'",
             )
         )
@@ -152,7 +154,9 @@ def _tier_of(host, groups, source, problems):
     tiers = [tier for group, tier in TIER_GROUPS.items() if host in groups.get(group, ())]
     if len(tiers) > 1:
         names = [g for g in TIER_GROUPS if host in groups.get(g, ())]
-        problems.append(_host_problem(source, host, "", f"is in groups {', '.join(names)}; expected exactly one of robots, edge, cloud"))
+        problems.append(
+            _host_problem(source, host, "", f"is in groups {', '.join(names)}; expected exactly one of robots, edge, cloud")
+        )
     return tiers[0]
 
 
@@ -166,7 +170,13 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
     defaults = dict(DEFAULT_LATENCY_MS)
     for tier, value in (raw.get("default_latency_ms") or {}).items():
         if tier not in defaults:
-            problems.append(Problem(source, f"kuberos_default_latency_ms.{tier}", f"unknown tier{did_you_mean(tier, defaults)}; expected onboard, edge or cloud"))
+            problems.append(
+                Problem(
+                    source,
+                    f"kuberos_default_latency_ms.{tier}",
+                    f"unknown tier{did_you_mean(tier, defaults)}; expected onboard, edge or cloud",
+                )
+            )
             continue
         try:
             defaults[tier] = quantities.parse_latency_ms(value)
@@ -185,7 +195,14 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
         tier = _tier_of(host, groups, source, problems)
         node_name = _name(hv.get("kuberos_node_name", host), source, host, "kuberos_node_name", problems, "node name")
         if node_name in nodes:
-            problems.append(_host_problem(source, host, "kuberos_node_name", f"'{node_name}' is already the node name of another host; expected unique node names"))
+            problems.append(
+                _host_problem(
+                    source,
+                    host,
+                    "kuberos_node_name",
+                    f"'{node_name}' is already the node name of another host; expected unique node names",
+                )
+            )
         host_to_node[host] = node_name
         cpu = _parse_number(hv.get("kuberos_cpu"), quantities.parse_cpu, source, host, "kuberos_cpu", problems)
         memory = _parse_number(hv.get("kuberos_memory"), quantities.parse_memory, source, host, "kuberos_memory", problems)
@@ -193,38 +210,86 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
         pods = _count(hv.get("kuberos_pods"), source, host, "kuberos_pods", problems, 110)
         arch = hv.get("kuberos_arch", "amd64")
         if not isinstance(arch, str) or not _LABEL_VALUE.match(arch):
-            problems.append(_host_problem(source, host, "kuberos_arch", f"{describe(arch)} is not valid; expected e.g. amd64 or arm64"))
+            problems.append(
+                _host_problem(source, host, "kuberos_arch", f"{describe(arch)} is not valid; expected e.g. amd64 or arm64")
+            )
         devices = _string_list(hv.get("kuberos_devices"), source, host, "kuberos_devices", problems)
         for device in devices:
             if not _NAME.match(device):
-                problems.append(_host_problem(source, host, "kuberos_devices", f"{describe(device)} is not valid; expected device names of lowercase letters, digits and '-'"))
-        common = dict(name=node_name, tier=tier, cpu_millis=cpu, memory_bytes=memory, gpu=gpu, pods=pods, arch=str(arch), devices=frozenset(devices))
+                problems.append(
+                    _host_problem(
+                        source,
+                        host,
+                        "kuberos_devices",
+                        f"{describe(device)} is not valid; expected device names of lowercase letters, digits and '-'",
+                    )
+                )
+        common = dict(
+            name=node_name,
+            tier=tier,
+            cpu_millis=cpu,
+            memory_bytes=memory,
+            gpu=gpu,
+            pods=pods,
+            arch=str(arch),
+            devices=frozenset(devices),
+        )
         if tier == "onboard":
             robot = _name(hv.get("kuberos_robot", host), source, host, "kuberos_robot", problems, "robot name")
             fleet = hv.get("kuberos_fleet")
             if fleet is None:
-                problems.append(_host_problem(source, host, "kuberos_fleet", "is required for a robot; expected the name of its fleet"))
+                problems.append(
+                    _host_problem(source, host, "kuberos_fleet", "is required for a robot; expected the name of its fleet")
+                )
             else:
                 fleet = _name(fleet, source, host, "kuberos_fleet", problems, "fleet name")
             if robot in robots:
-                problems.append(_host_problem(source, host, "kuberos_robot", f"'{robot}' names another robot already; expected unique robot names"))
+                problems.append(
+                    _host_problem(
+                        source, host, "kuberos_robot", f"'{robot}' names another robot already; expected unique robot names"
+                    )
+                )
             nodes[node_name] = Node(**common, robot=robot, fleet=fleet, shared=False, resource_group=str(fleet), latency_ms=0.0)
             robots[robot] = Robot(robot, str(fleet), node_name)
             link = hv.get("kuberos_link_latency_ms") or {}
             if not isinstance(link, dict):
-                problems.append(_host_problem(source, host, "kuberos_link_latency_ms", f"{describe(link)} is not valid; expected a mapping of node names to latencies"))
+                problems.append(
+                    _host_problem(
+                        source,
+                        host,
+                        "kuberos_link_latency_ms",
+                        f"{describe(link)} is not valid; expected a mapping of node names to latencies",
+                    )
+                )
                 link = {}
             links[robot] = (host, link)
         else:
             fleets = _string_list(hv.get("kuberos_fleets"), source, host, "kuberos_fleets", problems)
             shared = hv.get("kuberos_shared", not fleets)
             if not isinstance(shared, bool):
-                problems.append(_host_problem(source, host, "kuberos_shared", f"{describe(shared)} is not valid; expected true or false"))
+                problems.append(
+                    _host_problem(source, host, "kuberos_shared", f"{describe(shared)} is not valid; expected true or false")
+                )
                 shared = False
-            latency = _parse_number(hv.get("kuberos_latency_ms"), quantities.parse_latency_ms, source, host, "kuberos_latency_ms", problems, default=defaults[tier])
+            latency = _parse_number(
+                hv.get("kuberos_latency_ms"),
+                quantities.parse_latency_ms,
+                source,
+                host,
+                "kuberos_latency_ms",
+                problems,
+                default=defaults[tier],
+            )
             group = hv.get("kuberos_resource_group", tier)
             if not isinstance(group, str) or not _LABEL_VALUE.match(group):
-                problems.append(_host_problem(source, host, "kuberos_resource_group", f"{describe(group)} is not valid; expected a name of letters, digits, '-', '_' and '.'"))
+                problems.append(
+                    _host_problem(
+                        source,
+                        host,
+                        "kuberos_resource_group",
+                        f"{describe(group)} is not valid; expected a name of letters, digits, '-', '_' and '.'",
+                    )
+                )
             nodes[node_name] = Node(**common, fleets=fleets, shared=shared, resource_group=str(group), latency_ms=latency)
 
     known_fleets = {r.fleet for r in robots.values()}
@@ -232,7 +297,14 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
         for fleet in node.fleets:
             if fleet not in known_fleets:
                 host = next(h for h, n in host_to_node.items() if n == node.name)
-                problems.append(_host_problem(source, host, "kuberos_fleets", f"'{fleet}' is not a fleet of any robot{did_you_mean(fleet, known_fleets)}"))
+                problems.append(
+                    _host_problem(
+                        source,
+                        host,
+                        "kuberos_fleets",
+                        f"'{fleet}' is not a fleet of any robot{did_you_mean(fleet, known_fleets)}",
+                    )
+                )
 
     resolved: dict[str, Robot] = {}
     for name, robot in robots.items():
@@ -241,12 +313,21 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
         for target, value in sorted(link.items(), key=lambda kv: str(kv[0])):
             node_name = host_to_node.get(target, target)
             if node_name not in nodes:
-                problems.append(_host_problem(source, host, f"kuberos_link_latency_ms.{target}", f"is not a host or node in the inventory{did_you_mean(target, list(host_to_node) + list(nodes))}"))
+                problems.append(
+                    _host_problem(
+                        source,
+                        host,
+                        f"kuberos_link_latency_ms.{target}",
+                        f"is not a host or node in the inventory{did_you_mean(target, list(host_to_node) + list(nodes))}",
+                    )
+                )
                 continue
             try:
                 overrides.append((node_name, quantities.parse_latency_ms(value)))
             except ValueError as exc:
-                problems.append(_host_problem(source, host, f"kuberos_link_latency_ms.{target}", f"{describe(value)} is not valid; {exc}"))
+                problems.append(
+                    _host_problem(source, host, f"kuberos_link_latency_ms.{target}", f"{describe(value)} is not valid; {exc}")
+                )
         resolved[name] = Robot(robot.name, robot.fleet, robot.node, tuple(overrides))
     if problems:
         raise SpecError(problems, title=f"{source} is not a valid KubeROS inventory")

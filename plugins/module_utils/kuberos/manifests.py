@@ -84,7 +84,13 @@ def _discovery_objects(server: DiscoveryServer, options: RenderOptions) -> list[
                 "image": options.discovery_image,
                 "imagePullPolicy": options.image_pull_policy,
                 "command": [
-                    "fast-discovery-server", "-i", str(server.server_id), "-l", "0.0.0.0", "-p", str(server.port),
+                    "fast-discovery-server",
+                    "-i",
+                    str(server.server_id),
+                    "-l",
+                    "0.0.0.0",
+                    "-p",
+                    str(server.port),
                 ],
                 "ports": [{"name": "discovery", "containerPort": server.port, "protocol": "UDP"}],
                 "resources": {
@@ -183,9 +189,7 @@ def _module_deployment(
     if module.ros_parameters:
         env.append({"name": "KUBEROS_PARAMS_FILE", "value": f"{PARAMS_DIR}/{PARAMS_FILE}"})
         container["volumeMounts"] = [{"name": "ros-parameters", "mountPath": PARAMS_DIR, "readOnly": True}]
-        pod_spec["volumes"] = [
-            {"name": "ros-parameters", "configMap": {"name": params_configmap_name(dep.name, module.name)}}
-        ]
+        pod_spec["volumes"] = [{"name": "ros-parameters", "configMap": {"name": params_configmap_name(dep.name, module.name)}}]
     env.extend({"name": name, "value": value} for name, value in sorted(module.env))
     return {
         "apiVersion": "apps/v1",
@@ -212,9 +216,7 @@ def _module_deployment(
 _KIND_ORDER = {"Namespace": 0, "ConfigMap": 1, "Service": 2, "Deployment": 3}
 
 
-def render_deployment(
-    deployments: list[RosDeployment], placement: Placement, options: RenderOptions | None = None
-) -> list[dict]:
+def render_deployment(deployments: list[RosDeployment], placement: Placement, options: RenderOptions | None = None) -> list[dict]:
     """Every object the placement needs, ordered for applying (namespaces first)."""
     options = options or RenderOptions()
     by_name = {d.name: d for d in deployments}

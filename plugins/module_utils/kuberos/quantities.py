@@ -40,12 +40,12 @@ def parse_cpu(value) -> int:
     if _is_number(value):
         if value < 0:
             raise ValueError(CPU_EXPECTED)
-        return int(round(value * 1000))
+        return round(value * 1000)
     if isinstance(value, str):
         match = _CPU.match(value)
         if match:
             number, milli = float(match.group(1)), match.group(2)
-            return int(round(number if milli else number * 1000))
+            return round(number if milli else number * 1000)
     raise ValueError(CPU_EXPECTED)
 
 

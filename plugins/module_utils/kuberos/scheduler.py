@@ -107,8 +107,7 @@ class Placement:
                     "namespace": servers[0].namespace,
                     "port": servers[0].port,
                     "servers": [
-                        {"id": s.server_id, "name": s.name, "node": s.node, "tier": s.tier, "reason": s.reason}
-                        for s in servers
+                        {"id": s.server_id, "name": s.name, "node": s.node, "tier": s.tier, "reason": s.reason} for s in servers
                     ],
                 }
                 for fleet, servers in self.discovery.items()
@@ -194,6 +193,8 @@ class _Scheduler:
         if free.memory < memory:
             return f"memory: needs {_fmt_mem(memory)}, {_fmt_mem(max(free.memory, 0))} free of {_fmt_mem(node.memory_bytes)}"
         if free.gpu < gpu:
+            if not node.gpu:
+                return f"gpu: needs {gpu}, node has none"
             return f"gpu: needs {gpu}, {max(free.gpu, 0)} free of {node.gpu}"
         return None
 
@@ -284,8 +285,18 @@ class _Scheduler:
                 out.append(
                     Instance(
                         naming.dedicated_instance_name(deployment.name, module.name, robot),
-                        deployment.name, deployment.fleet, namespace, module.name, node.name, tier,
-                        (robot,), detail, latency, res.cpu_millis, res.memory_bytes, res.gpu,
+                        deployment.name,
+                        deployment.fleet,
+                        namespace,
+                        module.name,
+                        node.name,
+                        tier,
+                        (robot,),
+                        detail,
+                        latency,
+                        res.cpu_millis,
+                        res.memory_bytes,
+                        res.gpu,
                     )
                 )
             return
@@ -314,10 +325,19 @@ class _Scheduler:
             out.append(
                 Instance(
                     naming.shared_instance_name(deployment.name, module.name, index),
-                    deployment.name, deployment.fleet, namespace, module.name, inst["node"].name, inst["tier"],
+                    deployment.name,
+                    deployment.fleet,
+                    namespace,
+                    module.name,
+                    inst["node"].name,
+                    inst["tier"],
                     tuple(inst["robots"]),
                     f"{inst['reason']}; shared by {len(inst['robots'])}/{module.robots_per_instance} robots",
-                    inst["latency"], res.cpu_millis, res.memory_bytes, res.gpu, shared=True,
+                    inst["latency"],
+                    res.cpu_millis,
+                    res.memory_bytes,
+                    res.gpu,
+                    shared=True,
                 )
             )
 
@@ -343,7 +363,9 @@ class _Scheduler:
                             continue
                         why = self.rejection(node, None, (), DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
                         if why is None:
-                            options.append((-self.score(node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0), node.name, node, tier))
+                            options.append(
+                                (-self.score(node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0), node.name, node, tier)
+                            )
                         elif distinct:
                             accounts.append(f"{node.name} ({tier}): {why}")
                     if options:
@@ -363,9 +385,15 @@ class _Scheduler:
             shares = node.name in used
             used.add(node.name)
             self.take(node.name, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
-            reason = f"{tier} node; distinct from other servers" if not shares else f"{tier} node; shares it with another server (too few nodes)"
+            reason = (
+                f"{tier} node; distinct from other servers"
+                if not shares
+                else f"{tier} node; shares it with another server (too few nodes)"
+            )
             servers.append(
-                DiscoveryServer(fleet, namespace, server_id, naming.discovery_server_name(server_id), node.name, tier, port, reason)
+                DiscoveryServer(
+                    fleet, namespace, server_id, naming.discovery_server_name(server_id), node.name, tier, port, reason
+                )
             )
         return servers
 
@@ -377,7 +405,8 @@ def _check_against_inventory(deployments: list[RosDeployment], inventory: Invent
         if dep.fleet not in inventory.fleets:
             problems.append(
                 Problem(
-                    dep.source, "metadata.targetFleet",
+                    dep.source,
+                    "metadata.targetFleet",
                     f"'{dep.fleet}' is not a fleet in the inventory{did_you_mean(dep.fleet, inventory.fleets)} "
                     f"(fleets: {', '.join(inventory.fleets) or 'none'})",
                     dep.line_of("metadata.targetFleet"),
@@ -393,11 +422,14 @@ def _check_against_inventory(deployments: list[RosDeployment], inventory: Invent
                 detail = f"it belongs to fleet {inventory.robots[robot].fleet}"
             else:
                 detail = f"robots of {dep.fleet}: {', '.join(members)}{did_you_mean(robot, members)}"
-            problems.append(Problem(dep.source, path, f"'{robot}' is not a robot of fleet {dep.fleet} ({detail})", dep.line_of(path)))
+            problems.append(
+                Problem(dep.source, path, f"'{robot}' is not a robot of fleet {dep.fleet} ({detail})", dep.line_of(path))
+            )
         if dep.fleet in ports and ports[dep.fleet][0] != dep.discovery_port:
             problems.append(
                 Problem(
-                    dep.source, "discovery.port",
+                    dep.source,
+                    "discovery.port",
                     f"{dep.discovery_port} differs from port {ports[dep.fleet][0]} set by {ports[dep.fleet][1]} "
                     f"for the same fleet; expected one port per fleet",
                     dep.line_of("discovery.port"),
@@ -445,9 +477,9 @@ def placement_table(placement: Placement) -> str:
     for fleet, servers in placement.discovery.items():
         for s in servers:
             rows.append((f"(fleet {fleet})", "-", s.name, s.tier, s.node, s.reason))
-    widths = [max(len(str(row[i])) for row in [header] + rows) for i in range(len(header) - 1)]
+    widths = [max(len(str(row[i])) for row in [header, *rows]) for i in range(len(header) - 1)]
     lines = []
-    for row in [header] + rows:
-        cells = [str(cell).ljust(width) for cell, width in zip(row, widths)]
-        lines.append("  ".join(cells + [str(row[-1])]).rstrip())
+    for row in [header, *rows]:
+        cells = [str(cell).ljust(width) for cell, width in zip(row, widths, strict=False)]
+        lines.append("  ".join([*cells, str(row[-1])]).rstrip())
     return "\n".join(lines)

@@ -96,9 +96,9 @@ def _schema_problem(error: jsonschema.ValidationError, doc: Document) -> Problem
             hint = did_you_mean(key, allowed)
             return Problem(
                 doc.source,
-                format_path(parts + (key,)),
+                format_path((*parts, key)),
                 f"unknown field{hint} (allowed here: {', '.join(allowed)})",
-                doc.line_of(parts + (key,)),
+                doc.line_of((*parts, key)),
             )
     if error.validator == "required":
         missing = error.message.split("'")[1] if "'" in error.message else error.message
@@ -150,7 +150,7 @@ def _tiers_for(module: dict, problems: list[Problem], doc: Document, index: int)
     requirements = module.get("requirements") or {}
     strategy = module.get("strategy", "dedicated")
     preference = module.get("preference")
-    path = (("rosModules", index, "preference"))
+    path = ("rosModules", index, "preference")
     if isinstance(preference, list):
         tiers = tuple(preference)
     else:
@@ -340,7 +340,9 @@ def load_rosdeployment_file(path: str, display: str | None = None) -> list[RosDe
         with open(path, "rb") as handle:
             raw = handle.read(2 * 1024 * 1024)
     except OSError as exc:
-        raise SpecError([Problem(display, "", f"cannot read the file: {exc.strerror or exc}")], title="cannot read the spec") from None
+        raise SpecError(
+            [Problem(display, "", f"cannot read the file: {exc.strerror or exc}")], title="cannot read the spec"
+        ) from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -352,11 +354,11 @@ __all__ = [
     "API_VERSION",
     "KIND",
     "TIERS",
-    "RosDeployment",
-    "RosModule",
     "Requirements",
     "Resources",
-    "load_rosdeployments",
+    "RosDeployment",
+    "RosModule",
     "load_rosdeployment_file",
+    "load_rosdeployments",
     "parse_rosdeployment",
 ]

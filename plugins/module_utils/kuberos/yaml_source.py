@@ -68,16 +68,16 @@ class _Walker:
                     self.problems.append(
                         Problem(
                             self.source,
-                            format_path(path + (key,)),
+                            format_path((*path, key)),
                             f"duplicate key (first written on line {seen[key]})",
                             key_node.start_mark.line + 1,
                         )
                     )
                 seen[key] = key_node.start_mark.line + 1
-                self.walk(value_node, path + (key,), depth + 1)
+                self.walk(value_node, (*path, key), depth + 1)
         elif isinstance(node, yaml.SequenceNode):
             for index, item in enumerate(node.value):
-                self.walk(item, path + (index,), depth + 1)
+                self.walk(item, (*path, index), depth + 1)
 
 
 class _TooLarge(Exception):

@@ -1,0 +1,76 @@
+# Copyright: KubeROS contributors
+# GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
+"""Collects the KubeROS resource model (robots, edge, cloud) out of Ansible's inventory."""
+
+from __future__ import annotations
+
+DOCUMENTATION = r"""
+name: fleet_inventory
+short_description: The KubeROS resource model of an Ansible inventory
+version_added: 0.1.0
+description:
+  - Takes C(groups) and C(hostvars) and returns the plain-data resource model that the scheduler uses,
+    made of every host of the groups C(robots), C(edge) and C(cloud) with its C(kuberos_*) variables.
+  - Validates it, failing with the host, the variable and the reason for each problem.
+options:
+  _input:
+    description: The C(groups) magic variable.
+    type: dict
+    required: true
+  hostvars:
+    description: The C(hostvars) magic variable.
+    type: raw
+    required: true
+"""
+
+EXAMPLES = r"""
+- name: Build the resource model
+  ansible.builtin.set_fact:
+    fleet: "{{ groups | kuberos.platform.fleet_inventory(hostvars) }}"
+"""
+
+RETURN = r"""
+_value:
+  description: C(hosts) (each host's kuberos_* variables), C(groups) (robots, edge, cloud) and C(default_latency_ms).
+  type: dict
+"""
+
+from ansible.errors import AnsibleFilterError
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import TIER_GROUPS, load_inventory
+
+
+def _plain(value):
+    """Builtin types only, so the result serialises anywhere."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, bool) or value is None:
+        return value
+    for kind in (int, float, str):
+        if isinstance(value, kind):
+            return kind(value)
+    return str(value)
+
+
+def fleet_inventory(groups, hostvars):
+    members = {group: sorted(groups.get(group, [])) for group in TIER_GROUPS}
+    hosts = {}
+    defaults = {}
+    for host in sorted({h for names in members.values() for h in names}):
+        host_vars = hostvars[host]
+        hosts[host] = {key: _plain(host_vars[key]) for key in host_vars if str(key).startswith("kuberos_")}
+        defaults = hosts[host].pop("kuberos_default_latency_ms", defaults) or defaults
+    raw = {"hosts": hosts, "groups": members, "default_latency_ms": defaults}
+    try:
+        load_inventory(raw)
+    except KuberosError as exc:
+        raise AnsibleFilterError(str(exc)) from None
+    return raw
+
+
+class FilterModule:
+    def filters(self):
+        return {"fleet_inventory": fleet_inventory}

@@ -1,0 +1,116 @@
+"""Writing rendered objects to a directory: one YAML file per object, written only when changed.
+
+Pure file logic (no Ansible): ``plan_render_dir`` says what would change; ``apply_plan`` does it.
+A directory is only pruned when it carries the marker file KubeROS writes, so that pointing
+the render directory at an unrelated folder never deletes anything.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+
+import yaml
+
+MARKER = ".kuberos-render"
+MANIFEST_DIR = "manifests"
+
+
+def object_path(obj: dict) -> str:
+    namespace = obj["metadata"].get("namespace") or "_cluster"
+    return os.path.join(MANIFEST_DIR, namespace, f"{obj['kind'].lower()}-{obj['metadata']['name']}.yaml")
+
+
+def dump_object(obj: dict) -> str:
+    return yaml.safe_dump(obj, sort_keys=False, default_flow_style=False, width=120)
+
+
+@dataclass
+class RenderPlan:
+    root: str
+    files: dict[str, str] = field(default_factory=dict)  # relative path -> desired text
+    before: dict[str, str] = field(default_factory=dict)  # relative path -> current text (changed files only)
+    created: list[str] = field(default_factory=list)
+    updated: list[str] = field(default_factory=list)
+    removed: list[str] = field(default_factory=list)
+
+    @property
+    def changed(self) -> bool:
+        return bool(self.created or self.updated or self.removed)
+
+    def diff(self) -> list[dict]:
+        out = []
+        for rel in sorted(self.created + self.updated + self.removed):
+            out.append(
+                {
+                    "before_header": rel if rel not in self.created else "/dev/null",
+                    "after_header": rel if rel not in self.removed else "/dev/null",
+                    "before": self.before.get(rel, ""),
+                    "after": self.files.get(rel, ""),
+                }
+            )
+        return out
+
+
+class RenderDirError(Exception):
+    pass
+
+
+def _read(path: str) -> str | None:
+    try:
+        with open(path, encoding="utf-8") as handle:
+            return handle.read()
+    except FileNotFoundError:
+        return None
+
+
+def plan_render_dir(root: str, objects: list[dict], placement: dict, table: str) -> RenderPlan:
+    root = os.path.abspath(root)
+    if os.path.isdir(root) and os.listdir(root) and not os.path.exists(os.path.join(root, MARKER)):
+        raise RenderDirError(
+            f"{root} exists, is not empty and was not written by KubeROS (no {MARKER} file); "
+            "choose an empty or new render directory"
+        )
+    plan = RenderPlan(root)
+    for obj in objects:
+        rel = object_path(obj)
+        if rel in plan.files:
+            raise RenderDirError(f"two objects render to the same file {rel}")
+        plan.files[rel] = dump_object(obj)
+    plan.files["placement.json"] = json.dumps(placement, indent=2, sort_keys=True) + "\n"
+    plan.files["placement.txt"] = table + "\n"
+    plan.files[MARKER] = "Rendered by the kuberos.platform collection; files here are replaced on every render.\n"
+    for rel, text in sorted(plan.files.items()):
+        current = _read(os.path.join(root, rel))
+        if current is None:
+            plan.created.append(rel)
+        elif current != text:
+            plan.updated.append(rel)
+            plan.before[rel] = current
+    manifest_root = os.path.join(root, MANIFEST_DIR)
+    for dirpath, _dirs, names in os.walk(manifest_root):
+        for name in names:
+            rel = os.path.relpath(os.path.join(dirpath, name), root)
+            if rel not in plan.files:
+                plan.removed.append(rel)
+                plan.before[rel] = _read(os.path.join(root, rel)) or ""
+    plan.removed.sort()
+    return plan
+
+
+def apply_plan(plan: RenderPlan) -> None:
+    for rel in plan.created + plan.updated:
+        path = os.path.join(plan.root, rel)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".tmp-")
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(plan.files[rel])
+        os.replace(tmp, path)
+    for rel in plan.removed:
+        os.remove(os.path.join(plan.root, rel))
+    manifest_root = os.path.join(plan.root, MANIFEST_DIR)
+    for dirpath, dirs, names in sorted(os.walk(manifest_root), reverse=True):
+        if not dirs and not names and dirpath != manifest_root:
+            os.rmdir(dirpath)

@@ -1,0 +1,39 @@
+"""The deploy path in one call: spec + inventory -> validated deployments and a placement.
+
+Shared by the scheduler filter, the render module, the controller and the simulator so that
+they all read specs and place modules the same way.
+"""
+
+from __future__ import annotations
+
+import os
+
+from .errors import Problem, SpecError
+from .inventory import load_inventory
+from .scheduler import Placement, place_modules
+from .spec import RosDeployment, load_rosdeployment_file, parse_rosdeployment
+
+
+def load_specs(spec) -> list[RosDeployment]:
+    """A path to a spec file, one spec as data, or a list of specs as data."""
+    if isinstance(spec, (str, os.PathLike)):
+        return load_rosdeployment_file(os.fspath(spec))
+    if isinstance(spec, dict):
+        return [parse_rosdeployment(spec, "<spec>")]
+    if isinstance(spec, (list, tuple)) and spec:
+        deployments, problems = [], []
+        for index, item in enumerate(spec):
+            try:
+                deployments.append(parse_rosdeployment(item, f"<spec {index + 1}>"))
+            except SpecError as exc:
+                problems.extend(exc.problems)
+        if problems:
+            raise SpecError(problems, title="the RosDeployment is not valid")
+        return deployments
+    raise SpecError([Problem("<spec>", "", f"expected a spec file path or a RosDeployment mapping, got {type(spec).__name__}")])
+
+
+def load_and_place(spec, inventory, allocated=None) -> tuple[list[RosDeployment], Placement]:
+    deployments = load_specs(spec)
+    model = load_inventory(inventory)
+    return deployments, place_modules(deployments, model, allocated)

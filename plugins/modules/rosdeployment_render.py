@@ -1,0 +1,130 @@
+#!/usr/bin/python
+# Copyright: KubeROS contributors
+# GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
+"""Render a placed RosDeployment into Kubernetes manifests."""
+
+from __future__ import annotations
+
+DOCUMENTATION = r"""
+module: rosdeployment_render
+short_description: Render a placed RosDeployment into Kubernetes manifests
+version_added: 0.1.0
+description:
+  - Turns a RosDeployment and its placement (from the P(kuberos.platform.place_modules#filter) filter) into
+    Kubernetes objects, one YAML file per object under O(dest)/manifests, plus C(placement.json) and a
+    human-readable C(placement.txt).
+  - Per fleet a namespace and redundant Fast DDS discovery servers; per module instance a Deployment
+    pinned to its node, with ROS_DISCOVERY_SERVER, RMW_IMPLEMENTATION and ROS_DOMAIN_ID set.
+  - Files are written only when their content changes; manifests no longer rendered are removed.
+options:
+  src:
+    description: Path of the RosDeployment file the placement was made from.
+    type: path
+    required: true
+  placement:
+    description: The placement returned by the P(kuberos.platform.place_modules#filter) filter.
+    type: dict
+    required: true
+  dest:
+    description:
+      - Directory to render into. Created if missing. An existing non-empty directory must have been
+        written by this module before (it carries a C(.kuberos-render) marker).
+    type: path
+    required: true
+  cluster_domain:
+    description: DNS domain of the cluster, used in the discovery server addresses.
+    type: str
+    default: cluster.local
+  discovery_image:
+    description: Container image that provides C(fast-discovery-server).
+    type: str
+    default: ros:jazzy-ros-base
+attributes:
+  check_mode:
+    support: full
+  diff_mode:
+    support: full
+author:
+  - KubeROS contributors
+"""
+
+EXAMPLES = r"""
+- name: Render the placed deployment
+  kuberos.platform.rosdeployment_render:
+    src: examples/listing1.yml
+    placement: "{{ placement }}"
+    dest: rendered/listing1
+"""
+
+RETURN = r"""
+objects:
+  description: The rendered Kubernetes objects, in apply order (namespaces first).
+  returned: success
+  type: list
+  elements: dict
+table:
+  description: Where every module of every robot runs, as a fixed-width table.
+  returned: success
+  type: str
+files:
+  description: Files created, updated and removed (relative to O(dest)).
+  returned: success
+  type: dict
+  sample: {"created": ["manifests/kuberos-test-fleet/deployment-kuberos-discovery-0.yaml"], "updated": [], "removed": []}
+"""
+
+from ansible.module_utils.basic import AnsibleModule
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, render_deployment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import (
+    RenderDirError,
+    apply_plan,
+    plan_render_dir,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement, placement_table
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
+
+ARGUMENT_SPEC = dict(
+    src=dict(type="path", required=True),
+    placement=dict(type="dict", required=True),
+    dest=dict(type="path", required=True),
+    cluster_domain=dict(type="str", default="cluster.local"),
+    discovery_image=dict(type="str", default="ros:jazzy-ros-base"),
+)
+
+
+def run(module: AnsibleModule) -> dict:
+    params = module.params
+    deployments = load_specs(params["src"])
+    placement = Placement.from_dict(params["placement"])
+    options = RenderOptions(cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"])
+    objects = render_deployment(deployments, placement, options)
+    table = placement_table(placement)
+    plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table)
+    if plan.changed and not module.check_mode:
+        apply_plan(plan)
+    result = {
+        "changed": plan.changed,
+        "objects": objects,
+        "table": table,
+        "dest": plan.root,
+        "files": {"created": plan.created, "updated": plan.updated, "removed": plan.removed},
+    }
+    if module._diff:
+        result["diff"] = plan.diff()
+    return result
+
+
+def main():
+    module = AnsibleModule(argument_spec=ARGUMENT_SPEC, supports_check_mode=True)
+    try:
+        module.exit_json(**run(module))
+    except (KuberosError, RenderDirError) as exc:
+        module.fail_json(msg=str(exc))
+    except OSError as exc:
+        module.fail_json(msg=f"cannot write the render directory: {exc}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# One-time set-up of a checkout: a Python 3.11 virtualenv with every pinned dependency, and the
+# link that lets Ansible find this checkout as the kuberos.platform collection. Idempotent.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PYTHON="${PYTHON:-python3.11}"
+command -v "$PYTHON" >/dev/null 2>&1 || PYTHON=python3
+"$PYTHON" -c 'import sys; assert sys.version_info[:2] >= (3, 11), sys.version' || {
+  echo "setup: Python 3.11 or newer is needed (found $("$PYTHON" --version 2>&1))" >&2
+  exit 1
+}
+
+stamp=.venv/.requirements.sha256
+want=$(sha256sum requirements.txt | cut -d' ' -f1)
+if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  echo "setup: installing Python dependencies into .venv (first time: a few minutes)"
+  "$PYTHON" -m venv .venv
+  .venv/bin/python -m pip install --quiet --upgrade pip
+  .venv/bin/python -m pip install --quiet --progress-bar off -r requirements.txt
+  echo "$want" > "$stamp"
+fi
+
+mkdir -p .collections/ansible_collections/kuberos
+ln -sfn ../../.. .collections/ansible_collections/kuberos/platform
+echo "setup: ready (.venv, collection kuberos.platform linked from this checkout)"
