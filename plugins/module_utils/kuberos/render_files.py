@@ -23,8 +23,15 @@ def object_path(obj: dict) -> str:
     return os.path.join(MANIFEST_DIR, namespace, f"{obj['kind'].lower()}-{obj['metadata']['name']}.yaml")
 
 
+class _NoAliasDumper(yaml.SafeDumper):
+    """Writes repeated values in full: manifests are read by people, not only by parsers."""
+
+    def ignore_aliases(self, data):
+        return True
+
+
 def dump_object(obj: dict) -> str:
-    return yaml.safe_dump(obj, sort_keys=False, default_flow_style=False, width=120)
+    return yaml.dump(obj, Dumper=_NoAliasDumper, sort_keys=False, default_flow_style=False, width=120)
 
 
 @dataclass

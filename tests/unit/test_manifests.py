@@ -1,0 +1,141 @@
+"""Rendering: golden files for the examples, Kubernetes schema validation and wiring invariants.
+
+Regenerate the golden files after an intended change with ``UPDATE_GOLDEN=1 make unit``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import kubernetes_validate
+import pytest
+import yaml
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+    RenderOptions,
+    container_args,
+    render_deployment,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import apply_plan, plan_render_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules, placement_table
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file
+
+KUBERNETES_VERSION = "1.34"
+GOLDEN = os.path.join(os.path.dirname(__file__), "golden")
+EXAMPLES = ["listing1", "pick-and-place", "two-fleets"]
+
+
+def render_example(root, inventory, name):
+    deployments = load_rosdeployment_file(os.path.join(root, "examples", f"{name}.yml"), f"examples/{name}.yml")
+    placement = place_modules(deployments, inventory)
+    return deployments, placement, render_deployment(deployments, placement, RenderOptions())
+
+
+def tree(path):
+    files = {}
+    for dirpath, _dirs, names in os.walk(path):
+        for name in names:
+            full = os.path.join(dirpath, name)
+            with open(full, encoding="utf-8") as handle:
+                files[os.path.relpath(full, path)] = handle.read()
+    return files
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_golden_files(root, local_inventory, name, tmp_path):
+    _deployments, placement, objects = render_example(root, local_inventory, name)
+    plan = plan_render_dir(str(tmp_path / name), objects, placement.to_dict(), placement_table(placement))
+    apply_plan(plan)
+    golden = os.path.join(GOLDEN, name)
+    if os.environ.get("UPDATE_GOLDEN"):
+        shutil.rmtree(golden, ignore_errors=True)
+        shutil.copytree(tmp_path / name, golden)
+    got, want = tree(tmp_path / name), tree(golden)
+    assert sorted(got) == sorted(want)
+    for rel in want:
+        assert got[rel] == want[rel], f"{rel} differs from the golden file; UPDATE_GOLDEN=1 regenerates after review"
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_manifests_pass_kubernetes_schema(root, local_inventory, name):
+    _deployments, _placement, objects = render_example(root, local_inventory, name)
+    for obj in objects:
+        kubernetes_validate.validate(obj, KUBERNETES_VERSION, strict=True)
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_every_module_is_pinned_and_wired_to_its_fleets_discovery_servers(root, local_inventory, name):
+    deployments, placement, objects = render_example(root, local_inventory, name)
+    services = {(o["metadata"]["namespace"], o["metadata"]["name"]) for o in objects if o["kind"] == "Service"}
+    by_instance = {inst.name: inst for inst in placement.instances}
+    modules = [o for o in objects if o["kind"] == "Deployment" and o["metadata"]["labels"]["kuberos.io/component"] == "ros-module"]
+    assert len(modules) == len(placement.instances)
+    for obj in modules:
+        inst = by_instance[obj["metadata"]["name"]]
+        pod = obj["spec"]["template"]["spec"]
+        assert pod["nodeSelector"] == {labels.HOSTNAME: inst.node}
+        assert obj["metadata"]["namespace"] == inst.namespace
+        env = {e["name"]: e.get("value") for e in pod["containers"][0]["env"]}
+        assert env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp"
+        servers = env["ROS_DISCOVERY_SERVER"].split(";")
+        expected = placement.discovery[inst.fleet]
+        assert len(servers) == len(expected)
+        for server_id, address in enumerate(servers):
+            host, port = address.rsplit(":", 1)
+            service, namespace = host.split(".")[:2]
+            assert service == f"kuberos-discovery-{server_id}"
+            assert (namespace, service) in services
+            assert int(port) == expected[server_id].port
+        assert env["KUBEROS_ROBOTS"] == ",".join(inst.robots)
+        tolerations = pod.get("tolerations", [])
+        assert (inst.tier == "onboard") == bool(tolerations)
+    for dep in deployments:
+        for obj in modules:
+            if obj["metadata"]["labels"]["kuberos.io/deployment"] == dep.name:
+                env = {e["name"]: e.get("value") for e in obj["spec"]["template"]["spec"]["containers"][0]["env"]}
+                assert env["ROS_DOMAIN_ID"] == str(dep.ros_domain_id)
+
+
+def test_discovery_server_objects(local_inventory, root):
+    _deployments, placement, objects = render_example(root, local_inventory, "two-fleets")
+    for fleet, servers in placement.discovery.items():
+        namespace = servers[0].namespace
+        deploys = [o for o in objects if o["kind"] == "Deployment" and o["metadata"]["namespace"] == namespace
+                   and o["metadata"]["labels"].get("kuberos.io/component") == "discovery-server"]
+        assert len(deploys) == len(servers), fleet
+        for obj, server in zip(sorted(deploys, key=lambda o: o["metadata"]["name"]), servers, strict=True):
+            container = obj["spec"]["template"]["spec"]["containers"][0]
+            assert container["command"] == ["fast-discovery-server", "-i", str(server.server_id), "-l", "0.0.0.0", "-p", "11811"]
+            assert obj["spec"]["template"]["spec"]["nodeSelector"] == {labels.HOSTNAME: server.node}
+        svcs = [o for o in objects if o["kind"] == "Service" and o["metadata"]["namespace"] == namespace]
+        assert all(s["spec"]["ports"] == [{"name": "discovery", "port": 11811, "targetPort": 11811, "protocol": "UDP"}] for s in svcs)
+    namespaces = [o["metadata"]["name"] for o in objects if o["kind"] == "Namespace"]
+    assert namespaces == ["kuberos-test-fleet", "kuberos-warehouse-fleet"]
+
+
+def test_gpu_parameters_and_multi_command_launch(local_inventory, root):
+    _deployments, _placement, objects = render_example(root, local_inventory, "two-fleets")
+    detector = next(o for o in objects if o["kind"] == "Deployment" and o["metadata"]["name"].startswith("inventory-scan-detector"))
+    resources = detector["spec"]["template"]["spec"]["containers"][0]["resources"]
+    assert resources["limits"]["nvidia.com/gpu"] == "1" and resources["requests"]["nvidia.com/gpu"] == "1"
+    lidar = next(o for o in objects if o["kind"] == "Deployment" and o["metadata"]["name"].startswith("inventory-scan-lidar-driver"))
+    args = lidar["spec"]["template"]["spec"]["containers"][0]["args"]
+    assert args[:2] == ["/bin/bash", "-c"] and args[2].endswith("& wait -n")
+    _deployments, _placement, objects = render_example(root, local_inventory, "pick-and-place")
+    params = next(o for o in objects if o["kind"] == "ConfigMap" and o["metadata"]["name"] == "pick-and-place-perception-params")
+    document = yaml.safe_load(params["data"]["params.yaml"])
+    assert document == {"/**": {"ros__parameters": {"camera_topic": "/head_camera/depth", "voxel_size": 0.01}}}
+
+
+@pytest.mark.parametrize(
+    ("launch", "args"),
+    [
+        (("ros2 launch pkg file.launch.py",), ["ros2", "launch", "pkg", "file.launch.py"]),
+        (("ros2 run pkg node --ros-args -p 'name:=a b'",), ["ros2", "run", "pkg", "node", "--ros-args", "-p", "name:=a b"]),
+        (("a", "b"), ["/bin/bash", "-c", "a & b & wait -n"]),
+    ],
+)
+def test_container_args(launch, args):
+    assert container_args(launch) == args
