@@ -1,0 +1,51 @@
+"""The repository agrees with itself: published schema, role argument specs, documented variables."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+import yaml
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.schema import SCHEMA
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+ROLES = sorted(d for d in os.listdir(os.path.join(ROOT, "roles")) if not d.startswith("."))
+
+
+def test_published_schema_matches_the_validator():
+    with open(os.path.join(ROOT, "docs", "rosdeployment.schema.json"), encoding="utf-8") as handle:
+        assert json.load(handle) == json.loads(json.dumps(SCHEMA)), "run `make schema`"
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_role_argument_specs_match_defaults(role):
+    with open(os.path.join(ROOT, "roles", role, "defaults", "main.yml"), encoding="utf-8") as handle:
+        defaults = yaml.safe_load(handle) or {}
+    with open(os.path.join(ROOT, "roles", role, "meta", "argument_specs.yml"), encoding="utf-8") as handle:
+        specs = yaml.safe_load(handle)["argument_specs"]["main"]["options"]
+    assert set(defaults) == set(specs)
+    assert all(name.startswith(role + "_") for name in defaults), "role variables carry the role's name"
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_role_readme_lists_every_default(role):
+    with open(os.path.join(ROOT, "roles", role, "defaults", "main.yml"), encoding="utf-8") as handle:
+        defaults = yaml.safe_load(handle) or {}
+    with open(os.path.join(ROOT, "roles", role, "README.md"), encoding="utf-8") as handle:
+        readme = handle.read()
+    missing = [name for name in defaults if f"`{name}`" not in readme]
+    assert not missing, f"roles/{role}/README.md does not document {missing}"
+
+
+def test_inventory_variables_are_documented():
+    with open(os.path.join(ROOT, "docs", "inventory.md"), encoding="utf-8") as handle:
+        doc = handle.read()
+    source = open(os.path.join(ROOT, "plugins", "module_utils", "kuberos", "inventory.py"), encoding="utf-8").read()
+    import re
+
+    variables = sorted(set(re.findall(r'"(kuberos_[a-z_]+)"', source)))
+    assert variables, "inventory.py reads kuberos_* host variables"
+    missing = [v for v in variables if f"`{v}`" not in doc]
+    assert not missing, f"docs/inventory.md does not document {missing}"
