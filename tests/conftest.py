@@ -12,7 +12,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 VENV_BIN = os.path.join(ROOT, ".venv", "bin")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def inventory_raw(path: str = "inventories/local") -> dict:
     """Read an inventory with Ansible's own inventory manager, then the fleet_inventory filter."""
     from ansible.inventory.manager import InventoryManager

@@ -13,7 +13,6 @@ import shutil
 import subprocess
 
 import pytest
-
 from conftest import ROOT, venv_tool
 
 pytestmark = pytest.mark.playbook
@@ -22,8 +21,15 @@ pytestmark = pytest.mark.playbook
 def deploy(spec, render_dir, *extra):
     env = {**os.environ, "ANSIBLE_CONFIG": os.path.join(ROOT, "ansible.cfg"), "ANSIBLE_NOCOLOR": "1", "ANSIBLE_FORCE_COLOR": "0"}
     command = [
-        venv_tool("ansible-playbook"), "playbooks/deploy.yml", "-i", "inventories/local",
-        "-e", f"rosdeployment_file={spec}", "-e", f"kuberos_render_dir={render_dir}", *extra,
+        venv_tool("ansible-playbook"),
+        "playbooks/deploy.yml",
+        "-i",
+        "inventories/local",
+        "-e",
+        f"rosdeployment_file={spec}",
+        "-e",
+        f"kuberos_render_dir={render_dir}",
+        *extra,
     ]
     result = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     recap = re.search(r"localhost\s+: ok=(\d+)\s+changed=(\d+)\s+unreachable=\d+\s+failed=(\d+)", result.stdout)
@@ -79,7 +85,10 @@ def test_diff_shows_what_an_edit_changes_and_prune_removes_dropped_modules(tmp_p
     assert checked.returncode == 0 and checked.changed == 1
     assert re.search(r"^-\s+planning_time: 2.0$", checked.stdout, re.M), checked.stdout
     assert re.search(r"^\+\s+planning_time: 5.0$", checked.stdout, re.M), checked.stdout
-    assert "planning_time: 2.0" in (out / "manifests/kuberos-test-fleet/configmap-pick-and-place-motion-planner-params.yaml").read_text()
+    assert (
+        "planning_time: 2.0"
+        in (out / "manifests/kuberos-test-fleet/configmap-pick-and-place-motion-planner-params.yaml").read_text()
+    )
     # Drop the task coordinator: its Deployment file goes, the rest stays.
     spec.write_text(text[: text.index("- name: task-coordinator")])
     applied = deploy(spec, out)
@@ -110,8 +119,11 @@ BAD = {
     "infeasible": (
         "metadata: {name: demo, targetFleet: test-fleet}\nrosModules:\n"
         "- {name: planner, image: x, launch: run, preference: cloud, requirements: {max_latency: 10 ms}, resources: {gpu: 4}}\n",
-        [r"has no feasible node for robot fetch-1", r"cloud-1 \(cloud\): latency 40 ms to fetch-1 > max_latency 10 ms",
-         r"edge-1 \(edge\): gpu: needs 4, node has none"],
+        [
+            r"has no feasible node for robot fetch-1",
+            r"cloud-1 \(cloud\): latency 40 ms to fetch-1 > max_latency 10 ms",
+            r"edge-1 \(edge\): gpu: needs 4, node has none",
+        ],
     ),
 }
 

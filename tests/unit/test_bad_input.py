@@ -237,7 +237,18 @@ SPEC_CASES = [
         "1",
         ["unknown field"],
         8,
-        marks=defect("a non-string key next to string keys raises TypeError from sorted() in spec._schema_problem"),
+        marks=defect(
+            "an integer key is reported as path '[1]' (formatted like a list index) on line 1 (the document's line, "
+            "because Document.lines is keyed by the YAML scalar '1' and the data by the int 1) instead of path '1' on line 8"
+        ),
+    ),
+    case(
+        "non-string-and-string-unknown-keys",
+        top("1: one", "colour: blue"),
+        "colour",
+        ["unknown field"],
+        9,
+        marks=defect("an int key and a str key both unknown: sorted() of the extras raises TypeError in spec._schema_problem"),
     ),
     # -- missing required fields --------------------------------------------------------------
     case(
@@ -703,12 +714,20 @@ SPEC_CASES = [
         8,
         marks=defect("an integer env key passes the schema and crashes _semantic_module with AttributeError (startswith)"),
     ),
+    case(
+        "env-name-null-key",
+        module("env: {null: x}"),
+        "rosModules[0].env",
+        ["None", "not a valid environment variable name"],
+        8,
+        marks=defect("a null env key passes the schema and crashes _semantic_module with AttributeError (startswith)"),
+    ),
     # -- launch command lines -----------------------------------------------------------------
     case(
         "launch-unbalanced-quote",
         BASE.replace(
             "launch: ros2 launch planner planner.launch.py",
-            "launch: \"ros2 run planner node --ros-args -p name:='x\"",
+            'launch: "ros2 run planner node --ros-args -p name:=\'x"',
         ),
         "rosModules[0].launch",
         ["is not a valid command line (No closing quotation)", "expected e.g. 'ros2 launch pkg file.launch.py'"],
@@ -718,7 +737,7 @@ SPEC_CASES = [
         "launch-list-second-line-unbalanced",
         BASE.replace(
             "  launch: ros2 launch planner planner.launch.py\n",
-            "  launch:\n  - ros2 run planner node\n  - \"ros2 run planner helper 'oops\"\n",
+            '  launch:\n  - ros2 run planner node\n  - "ros2 run planner helper \'oops"\n',
         ),
         "rosModules[0].launch[1]",
         ["No closing quotation"],
@@ -750,7 +769,9 @@ SPEC_CASES = [
     # -- several documents --------------------------------------------------------------------
     case(
         "document-2-bad",
-        BASE + "---\n" + BASE.replace("name: demo", "name: second").replace("launch: ros2 launch planner planner.launch.py", "launch: 7"),
+        BASE
+        + "---\n"
+        + BASE.replace("name: demo", "name: second").replace("launch: ros2 launch planner planner.launch.py", "launch: 7"),
         "rosModules[0].launch",
         [f"{SOURCE} (document 2)", "7 (int) is not valid"],
         15,
@@ -870,36 +891,47 @@ FLOAT_CASES = [
     pytest.param(
         top("discovery: {servers: 2.0}"),
         "discovery.servers",
-        "discovery_servers",
+        lambda dep: dep.discovery_servers,
+        8,
         id="discovery-servers-2.0",
         marks=defect("discovery.servers 2.0 is accepted as a float; place_modules then raises TypeError in range()"),
     ),
     pytest.param(
         top("rosDomainId: 3.0"),
         "rosDomainId",
-        "ros_domain_id",
+        lambda dep: dep.ros_domain_id,
+        8,
         id="rosDomainId-3.0",
         marks=defect("rosDomainId 3.0 is kept as a float; manifests render ROS_DOMAIN_ID='3.0'"),
     ),
     pytest.param(
         top("discovery: {port: 11811.0}"),
         "discovery.port",
-        "discovery_port",
+        lambda dep: dep.discovery_port,
+        8,
         id="discovery-port-float",
         marks=defect("discovery.port 11811.0 is kept as a float"),
+    ),
+    pytest.param(
+        module("strategy: shared", "robotsPerInstance: 2.0"),
+        "rosModules[0].robotsPerInstance",
+        lambda dep: dep.modules[0].robots_per_instance,
+        9,
+        id="robotsPerInstance-2.0",
+        marks=defect("robotsPerInstance 2.0 is kept as a float; placement reasons read 'shared by 2/2.0 robots'"),
     ),
 ]
 
 
-@pytest.mark.parametrize(("text", "path", "attribute"), FLOAT_CASES)
-def test_integral_float_is_rejected_or_normalised(text, path, attribute, inventory_model):
+@pytest.mark.parametrize(("text", "path", "getter", "line"), FLOAT_CASES)
+def test_integral_float_is_rejected_or_normalised(text, path, getter, line, inventory_model):
     try:
         deployments = spec.load_rosdeployments(text, SOURCE)
     except errors.SpecError as exc:
-        assert_problem(exc, SOURCE, path, ["is not valid"], 8)
+        assert_problem(exc, SOURCE, path, ["is not valid"], line)
         return
-    value = getattr(deployments[0], attribute)
-    assert type(value) is int, f"{attribute} is {value!r} ({type(value).__name__})"
+    value = getter(deployments[0])
+    assert type(value) is int, f"{path} is {value!r} ({type(value).__name__})"
     scheduler.place_modules(deployments, inventory_model)
 
 
@@ -964,7 +996,12 @@ GOOD_INVENTORY = {
         },
         "fetch-2": {**_ROBOT, "kuberos_fleet": "test-fleet", "kuberos_devices": ["camera", "gripper"]},
         "tiago-1": {**_ROBOT, "kuberos_fleet": "warehouse-fleet", "kuberos_devices": ["camera", "lidar"]},
-        "tiago-2": {**_ROBOT, "kuberos_fleet": "warehouse-fleet", "kuberos_devices": ["camera", "lidar"], "kuberos_arch": "arm64"},
+        "tiago-2": {
+            **_ROBOT,
+            "kuberos_fleet": "warehouse-fleet",
+            "kuberos_devices": ["camera", "lidar"],
+            "kuberos_arch": "arm64",
+        },
         "edge-1": dict(_EDGE),
         "edge-2": dict(_EDGE),
         "edge-3": {**_EDGE, "kuberos_fleets": ["warehouse-fleet"], "kuberos_latency_ms": 3},
@@ -1198,7 +1235,12 @@ INVENTORY_CASES = [
         ["no hosts in the groups robots, edge or cloud", "expected at least one robot"],
     ),
     inv_case("empty-mapping", {}, "groups", ["no hosts in the groups robots, edge or cloud"]),
-    inv_case("inventory-is-a-list", ["fetch-1", "edge-1"], "", ["(list) is not an inventory", "expected a mapping with hosts and groups"]),
+    inv_case(
+        "inventory-is-a-list",
+        ["fetch-1", "edge-1"],
+        "",
+        ["(list) is not an inventory", "expected a mapping with hosts and groups"],
+    ),
     inv_case("inventory-is-none", None, "", ["None (NoneType) is not an inventory"]),
     inv_case("inventory-is-a-string", "inventories/local", "", ["'inventories/local' is not an inventory"]),
     inv_case(

@@ -60,3 +60,15 @@ def test_node_labels_follow_the_scheme(local_inventory):
         {"key": "kuberos.io/robot", "value": "fetch-1", "effect": "NoSchedule"}
     ]
     assert labels.node_taints(local_inventory.nodes["cloud-1"]) == []
+
+
+def test_sample_inventory_is_a_valid_site():
+    from conftest import inventory_raw
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+
+    inv = load_inventory(inventory_raw("inventories/sample"))
+    assert inv.fleets == {"inventory": ("scanner-01",), "picking": ("fetch-01", "fetch-02")}
+    assert sorted(n for n, node in inv.nodes.items() if node.tier == "edge") == ["edge-a", "edge-b", "edge-c"]
+    assert inv.latency_ms("fetch-02", "gpu-vm-1") == 85.0 and inv.latency_ms("fetch-01", "gpu-vm-1") == 40.0
+    assert inv.nodes["scanner-01.robots.example.internal"].arch == "arm64"

@@ -70,7 +70,9 @@ def test_every_module_is_pinned_and_wired_to_its_fleets_discovery_servers(root, 
     deployments, placement, objects = render_example(root, local_inventory, name)
     services = {(o["metadata"]["namespace"], o["metadata"]["name"]) for o in objects if o["kind"] == "Service"}
     by_instance = {inst.name: inst for inst in placement.instances}
-    modules = [o for o in objects if o["kind"] == "Deployment" and o["metadata"]["labels"]["kuberos.io/component"] == "ros-module"]
+    modules = [
+        o for o in objects if o["kind"] == "Deployment" and o["metadata"]["labels"]["kuberos.io/component"] == "ros-module"
+    ]
     assert len(modules) == len(placement.instances)
     for obj in modules:
         inst = by_instance[obj["metadata"]["name"]]
@@ -102,25 +104,36 @@ def test_discovery_server_objects(local_inventory, root):
     _deployments, placement, objects = render_example(root, local_inventory, "two-fleets")
     for fleet, servers in placement.discovery.items():
         namespace = servers[0].namespace
-        deploys = [o for o in objects if o["kind"] == "Deployment" and o["metadata"]["namespace"] == namespace
-                   and o["metadata"]["labels"].get("kuberos.io/component") == "discovery-server"]
+        deploys = [
+            o
+            for o in objects
+            if o["kind"] == "Deployment"
+            and o["metadata"]["namespace"] == namespace
+            and o["metadata"]["labels"].get("kuberos.io/component") == "discovery-server"
+        ]
         assert len(deploys) == len(servers), fleet
         for obj, server in zip(sorted(deploys, key=lambda o: o["metadata"]["name"]), servers, strict=True):
             container = obj["spec"]["template"]["spec"]["containers"][0]
             assert container["command"] == ["fast-discovery-server", "-i", str(server.server_id), "-l", "0.0.0.0", "-p", "11811"]
             assert obj["spec"]["template"]["spec"]["nodeSelector"] == {labels.HOSTNAME: server.node}
         svcs = [o for o in objects if o["kind"] == "Service" and o["metadata"]["namespace"] == namespace]
-        assert all(s["spec"]["ports"] == [{"name": "discovery", "port": 11811, "targetPort": 11811, "protocol": "UDP"}] for s in svcs)
+        assert all(
+            s["spec"]["ports"] == [{"name": "discovery", "port": 11811, "targetPort": 11811, "protocol": "UDP"}] for s in svcs
+        )
     namespaces = [o["metadata"]["name"] for o in objects if o["kind"] == "Namespace"]
     assert namespaces == ["kuberos-test-fleet", "kuberos-warehouse-fleet"]
 
 
 def test_gpu_parameters_and_multi_command_launch(local_inventory, root):
     _deployments, _placement, objects = render_example(root, local_inventory, "two-fleets")
-    detector = next(o for o in objects if o["kind"] == "Deployment" and o["metadata"]["name"].startswith("inventory-scan-detector"))
+    detector = next(
+        o for o in objects if o["kind"] == "Deployment" and o["metadata"]["name"].startswith("inventory-scan-detector")
+    )
     resources = detector["spec"]["template"]["spec"]["containers"][0]["resources"]
     assert resources["limits"]["nvidia.com/gpu"] == "1" and resources["requests"]["nvidia.com/gpu"] == "1"
-    lidar = next(o for o in objects if o["kind"] == "Deployment" and o["metadata"]["name"].startswith("inventory-scan-lidar-driver"))
+    lidar = next(
+        o for o in objects if o["kind"] == "Deployment" and o["metadata"]["name"].startswith("inventory-scan-lidar-driver")
+    )
     args = lidar["spec"]["template"]["spec"]["containers"][0]["args"]
     assert args[:2] == ["/bin/bash", "-c"] and args[2].endswith("& wait -n")
     _deployments, _placement, objects = render_example(root, local_inventory, "pick-and-place")

@@ -3,8 +3,6 @@ explanation; any input at all gives a RosDeployment or a SpecError, never anothe
 
 from __future__ import annotations
 
-import math
-
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
@@ -73,8 +71,12 @@ modules = st.fixed_dictionaries(
             },
         ),
         "resources": st.fixed_dictionaries(
-            {}, optional={"cpu": st.sampled_from(["100m", 1, 2, "3500m"]), "memory": st.sampled_from(["64Mi", "1Gi", "4Gi"]),
-                          "gpu": st.integers(0, 2)}
+            {},
+            optional={
+                "cpu": st.sampled_from(["100m", 1, 2, "3500m"]),
+                "memory": st.sampled_from(["64Mi", "1Gi", "4Gi"]),
+                "gpu": st.integers(0, 2),
+            },
         ),
         "strategy": st.sampled_from(["dedicated", "shared"]),
     },
@@ -165,8 +167,27 @@ json_values = st.recursive(
     lambda children: st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=10), children, max_size=4),
     max_leaves=25,
 )
-keys = st.sampled_from(["metadata", "rosModules", "name", "image", "launch", "preference", "requirements", "resources",
-                        "targetFleet", "robotSelector", "robot", "max_latency", "onboard", "env", "strategy", "gpu", "cpu"])
+keys = st.sampled_from(
+    [
+        "metadata",
+        "rosModules",
+        "name",
+        "image",
+        "launch",
+        "preference",
+        "requirements",
+        "resources",
+        "targetFleet",
+        "robotSelector",
+        "robot",
+        "max_latency",
+        "onboard",
+        "env",
+        "strategy",
+        "gpu",
+        "cpu",
+    ]
+)
 specish = st.recursive(
     st.none() | st.booleans() | st.integers(-5, 300) | st.floats() | st.sampled_from(["edge", "200 ms", "2Gi", "x", ""]),
     lambda children: st.lists(children, max_size=3) | st.dictionaries(keys, children, max_size=5),

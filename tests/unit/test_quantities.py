@@ -5,7 +5,14 @@ import pytest
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities as q
 
 CPU = [(2, 2000), (0.5, 500), ("500m", 500), ("2", 2000), ("1.5", 1500), (" 250m ", 250), ("0", 0)]
-MEMORY = [("512Mi", 512 * 1024**2), ("2Gi", 2 * 1024**3), ("1G", 10**9), ("1000M", 10**9), (1024, 1024), ("1.5Gi", 1536 * 1024**2)]
+MEMORY = [
+    ("512Mi", 512 * 1024**2),
+    ("2Gi", 2 * 1024**3),
+    ("1G", 10**9),
+    ("1000M", 10**9),
+    (1024, 1024),
+    ("1.5Gi", 1536 * 1024**2),
+]
 LATENCY = [("200 ms", 200.0), ("200ms", 200.0), ("0.5 s", 500.0), ("1s", 1000.0), (20, 20.0), (2.5, 2.5), ("15", 15.0)]
 BAD_CPU = ["four", "-1", -1, "1 core", True, None, [], "1e3", float("nan"), float("inf")]
 BAD_MEMORY = ["lots", "1 GB", "-5Mi", -5, True, None, "Gi"]

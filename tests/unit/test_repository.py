@@ -49,3 +49,14 @@ def test_inventory_variables_are_documented():
     assert variables, "inventory.py reads kuberos_* host variables"
     missing = [v for v in variables if f"`{v}`" not in doc]
     assert not missing, f"docs/inventory.md does not document {missing}"
+
+
+def test_pure_core_has_no_ansible_or_kubernetes_imports():
+    import re
+
+    core = os.path.join(ROOT, "plugins", "module_utils", "kuberos")
+    for name in sorted(os.listdir(core)):
+        if name.endswith(".py"):
+            with open(os.path.join(core, name), encoding="utf-8") as handle:
+                text = handle.read()
+            assert not re.search(r"^\s*(from|import)\s+(ansible|kubernetes)\b", text, re.M), name

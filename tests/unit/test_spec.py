@@ -66,7 +66,10 @@ def test_examples_are_valid(path):
 
 
 def module(**fields):
-    return {"metadata": {"name": "app", "targetFleet": "f"}, "rosModules": [{"name": "m", "image": "i", "launch": "run", **fields}]}
+    return {
+        "metadata": {"name": "app", "targetFleet": "f"},
+        "rosModules": [{"name": "m", "image": "i", "launch": "run", **fields}],
+    }
 
 
 TIERS = [
