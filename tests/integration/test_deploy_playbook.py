@@ -109,7 +109,8 @@ def test_two_fleets_get_their_own_namespaces(tmp_path):
 
 BAD = {
     "unknown-field": (
-        "metadata: {name: demo, targetFleet: test-fleet}\nrosModules:\n- name: planner\n  image: x\n  launch: [run]\n  prefrence: cloud\n",
+        "metadata: {name: demo, targetFleet: test-fleet}\nrosModules:\n"
+        "- name: planner\n  image: x\n  launch: [run]\n  prefrence: cloud\n",
         [r"app.yml:6: rosModules\[0\].prefrence: unknown field; did you mean 'preference'\?"],
     ),
     "unknown-fleet": (

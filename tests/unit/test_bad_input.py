@@ -17,8 +17,9 @@ import textwrap
 import time
 
 import pytest
+import yaml
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import errors, inventory, scheduler, spec
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import errors, inventory, scheduler, spec, yaml_source
 
 SOURCE = "specs/bad.yml"
 INVENTORY_SOURCE = "inventories/bad"
@@ -163,10 +164,6 @@ SPEC_CASES = [
         "rosModule",
         ["unknown field"],
         4,
-        marks=defect(
-            "an unknown field whose value is a block (list/mapping) is reported on the line of its value "
-            "(5, '- name: planner') instead of the line of the misspelt key (4)"
-        ),
     ),
     case(
         "missing-rosModules-when-misspelt",
@@ -237,10 +234,6 @@ SPEC_CASES = [
         "1",
         ["unknown field"],
         8,
-        marks=defect(
-            "an integer key is reported as path '[1]' (formatted like a list index) on line 1 (the document's line, "
-            "because Document.lines is keyed by the YAML scalar '1' and the data by the int 1) instead of path '1' on line 8"
-        ),
     ),
     case(
         "non-string-and-string-unknown-keys",
@@ -248,7 +241,6 @@ SPEC_CASES = [
         "colour",
         ["unknown field"],
         9,
-        marks=defect("an int key and a str key both unknown: sorted() of the extras raises TypeError in spec._schema_problem"),
     ),
     # -- missing required fields --------------------------------------------------------------
     case(
@@ -263,14 +255,14 @@ SPEC_CASES = [
         BASE.replace("  name: demo\n", ""),
         "metadata",
         ["missing required field 'name'"],
-        2,
+        1,
     ),
     case(
         "missing-targetFleet",
         BASE.replace("  targetFleet: test-fleet\n", ""),
         "metadata",
         ["missing required field 'targetFleet'"],
-        2,
+        1,
     ),
     case(
         "missing-module-name",
@@ -389,7 +381,7 @@ SPEC_CASES = [
         "metadata: {name: demo, targetFleet: test-fleet}\nrosModules:\n  planner: {image: x, launch: y}\n",
         "rosModules",
         ["(dict) is not valid", "expected a non-empty list of modules"],
-        3,
+        2,
     ),
     case(
         "module-as-string",
@@ -444,7 +436,7 @@ SPEC_CASES = [
         "label-value-not-string",
         metadata("labels: {team: 5}"),
         "metadata.labels.team",
-        ["5 (int) is not valid", "expected a string label value"],
+        ["5 (int) is not valid", "expected a label value"],
         4,
     ),
     case(
@@ -453,7 +445,6 @@ SPEC_CASES = [
         "metadata.labels.Bad Key!",
         ["'Bad Key!'", "label"],
         4,
-        marks=defect("metadata.labels keys are not validated; 'Bad Key!' is accepted and ends up in the manifests"),
     ),
     case(
         "label-value-invalid",
@@ -461,7 +452,6 @@ SPEC_CASES = [
         "metadata.labels.team",
         ["'not ok!'", "label"],
         4,
-        marks=defect("metadata.labels values are only checked for type/length; 'not ok!' is accepted"),
     ),
     # -- bad units ----------------------------------------------------------------------------
     case(
@@ -505,7 +495,6 @@ SPEC_CASES = [
         "rosModules[0].resources.cpu",
         ["inf (float) is not valid", "expected a CPU quantity"],
         8,
-        marks=defect("cpu .inf passes the schema and quantities.parse_cpu raises a bare ValueError from spec._semantic_module"),
     ),
     case(
         "max_latency-nan",
@@ -513,7 +502,6 @@ SPEC_CASES = [
         "rosModules[0].requirements.max_latency",
         ["nan (float) is not valid", "expected a latency"],
         8,
-        marks=defect("max_latency .nan passes the schema and parse_latency_ms raises a bare ValueError"),
     ),
     # -- negative values ----------------------------------------------------------------------
     case(
@@ -690,37 +678,30 @@ SPEC_CASES = [
     case(
         "env-name-with-dash",
         module("env: {MY-VAR: x}"),
-        "rosModules[0].env",
-        ["'MY-VAR' is not a valid environment variable name", "letters, digits and '_'"],
+        "rosModules[0].env.MY-VAR",
+        ["'MY-VAR' is not a valid name", "expected an environment variable name of letters, digits and '_'"],
         8,
-        marks=defect(
-            "jsonschema reports propertyNames failures with validator 'pattern', so the message is the raw regex "
-            "(\"expected 'MY-VAR' does not match '^[A-Za-z_]...'\") instead of the intended sentence"
-        ),
     ),
     case(
         "env-name-starting-with-digit",
         module("env: {1BAD: x}"),
-        "rosModules[0].env",
-        ["'1BAD' is not a valid environment variable name"],
+        "rosModules[0].env.1BAD",
+        ["'1BAD' is not a valid name", "not starting with a digit"],
         8,
-        marks=defect("same as env-name-with-dash: raw regex message"),
     ),
     case(
         "env-name-integer-key",
         module("env: {1: x}"),
-        "rosModules[0].env",
-        ["1", "not a valid environment variable name"],
+        "rosModules[0].env.1",
+        ["1 (int) is not a valid name", "environment variable name"],
         8,
-        marks=defect("an integer env key passes the schema and crashes _semantic_module with AttributeError (startswith)"),
     ),
     case(
         "env-name-null-key",
         module("env: {null: x}"),
-        "rosModules[0].env",
-        ["None", "not a valid environment variable name"],
+        "rosModules[0].env.None",
+        ["None (NoneType) is not a valid name", "environment variable name"],
         8,
-        marks=defect("a null env key passes the schema and crashes _semantic_module with AttributeError (startswith)"),
     ),
     # -- launch command lines -----------------------------------------------------------------
     case(
@@ -810,12 +791,28 @@ def test_alias_bomb_fails_fast():
     assert SOURCE in str(info.value)
 
 
-def test_deep_nesting_fails_fast():
+def test_deep_nesting_fails_in_bounded_time():
     started = time.perf_counter()
     with pytest.raises(errors.SpecError) as info:
         spec.load_rosdeployments("[" * 5000 + "]" * 5000, SOURCE)
-    assert time.perf_counter() - started < 1.0
+    assert time.perf_counter() - started < 5.0
     assert "too large" in str(info.value)
+
+
+def test_deep_nesting_stops_soon_after_the_depth_limit(monkeypatch):
+    """Deterministic stand-in for "fails fast": count the YAML tokens read before giving up."""
+    consumed = []
+
+    class CountingLoader(yaml.SafeLoader):
+        def get_token(self):
+            consumed.append(1)
+            return super().get_token()
+
+    monkeypatch.setattr(yaml_source.yaml, "SafeLoader", CountingLoader)
+    with pytest.raises(errors.SpecError) as info:
+        spec.load_rosdeployments("[" * 5000 + "]" * 5000, SOURCE)
+    assert "too large" in str(info.value)
+    assert len(consumed) <= 2 * yaml_source.MAX_DEPTH + 10, f"read {len(consumed)} tokens before failing"
 
 
 def test_all_problems_of_one_spec_at_once():
@@ -871,7 +868,6 @@ def test_all_problems_of_all_documents_at_once():
     assert not any("(document 2)" in p.source for p in info.value.problems)
 
 
-@defect("only the first invalid env name of a module is reported: the others share its path and are deduplicated")
 def test_all_invalid_env_names_are_reported():
     text = module("env: {MY-VAR: x, 1BAD: y, GOOD: z}")
     with pytest.raises(errors.SpecError) as info:
@@ -894,7 +890,6 @@ FLOAT_CASES = [
         lambda dep: dep.discovery_servers,
         8,
         id="discovery-servers-2.0",
-        marks=defect("discovery.servers 2.0 is accepted as a float; place_modules then raises TypeError in range()"),
     ),
     pytest.param(
         top("rosDomainId: 3.0"),
@@ -902,7 +897,6 @@ FLOAT_CASES = [
         lambda dep: dep.ros_domain_id,
         8,
         id="rosDomainId-3.0",
-        marks=defect("rosDomainId 3.0 is kept as a float; manifests render ROS_DOMAIN_ID='3.0'"),
     ),
     pytest.param(
         top("discovery: {port: 11811.0}"),
@@ -910,7 +904,6 @@ FLOAT_CASES = [
         lambda dep: dep.discovery_port,
         8,
         id="discovery-port-float",
-        marks=defect("discovery.port 11811.0 is kept as a float"),
     ),
     pytest.param(
         module("strategy: shared", "robotsPerInstance: 2.0"),
@@ -918,7 +911,6 @@ FLOAT_CASES = [
         lambda dep: dep.modules[0].robots_per_instance,
         9,
         id="robotsPerInstance-2.0",
-        marks=defect("robotsPerInstance 2.0 is kept as a float; placement reasons read 'shared by 2/2.0 robots'"),
     ),
 ]
 
@@ -1248,45 +1240,36 @@ INVENTORY_CASES = [
         inv(hosts={"fetch-1": "kuberos_cpu=4"}),
         "hosts.fetch-1",
         ["'kuberos_cpu=4' is not valid", "mapping"],
-        marks=defect("a host whose variables are not a mapping crashes load_inventory with AttributeError ('str'.get)"),
     ),
     inv_case(
         "hosts-not-a-mapping",
         {**copy.deepcopy(GOOD_INVENTORY), "hosts": ["fetch-1"]},
         "hosts",
         ["(list) is not valid", "mapping"],
-        marks=defect("'hosts' given as a list crashes load_inventory with AttributeError ('list'.get)"),
     ),
     inv_case(
         "groups-not-a-mapping",
         {**copy.deepcopy(GOOD_INVENTORY), "groups": ["robots", "edge"]},
         "groups",
         ["(list) is not valid", "mapping"],
-        marks=defect("'groups' given as a list crashes load_inventory with AttributeError ('list'.get)"),
     ),
     inv_case(
         "group-members-a-string",
         inv(groups={"edge": "edge-1"}),
         "groups.edge",
         ["'edge-1' is not valid", "list of host names"],
-        marks=defect(
-            "a group given as a string is iterated character by character: hosts 'e', 'd', 'g', '-', '1' each "
-            "get 'kuberos_cpu is required' problems instead of one clear groups.edge problem"
-        ),
     ),
     inv_case(
         "group-member-not-a-string",
         inv(groups={"edge": ["edge-1", None]}),
         "groups.edge[1]",
         ["None (NoneType) is not valid", "host name"],
-        marks=defect("a None group member crashes load_inventory with TypeError from sorted()"),
     ),
     inv_case(
         "default-latency-not-a-mapping",
         inv(default_latency_ms=5),
         "kuberos_default_latency_ms",
         ["5 (int) is not valid", "mapping"],
-        marks=defect("kuberos_default_latency_ms given as a number crashes load_inventory with AttributeError (.items)"),
     ),
 ]
 

@@ -204,7 +204,7 @@ def test_any_data_is_a_deployment_or_a_spec_error(data):
         assert exc.problems and all(p.source == "fuzz.yml" for p in exc.problems)
 
 
-yaml_tokens = st.sampled_from(list("ab:-[]{}&*!|>'\"#\n\t ,?%@`") + ["metadata:", "rosModules:", "name: ", "- ", "&x ", "*x"])
+yaml_tokens = st.sampled_from([*list("ab:-[]{}&*!|>'\"#\n\t ,?%@`"), "metadata:", "rosModules:", "name: ", "- ", "&x ", "*x"])
 
 
 @settings(max_examples=300, deadline=None)

@@ -68,6 +68,9 @@ class Inventory:
             fleets.setdefault(robot.fleet, []).append(robot.name)
         self.fleets = {name: tuple(sorted(members)) for name, members in sorted(fleets.items())}
         self._links = {robot.name: dict(robot.link_latency_ms) for robot in self.robots.values()}
+        self._by_tier: dict[str, list[Node]] = {"onboard": [], "edge": [], "cloud": []}
+        for node in self.nodes.values():
+            self._by_tier[node.tier].append(node)
         self._tiers: dict[tuple[str, str], tuple[Node, ...]] = {}
 
     def latency_ms(self, robot: str, node: str) -> float:
@@ -87,7 +90,7 @@ class Inventory:
         """Edge or cloud nodes the fleet may use, by name."""
         key = (tier, fleet)
         if key not in self._tiers:
-            self._tiers[key] = tuple(n for n in self.nodes.values() if n.tier == tier and n.serves_fleet(fleet))
+            self._tiers[key] = tuple(n for n in self._by_tier[tier] if n.serves_fleet(fleet))
         return self._tiers[key]
 
 
@@ -150,14 +153,33 @@ def _name(value, source, host, var, problems, what):
     return str(value)
 
 
+def _groups(groups, source, problems) -> dict[str, frozenset]:
+    """The members of robots, edge and cloud as sets of host names."""
+    if not isinstance(groups, dict):
+        problems.append(Problem(source, "groups", f"{describe(groups)} is not valid; expected a mapping of group names to hosts"))
+        groups = {}
+    members = {}
+    for group in TIER_GROUPS:
+        names = groups.get(group) or []
+        if not isinstance(names, (list, tuple)):
+            problems.append(Problem(source, f"groups.{group}", f"{describe(names)} is not valid; expected a list of host names"))
+            names = []
+        for index, name in enumerate(names):
+            if not isinstance(name, str) or not name:
+                problems.append(
+                    Problem(source, f"groups.{group}[{index}]", f"{describe(name)} is not valid; expected a host name")
+                )
+        members[group] = frozenset(n for n in names if isinstance(n, str) and n)
+    return members
+
+
 def _tier_of(host, groups, source, problems):
-    tiers = [tier for group, tier in TIER_GROUPS.items() if host in groups.get(group, ())]
-    if len(tiers) > 1:
-        names = [g for g in TIER_GROUPS if host in groups.get(g, ())]
+    names = [group for group in TIER_GROUPS if host in groups[group]]
+    if len(names) > 1:
         problems.append(
             _host_problem(source, host, "", f"is in groups {', '.join(names)}; expected exactly one of robots, edge, cloud")
         )
-    return tiers[0]
+    return TIER_GROUPS[names[0]]
 
 
 def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
@@ -166,9 +188,24 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
     if not isinstance(raw, dict):
         raise SpecError([Problem(source, "", f"{describe(raw)} is not an inventory; expected a mapping with hosts and groups")])
     hosts = raw.get("hosts") or {}
-    groups = raw.get("groups") or {}
+    if not isinstance(hosts, dict):
+        problems.append(
+            Problem(source, "hosts", f"{describe(hosts)} is not valid; expected a mapping of host names to variables")
+        )
+        hosts = {}
+    groups = _groups(raw.get("groups") or {}, source, problems)
     defaults = dict(DEFAULT_LATENCY_MS)
-    for tier, value in (raw.get("default_latency_ms") or {}).items():
+    given_defaults = raw.get("default_latency_ms") or {}
+    if not isinstance(given_defaults, dict):
+        problems.append(
+            Problem(
+                source,
+                "kuberos_default_latency_ms",
+                f"{describe(given_defaults)} is not valid; expected a mapping of tier to latency, e.g. {{edge: 5, cloud: 40}}",
+            )
+        )
+        given_defaults = {}
+    for tier, value in given_defaults.items():
         if tier not in defaults:
             problems.append(
                 Problem(
@@ -182,7 +219,7 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
             defaults[tier] = quantities.parse_latency_ms(value)
         except ValueError as exc:
             problems.append(Problem(source, f"kuberos_default_latency_ms.{tier}", f"{describe(value)} is not valid; {exc}"))
-    members = sorted({h for g in TIER_GROUPS for h in groups.get(g, ())})
+    members = sorted({h for g in TIER_GROUPS for h in groups[g]})
     if not members:
         problems.append(Problem(source, "groups", "no hosts in the groups robots, edge or cloud; expected at least one robot"))
 
@@ -192,6 +229,9 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
     host_to_node: dict[str, str] = {}
     for host in members:
         hv = hosts.get(host) or {}
+        if not isinstance(hv, dict):
+            problems.append(_host_problem(source, host, "", f"{describe(hv)} is not valid; expected a mapping of variables"))
+            continue
         tier = _tier_of(host, groups, source, problems)
         node_name = _name(hv.get("kuberos_node_name", host), source, host, "kuberos_node_name", problems, "node name")
         if node_name in nodes:
@@ -207,6 +247,9 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
         cpu = _parse_number(hv.get("kuberos_cpu"), quantities.parse_cpu, source, host, "kuberos_cpu", problems)
         memory = _parse_number(hv.get("kuberos_memory"), quantities.parse_memory, source, host, "kuberos_memory", problems)
         gpu = _count(hv.get("kuberos_gpu"), source, host, "kuberos_gpu", problems, 0)
+        for var, amount in (("kuberos_cpu", cpu), ("kuberos_memory", memory)):
+            if amount == 0 and hv.get(var) is not None and not any(p.path == f"hosts.{host}.{var}" for p in problems):
+                problems.append(_host_problem(source, host, var, "must be more than zero"))
         pods = _count(hv.get("kuberos_pods"), source, host, "kuberos_pods", problems, 110)
         arch = hv.get("kuberos_arch", "amd64")
         if not isinstance(arch, str) or not _LABEL_VALUE.match(arch):

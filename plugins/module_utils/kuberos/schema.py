@@ -14,6 +14,8 @@ STRATEGIES = ("dedicated", "shared")
 
 DNS_LABEL = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
 ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
+LABEL_KEY = r"^([a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*/)?[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?$"
+LABEL_VALUE = r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?$"
 LATENCY = r"^\s*[0-9]+(\.[0-9]+)?\s*(ms|s)?\s*$"
 CPU = r"^\s*[0-9]+(\.[0-9]+)?\s*m?\s*$"
 MEMORY = r"^\s*[0-9]+(\.[0-9]+)?\s*(Ki|Mi|Gi|Ti|k|K|M|G|T)?\s*$"
@@ -68,7 +70,16 @@ SCHEMA = {
                 },
                 "labels": {
                     "type": "object",
-                    "additionalProperties": {"type": "string", "maxLength": 63, "x-expected": "a string label value"},
+                    "propertyNames": {
+                        "type": "string",
+                        "pattern": LABEL_KEY,
+                        "x-expected": "a label name such as 'team' or 'example.com/team' (at most 63 characters after the '/')",
+                    },
+                    "additionalProperties": {
+                        "type": "string",
+                        "pattern": LABEL_VALUE,
+                        "x-expected": "a label value of at most 63 letters, digits, '-', '_' and '.', alphanumeric at both ends",
+                    },
                     "description": "Extra labels put on every object of the deployment.",
                     "x-expected": "a mapping of label names to strings",
                 },
@@ -229,7 +240,11 @@ SCHEMA = {
                     },
                     "env": {
                         "type": "object",
-                        "propertyNames": {"pattern": ENV_NAME},
+                        "propertyNames": {
+                            "type": "string",
+                            "pattern": ENV_NAME,
+                            "x-expected": "an environment variable name of letters, digits and '_', not starting with a digit",
+                        },
                         "additionalProperties": {
                             "type": ["string", "number", "boolean"],
                             "x-expected": "a string, number or boolean",

@@ -83,58 +83,57 @@ class RosDeployment:
         return self.lines.get(path)
 
 
-def _schema_problem(error: jsonschema.ValidationError, doc: Document) -> Problem:
-    parts = tuple(error.absolute_path)
+def _parts(data, parts) -> tuple:
+    """Path parts with list positions as ints and mapping keys as strings (``1: x`` is field '1')."""
+    out, node = [], data
+    for part in parts:
+        if isinstance(node, list) and isinstance(part, int):
+            out.append(part)
+            node = node[part] if 0 <= part < len(node) else None
+        else:
+            out.append(str(part))
+            node = node.get(part) if isinstance(node, dict) else None
+    return tuple(out)
+
+
+def _problem(doc: Document, parts: tuple, message: str) -> Problem:
+    return Problem(doc.source, format_path(parts), message, doc.line_of(parts))
+
+
+def _problems_of(error: jsonschema.ValidationError, doc: Document) -> list[Problem]:
+    parts = _parts(doc.data, error.absolute_path)
     schema = error.schema if isinstance(error.schema, dict) else {}
     expected = schema.get("x-expected", "")
     value = error.instance
-    if error.validator == "additionalProperties":
+    if "propertyNames" in error.absolute_schema_path:
+        return [_problem(doc, (*parts, str(value)), f"{describe(value)} is not a valid name; expected {expected}")]
+    if error.validator == "additionalProperties" and isinstance(value, dict):
         allowed = sorted(schema.get("properties", {}))
-        extras = sorted(set(value) - set(allowed)) if isinstance(value, dict) else []
-        if extras:
-            key = extras[0]
-            hint = did_you_mean(key, allowed)
-            return Problem(
-                doc.source,
-                format_path((*parts, key)),
-                f"unknown field{hint} (allowed here: {', '.join(allowed)})",
-                doc.line_of((*parts, key)),
-            )
+        extras = sorted((k for k in value if k not in allowed), key=str)
+        return [
+            _problem(doc, (*parts, str(key)), f"unknown field{did_you_mean(key, allowed)} (allowed here: {', '.join(allowed)})")
+            for key in extras
+        ]
     if error.validator == "required":
         missing = error.message.split("'")[1] if "'" in error.message else error.message
-        return Problem(doc.source, format_path(parts), f"missing required field '{missing}'", doc.line_of(parts))
-    if error.validator == "propertyNames":
-        return Problem(
-            doc.source,
-            format_path(parts),
-            f"{describe(error.instance)} is not a valid environment variable name "
-            "(letters, digits and '_', not starting with a digit)",
-            doc.line_of(parts),
-        )
+        return [_problem(doc, parts, f"missing required field '{missing}'")]
     if error.validator == "uniqueItems":
-        return Problem(doc.source, format_path(parts), f"has repeated entries; expected {expected}", doc.line_of(parts))
-    return Problem(
-        doc.source,
-        format_path(parts),
-        f"{describe(value)} is not valid; expected {expected or error.message}",
-        doc.line_of(parts),
-    )
+        return [_problem(doc, parts, f"has repeated entries; expected {expected}")]
+    return [_problem(doc, parts, f"{describe(value)} is not valid; expected {expected or error.message}")]
 
 
 def _schema_problems(doc: Document) -> list[Problem]:
     problems = []
     seen = set()
-    errors = sorted(_VALIDATOR.iter_errors(doc.data), key=lambda e: (list(map(str, e.absolute_path)), e.validator))
+    errors = sorted(_VALIDATOR.iter_errors(doc.data), key=lambda e: ([str(p) for p in e.absolute_path], e.validator))
     for error in errors:
-        problem = _schema_problem(error, doc)
-        key = (problem.path, problem.message)
-        # A value that is both of the wrong type and fails a pattern is reported once.
-        if problem.path in seen and error.validator in ("pattern", "minimum", "type"):
-            continue
-        if key not in seen:
-            problems.append(problem)
-            seen.add(key)
-            seen.add(problem.path)
+        for problem in _problems_of(error, doc):
+            # A value that is both of the wrong type and fails a pattern is reported once.
+            if problem.path in seen and error.validator in ("pattern", "minimum", "type"):
+                continue
+            if (problem.path, problem.message) not in seen:
+                problems.append(problem)
+                seen.update([(problem.path, problem.message), problem.path])
     return problems
 
 
@@ -209,24 +208,34 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
     def problem(parts, message):
         problems.append(Problem(doc.source, format_path(base + parts), message, doc.line_of(base + parts)))
 
+    def quantity(section, key, parser, default):
+        try:
+            return parser(section.get(key, default))
+        except ValueError as exc:
+            section_name = "requirements" if section is requirements else "resources"
+            problem((section_name, key), f"{describe(section.get(key))} is not valid; {exc}")
+            return 0
+
     max_latency = None
     if "max_latency" in requirements:
-        max_latency = quantities.parse_latency_ms(requirements["max_latency"])
-    cpu = quantities.parse_cpu(resources.get("cpu", DEFAULT_CPU))
-    memory = quantities.parse_memory(resources.get("memory", DEFAULT_MEMORY))
-    if memory == 0:
+        max_latency = quantity(requirements, "max_latency", quantities.parse_latency_ms, None)
+    cpu = quantity(resources, "cpu", quantities.parse_cpu, DEFAULT_CPU)
+    memory = quantity(resources, "memory", quantities.parse_memory, DEFAULT_MEMORY)
+    if memory == 0 and "memory" in resources:
         problem(("resources", "memory"), "must be more than zero; expected e.g. '128Mi'")
 
     strategy = module.get("strategy", "dedicated")
     if "robotsPerInstance" in module and strategy != "shared":
         problem(("robotsPerInstance",), "only applies with strategy: shared; expected strategy: shared or no robotsPerInstance")
-    per_instance = module.get("robotsPerInstance", DEFAULT_ROBOTS_PER_INSTANCE) if strategy == "shared" else 1
+    per_instance = int(module.get("robotsPerInstance", DEFAULT_ROBOTS_PER_INSTANCE)) if strategy == "shared" else 1
 
     env = module.get("env") or {}
     for name in env:
-        if name in RESERVED_ENV:
+        if not isinstance(name, str):
+            problem(("env", str(name)), f"{describe(name)} is not a valid name; expected a string of letters, digits and '_'")
+        elif name in RESERVED_ENV:
             problem(("env", name), "is set by KubeROS (use rosDomainId and discovery instead); remove it")
-        if name.startswith("KUBEROS_"):
+        elif name.startswith("KUBEROS_"):
             problem(("env", name), "names starting with KUBEROS_ are reserved for KubeROS; rename it")
 
     return RosModule(
@@ -240,7 +249,7 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
             arch=tuple(_as_tuple(requirements.get("arch"))),
             devices=tuple(requirements.get("devices") or ()),
         ),
-        resources=Resources(cpu, memory, int(resources.get("gpu", 0))),
+        resources=Resources(cpu, memory, int(resources.get("gpu", 0))),  # 2.0 is an integer to JSON Schema
         strategy=strategy,
         robots_per_instance=per_instance,
         env=tuple((str(k), _env_value(v)) for k, v in env.items()),
@@ -289,9 +298,10 @@ def _parse_document(doc: Document) -> RosDeployment:
         fleet=metadata["targetFleet"],
         robots=tuple(selector) if selector else None,
         modules=tuple(modules),
-        ros_domain_id=data.get("rosDomainId", 0),
-        discovery_servers=discovery.get("servers", 2),
-        discovery_port=discovery.get("port", 11811),
+        # JSON Schema counts 2.0 as an integer; the rest of the code wants real ints.
+        ros_domain_id=int(data.get("rosDomainId", 0)),
+        discovery_servers=int(discovery.get("servers", 2)),
+        discovery_port=int(discovery.get("port", 11811)),
         labels=tuple(sorted((metadata.get("labels") or {}).items())),
         source=doc.source,
         lines={format_path(k): v for k, v in doc.lines.items()},

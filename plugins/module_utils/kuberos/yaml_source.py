@@ -68,13 +68,15 @@ class _Walker:
                     self.problems.append(
                         Problem(
                             self.source,
-                            format_path((*path, key)),
+                            format_path((*path, str(key))),
                             f"duplicate key (first written on line {seen[key]})",
                             key_node.start_mark.line + 1,
                         )
                     )
                 seen[key] = key_node.start_mark.line + 1
-                self.walk(value_node, (*path, key), depth + 1)
+                # A field's line is where its key is written, even when its value starts below.
+                self.lines.setdefault((*path, str(key)), key_node.start_mark.line + 1)
+                self.walk(value_node, (*path, str(key)), depth + 1)
         elif isinstance(node, yaml.SequenceNode):
             for index, item in enumerate(node.value):
                 self.walk(item, (*path, index), depth + 1)
@@ -82,6 +84,29 @@ class _Walker:
 
 class _TooLarge(Exception):
     pass
+
+
+_OPENING = (yaml.FlowSequenceStartToken, yaml.FlowMappingStartToken, yaml.BlockSequenceStartToken, yaml.BlockMappingStartToken)
+_CLOSING = (yaml.FlowSequenceEndToken, yaml.FlowMappingEndToken, yaml.BlockEndToken)
+
+
+def _check_depth(text: str) -> None:
+    """Refuse deep nesting from the token stream, before PyYAML's recursive composer sees it."""
+    scanner = yaml.SafeLoader(text)
+    depth = 0
+    try:
+        while True:
+            token = scanner.get_token()
+            if token is None or isinstance(token, yaml.StreamEndToken):
+                return
+            if isinstance(token, _OPENING):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    raise _TooLarge(f"nested deeper than {MAX_DEPTH} levels (line {token.start_mark.line + 1})")
+            elif isinstance(token, _CLOSING):
+                depth -= 1
+    finally:
+        scanner.dispose()
 
 
 def load_documents(text: str, source: str) -> list[Document]:
@@ -92,6 +117,7 @@ def load_documents(text: str, source: str) -> list[Document]:
     problems: list[Problem] = []
     loader = yaml.SafeLoader(text)
     try:
+        _check_depth(text)
         index = 0
         while loader.check_node():
             node = loader.get_node()
