@@ -35,45 +35,30 @@ def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
+def _parse(value, pattern: re.Pattern, from_number, from_match, expected: str):
+    """A non-negative finite number, or a string matching ``pattern``; ``ValueError(expected)`` otherwise."""
+    if _is_number(value) and value >= 0:
+        return from_number(value)
+    if isinstance(value, str):
+        match = pattern.match(value)
+        if match:
+            return from_match(float(match.group(1)), match.group(2))
+    raise ValueError(expected)
+
+
 def parse_cpu(value) -> int:
     """CPU in millicores: ``2`` -> 2000, ``'500m'`` -> 500."""
-    if _is_number(value):
-        if value < 0:
-            raise ValueError(CPU_EXPECTED)
-        return round(value * 1000)
-    if isinstance(value, str):
-        match = _CPU.match(value)
-        if match:
-            number, milli = float(match.group(1)), match.group(2)
-            return round(number if milli else number * 1000)
-    raise ValueError(CPU_EXPECTED)
+    return _parse(value, _CPU, lambda n: round(n * 1000), lambda n, milli: round(n if milli else n * 1000), CPU_EXPECTED)
 
 
 def parse_memory(value) -> int:
     """Memory in bytes: ``'512Mi'`` -> 536870912, plain numbers are bytes."""
-    if _is_number(value):
-        if value < 0:
-            raise ValueError(MEMORY_EXPECTED)
-        return int(value)
-    if isinstance(value, str):
-        match = _MEMORY.match(value)
-        if match:
-            return int(float(match.group(1)) * _MEMORY_FACTORS[match.group(2)])
-    raise ValueError(MEMORY_EXPECTED)
+    return _parse(value, _MEMORY, int, lambda n, unit: int(n * _MEMORY_FACTORS[unit]), MEMORY_EXPECTED)
 
 
 def parse_latency_ms(value) -> float:
     """Latency in milliseconds: ``'200 ms'`` -> 200.0, ``'0.5 s'`` -> 500.0, ``20`` -> 20.0."""
-    if _is_number(value):
-        if value < 0:
-            raise ValueError(LATENCY_EXPECTED)
-        return float(value)
-    if isinstance(value, str):
-        match = _LATENCY.match(value)
-        if match:
-            number = float(match.group(1))
-            return number * 1000.0 if match.group(2) == "s" else number
-    raise ValueError(LATENCY_EXPECTED)
+    return _parse(value, _LATENCY, float, lambda n, unit: n * 1000.0 if unit == "s" else n, LATENCY_EXPECTED)
 
 
 def format_cpu(millis: int) -> str:

@@ -20,6 +20,12 @@ LATENCY = r"^\s*[0-9]+(\.[0-9]+)?\s*(ms|s)?\s*$"
 CPU = r"^\s*[0-9]+(\.[0-9]+)?\s*m?\s*$"
 MEMORY = r"^\s*[0-9]+(\.[0-9]+)?\s*(Ki|Mi|Gi|Ti|k|K|M|G|T)?\s*$"
 
+_ONE_OR_MORE_STRINGS = {
+    "anyOf": [
+        {"type": "string", "minLength": 1},
+        {"type": "array", "minItems": 1, "items": {"type": "string", "minLength": 1}},
+    ]
+}
 _TIER = {"type": "string", "enum": list(TIERS), "x-expected": "one of onboard, edge, cloud"}
 
 SCHEMA = {
@@ -141,10 +147,7 @@ SCHEMA = {
                         "x-expected": "a container image reference without spaces, such as 'registry/planner:1.0'",
                     },
                     "launch": {
-                        "anyOf": [
-                            {"type": "string", "minLength": 1},
-                            {"type": "array", "minItems": 1, "items": {"type": "string", "minLength": 1}},
-                        ],
+                        **_ONE_OR_MORE_STRINGS,
                         "description": "Command line(s) that start the module, e.g. 'ros2 launch pkg file.launch.py'.",
                         "x-expected": "a command line or a non-empty list of command lines",
                     },
@@ -177,10 +180,7 @@ SCHEMA = {
                                 "x-expected": "a latency such as '200 ms', '0.5 s' or a number of milliseconds",
                             },
                             "arch": {
-                                "anyOf": [
-                                    {"type": "string", "minLength": 1},
-                                    {"type": "array", "minItems": 1, "items": {"type": "string", "minLength": 1}},
-                                ],
+                                **_ONE_OR_MORE_STRINGS,
                                 "description": "CPU architecture(s) the image runs on, e.g. amd64 or [amd64, arm64].",
                                 "x-expected": "an architecture such as 'amd64' or a list of them",
                             },
