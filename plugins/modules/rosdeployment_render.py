@@ -11,8 +11,8 @@ short_description: Render a placed RosDeployment into Kubernetes manifests
 version_added: 0.1.0
 description:
   - Turns a RosDeployment and its placement (from the P(kuberos.platform.place_modules#filter) filter) into
-    Kubernetes objects, one YAML file per object under O(dest)/manifests, plus C(placement.json) and a
-    human-readable C(placement.txt).
+    Kubernetes objects, one YAML file per object under O(dest)/manifests, plus C(placement.json), a
+    human-readable C(placement.txt) and a picture of the placement, C(placement.svg).
   - Per fleet a namespace and redundant Fast DDS discovery servers; per module instance a Deployment
     pinned to its node, with ROS_DISCOVERY_SERVER, RMW_IMPLEMENTATION and ROS_DOMAIN_ID set.
   - Files are written only when their content changes; manifests no longer rendered are removed.
@@ -77,6 +77,7 @@ from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, render_deployment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import (
     RenderDirError,
     apply_plan,
@@ -101,7 +102,7 @@ def run(module: AnsibleModule) -> dict:
     options = RenderOptions(cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"])
     objects = render_deployment(deployments, placement, options)
     table = placement_table(placement)
-    plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table)
+    plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement))
     if plan.changed and not module.check_mode:
         apply_plan(plan)
     result = {

@@ -18,6 +18,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     container_args,
     render_deployment,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import apply_plan, plan_render_dir
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules, placement_table
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file
@@ -46,7 +47,8 @@ def tree(path):
 @pytest.mark.parametrize("name", EXAMPLES)
 def test_golden_files(root, local_inventory, name, tmp_path):
     _deployments, placement, objects = render_example(root, local_inventory, name)
-    plan = plan_render_dir(str(tmp_path / name), objects, placement.to_dict(), placement_table(placement))
+    picture = render_placement_svg(placement)
+    plan = plan_render_dir(str(tmp_path / name), objects, placement.to_dict(), placement_table(placement), picture)
     apply_plan(plan)
     golden = os.path.join(GOLDEN, name)
     if os.environ.get("UPDATE_GOLDEN"):
@@ -152,3 +154,29 @@ def test_gpu_parameters_and_multi_command_launch(local_inventory, root):
 )
 def test_container_args(launch, args):
     assert container_args(launch) == args
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_placement_picture_shows_every_node_and_instance(root, local_inventory, name):
+    import xml.etree.ElementTree as ET
+
+    _deployments, placement, _objects = render_example(root, local_inventory, name)
+    svg = render_placement_svg(placement)
+    texts = [el.text or "" for el in ET.fromstring(svg).iter("{http://www.w3.org/2000/svg}text")]
+    for node in placement.nodes:
+        assert any(t.startswith(node["name"]) for t in texts), node["name"]
+    for inst in placement.instances:
+        serves = inst.robots[0] if len(inst.robots) == 1 else f"{len(inst.robots)} robots"
+        assert f"{inst.module} · {serves}" in texts
+    for fleet, servers in placement.discovery.items():
+        for server in servers:
+            assert f"◆ discovery-{server.server_id} ({fleet})" in texts
+    robot_links = sum(len(i.robots) for i in placement.instances if i.tier != "onboard")
+    assert svg.count("<path ") == robot_links
+
+
+def test_readme_picture_is_current(root):
+    with open(os.path.join(GOLDEN, "pick-and-place", "placement.svg"), encoding="utf-8") as handle:
+        golden = handle.read()
+    with open(os.path.join(root, "docs", "images", "placement-pick-and-place.svg"), encoding="utf-8") as handle:
+        assert handle.read() == golden, "copy tests/unit/golden/pick-and-place/placement.svg to docs/images/"

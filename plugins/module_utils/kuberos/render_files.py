@@ -81,7 +81,7 @@ def _read(path: str) -> str | None:
         return None
 
 
-def plan_render_dir(root: str, objects: list[dict], placement: dict, table: str) -> RenderPlan:
+def plan_render_dir(root: str, objects: list[dict], placement: dict, table: str, picture: str = "") -> RenderPlan:
     root = os.path.abspath(root)
     if os.path.isdir(root) and os.listdir(root) and not os.path.exists(os.path.join(root, MARKER)):
         raise RenderDirError(
@@ -96,6 +96,8 @@ def plan_render_dir(root: str, objects: list[dict], placement: dict, table: str)
         plan.files[rel] = dump_object(obj)
     plan.files["placement.json"] = json.dumps(placement, indent=2, sort_keys=True) + "\n"
     plan.files["placement.txt"] = table + "\n"
+    if picture:
+        plan.files["placement.svg"] = picture
     plan.files[MARKER] = "Rendered by the kuberos.platform collection; files here are replaced on every render.\n"
     for rel, text in sorted(plan.files.items()):
         current = _read(os.path.join(root, rel))

@@ -73,6 +73,8 @@ class Placement:
     instances: list[Instance] = field(default_factory=list)
     discovery: dict[str, list[DiscoveryServer]] = field(default_factory=dict)
     deployments: list[dict] = field(default_factory=list)
+    # Nodes the deployments could use, with capacity and what is left free after this placement.
+    nodes: list[dict] = field(default_factory=list)
 
     def rows(self) -> list[dict]:
         """One row per (robot, module): the answer to 'where does this run for that robot?'."""
@@ -117,6 +119,7 @@ class Placement:
                 for inst in self.instances
             ],
             "placements": self.rows(),
+            "nodes": self.nodes,
         }
 
     @classmethod
@@ -135,7 +138,7 @@ class Placement:
             }
         except (KeyError, TypeError) as exc:
             raise SpecError([Problem("placement", "", f"not a placement produced by place_modules ({exc!r})")]) from None
-        return cls(instances, discovery, list(data.get("deployments", [])))
+        return cls(instances, discovery, list(data.get("deployments", [])), list(data.get("nodes", [])))
 
 
 def _initial_free(inventory: Inventory, allocated: dict | None) -> dict[str, _Free]:
@@ -467,7 +470,35 @@ def place_modules(deployments: list[RosDeployment], inventory: Inventory, alloca
             scheduler.place_module(dep, module, robots, placement.instances)
     if scheduler.failures:
         raise PlacementError(scheduler.failures)
+    placement.nodes = _node_summaries(inventory, scheduler.free, placement)
     return placement
+
+
+def _node_summaries(inventory: Inventory, free: dict[str, _Free], placement: Placement) -> list[dict]:
+    robots = {r for dep in placement.deployments for r in dep["robots"]}
+    fleets = {dep["fleet"] for dep in placement.deployments}
+    summaries = []
+    for node in inventory.nodes.values():
+        if node.tier == "onboard" and node.robot not in robots:
+            continue
+        if node.tier != "onboard" and not any(node.serves_fleet(f) for f in fleets):
+            continue
+        left = free[node.name]
+        summaries.append(
+            {
+                "name": node.name,
+                "tier": node.tier,
+                "robot": node.robot,
+                "fleet": node.fleet,
+                "cpu_millis": node.cpu_millis,
+                "memory_bytes": node.memory_bytes,
+                "gpu": node.gpu,
+                "free_cpu_millis": left.cpu,
+                "free_memory_bytes": left.memory,
+                "free_gpu": left.gpu,
+            }
+        )
+    return summaries
 
 
 def placement_table(placement: Placement) -> str:
