@@ -18,13 +18,13 @@ from conftest import ROOT, venv_tool
 pytestmark = pytest.mark.playbook
 
 
-def deploy(spec, render_dir, *extra):
+def deploy(spec, render_dir, *extra, inventory="inventories/local"):
     env = {**os.environ, "ANSIBLE_CONFIG": os.path.join(ROOT, "ansible.cfg"), "ANSIBLE_NOCOLOR": "1", "ANSIBLE_FORCE_COLOR": "0"}
     command = [
         venv_tool("ansible-playbook"),
         "playbooks/deploy.yml",
         "-i",
-        "inventories/local",
+        str(inventory),
         "-e",
         f"rosdeployment_file={spec}",
         "-e",
@@ -157,3 +157,18 @@ def test_missing_spec_file_is_named(tmp_path):
     result = deploy(tmp_path / "nope.yml", tmp_path / "render")
     assert result.returncode != 0
     assert "nope.yml: cannot read the file: No such file or directory" in result.stdout
+
+
+def test_bad_inventory_names_host_and_variable(tmp_path):
+    inventory = tmp_path / "hosts.yml"
+    inventory.write_text(
+        "all:\n  children:\n    robots:\n      hosts:\n"
+        "        fetch-1: {kuberos_fleet: test-fleet, kuberos_cpu: four, kuberos_memory: 8Gi}\n"
+        "        fetch-2: {kuberos_cpu: 2, kuberos_memory: 8Gi}\n"
+    )
+    result = deploy("examples/listing1.yml", tmp_path / "render", inventory=inventory)
+    assert result.returncode != 0
+    assert "hosts.fetch-1.kuberos_cpu: 'four' is not valid; expected a CPU quantity" in result.stdout
+    assert "hosts.fetch-2.kuberos_fleet: is required for a robot" in result.stdout
+    assert "Traceback" not in result.stdout + result.stderr
+    assert not (tmp_path / "render").exists()
