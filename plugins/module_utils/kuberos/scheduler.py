@@ -223,7 +223,11 @@ class _Scheduler:
         return self.inventory.tier_nodes(tier, fleet)
 
     def choose(self, deployment: RosDeployment, module: RosModule, robots: tuple[str, ...]):
-        """Pick a node for one instance serving ``robots``: (node, tier, reason) or None."""
+        """Pick a node for one instance serving ``robots`` and take its resources.
+
+        Returns ``(node, tier, latency, reason)``, or ``(None, None, None, accounts)`` where
+        ``accounts`` says why each candidate node of each tier was rejected.
+        """
         res = module.resources
         accounts: list[str] = []
         skipped: list[str] = []
@@ -231,7 +235,10 @@ class _Scheduler:
         for tier in module.tiers:
             best = None
             feasible = 0
-            for node in self.candidates(tier, deployment.fleet, robot):
+            candidates = self.candidates(tier, deployment.fleet, robot)
+            if not candidates:
+                accounts.append(f"({tier}): no {tier} nodes available to fleet {deployment.fleet}")
+            for node in candidates:
                 why = self.rejection(node, module, robots, res.cpu_millis, res.memory_bytes, res.gpu)
                 if why is not None:
                     accounts.append(f"{node.name} ({tier}): {why}")
@@ -241,8 +248,6 @@ class _Scheduler:
                 key = (-self.score(node, res.cpu_millis, res.memory_bytes, res.gpu), latency, node.name)
                 if best is None or key < best[0]:
                     best = (key, node, latency)
-            if not self.candidates(tier, deployment.fleet, robot):
-                accounts.append(f"({tier}): no {tier} nodes available to fleet {deployment.fleet}")
             if best is not None:
                 _, node, latency = best
                 self.take(node.name, res.cpu_millis, res.memory_bytes, res.gpu)
@@ -303,27 +308,27 @@ class _Scheduler:
                     )
                 )
             return
-        open_instances: list[dict] = []
+        open_instances: list[dict] = []  # every instance, in creation order
+        with_room: list[dict] = []  # those that can still take a robot
+        limit = module.requirements.max_latency_ms
         for robot in robots:
-            joined = False
-            for inst in open_instances:
-                if len(inst["robots"]) >= module.robots_per_instance:
-                    continue
+            for inst in with_room:
                 latency = self.inventory.latency_ms(robot, inst["node"].name)
-                limit = module.requirements.max_latency_ms
-                if limit is not None and latency > limit:
+                if limit is None or latency <= limit:
+                    inst["robots"].append(robot)
+                    inst["latency"] = max(inst["latency"], latency)
+                    if len(inst["robots"]) >= module.robots_per_instance:
+                        with_room.remove(inst)
+                    break
+            else:
+                node, tier, latency, detail = self.choose(deployment, module, (robot,))
+                if node is None:
+                    self.fail(deployment, module, (robot,), detail)
                     continue
-                inst["robots"].append(robot)
-                inst["latency"] = max(inst["latency"], latency)
-                joined = True
-                break
-            if joined:
-                continue
-            node, tier, latency, detail = self.choose(deployment, module, (robot,))
-            if node is None:
-                self.fail(deployment, module, (robot,), detail)
-                continue
-            open_instances.append({"node": node, "tier": tier, "robots": [robot], "latency": latency, "reason": detail})
+                inst = {"node": node, "tier": tier, "robots": [robot], "latency": latency, "reason": detail}
+                open_instances.append(inst)
+                if module.robots_per_instance > 1:
+                    with_room.append(inst)
         for index, inst in enumerate(open_instances):
             out.append(
                 Instance(

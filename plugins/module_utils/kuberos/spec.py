@@ -157,24 +157,22 @@ def _tiers_for(module: dict, problems: list[Problem], doc: Document, index: int)
     if requirements.get("onboard"):
         if preference is not None and "onboard" not in _as_tuple(preference)[:1]:
             problems.append(
-                Problem(
-                    doc.source,
-                    format_path(path),
+                _problem(
+                    doc,
+                    path,
                     f"{describe(preference)} contradicts requirements.onboard: true; "
                     "expected preference onboard (or leave preference out)",
-                    doc.line_of(path),
                 )
             )
         tiers = ("onboard",)
     if strategy == "shared":
         if requirements.get("onboard") or (preference is not None and _as_tuple(preference) == ("onboard",)):
             problems.append(
-                Problem(
-                    doc.source,
-                    format_path(("rosModules", index, "strategy")),
+                _problem(
+                    doc,
+                    ("rosModules", index, "strategy"),
                     "'shared' cannot run onboard (a robot's computer serves only that robot); "
                     "expected preference edge or cloud, or strategy dedicated",
-                    doc.line_of(("rosModules", index, "strategy")),
                 )
             )
         tiers = tuple(t for t in tiers if t != "onboard") or tiers
@@ -190,11 +188,10 @@ def _launch_lines(module: dict, problems: list[Problem], doc: Document, index: i
                 raise ValueError("empty command")
         except ValueError as exc:
             problems.append(
-                Problem(
-                    doc.source,
-                    format_path(path),
+                _problem(
+                    doc,
+                    path,
                     f"{describe(line)} is not a valid command line ({exc}); expected e.g. 'ros2 launch pkg file.launch.py'",
-                    doc.line_of(path),
                 )
             )
     return lines
@@ -206,7 +203,7 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
     base = ("rosModules", index)
 
     def problem(parts, message):
-        problems.append(Problem(doc.source, format_path(base + parts), message, doc.line_of(base + parts)))
+        problems.append(_problem(doc, base + parts, message))
 
     def quantity(section, key, parser, default):
         try:
@@ -278,12 +275,11 @@ def _parse_document(doc: Document) -> RosDeployment:
         if module["name"] in names:
             path = ("rosModules", index, "name")
             problems.append(
-                Problem(
-                    doc.source,
-                    format_path(path),
+                _problem(
+                    doc,
+                    path,
                     f"'{module['name']}' is already the name of rosModules[{names[module['name']]}]; "
                     "expected a unique module name",
-                    doc.line_of(path),
                 )
             )
         names.setdefault(module["name"], index)
