@@ -1,7 +1,7 @@
 """playbooks/deploy.yml end to end with ansible-playbook, against the embedded local inventory.
 
 Each behaviour is run twice where it matters (changed, then not changed), and check mode and
-diff are separate cases. Nothing here needs a cluster: kuberos_apply is false.
+diff are separate cases. Nothing here needs a cluster: kuberos_apply is false (tests/cluster applies).
 """
 
 from __future__ import annotations
@@ -29,6 +29,8 @@ def deploy(spec, render_dir, *extra, inventory="inventories/local"):
         f"rosdeployment_file={spec}",
         "-e",
         f"kuberos_render_dir={render_dir}",
+        "-e",
+        "kuberos_apply=false",
         *extra,
     ]
     result = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)

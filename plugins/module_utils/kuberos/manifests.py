@@ -74,6 +74,7 @@ def _discovery_objects(server: DiscoveryServer, options: RenderOptions) -> list[
         COMPONENT: "discovery-server",
         node_labels.FLEET: server.fleet,
         DISCOVERY_ID: str(server.server_id),
+        INSTANCE: server.name,
     }
     selector = {COMPONENT: "discovery-server", DISCOVERY_ID: str(server.server_id)}
     pod_spec = {

@@ -1,0 +1,60 @@
+# Copyright: KubeROS contributors
+# GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
+"""Node objects from the inventory: a thin adapter over module_utils/kuberos/cluster_nodes.py."""
+
+from __future__ import annotations
+
+DOCUMENTATION = r"""
+name: cluster_nodes
+short_description: Kubernetes Node objects for every robot, edge server and cloud VM of the inventory
+version_added: 0.1.0
+description:
+  - With O(simulated=false), the part of each Node the resource manager owns, ready for server-side apply
+    on a real cluster, the KubeROS labels (role, hostname, robot, fleet, devices, resource group) and,
+    on robots, the taint C(kuberos.io/robot=<robot>:NoSchedule).
+  - With O(simulated=true), whole nodes for kwok, with the same labels and taints plus the
+    capacity (cpu, memory, pods, nvidia.com/gpu) of the inventory.
+options:
+  _input:
+    description: The fleet inventory, as returned by P(kuberos.platform.fleet_inventory#filter).
+    type: dict
+    required: true
+  simulated:
+    description: Build whole kwok nodes instead of label patches.
+    type: bool
+    default: false
+"""
+
+EXAMPLES = r"""
+- name: Label the cluster's nodes from the inventory
+  kubernetes.core.k8s:
+    definition: "{{ groups | kuberos.platform.fleet_inventory(hostvars) | kuberos.platform.cluster_nodes }}"
+    apply: true
+    server_side_apply:
+      field_manager: kuberos-resource-manager
+"""
+
+RETURN = r"""
+_value:
+  description: A list of Node objects, one per robot, edge server and cloud VM.
+  type: list
+  elements: dict
+"""
+
+from ansible.errors import AnsibleFilterError
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import cluster_nodes as build_nodes
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+
+
+def cluster_nodes(inventory, simulated=False):
+    try:
+        return build_nodes(load_inventory(inventory), bool(simulated))
+    except KuberosError as exc:
+        raise AnsibleFilterError(str(exc)) from None
+
+
+class FilterModule:
+    def filters(self):
+        return {"cluster_nodes": cluster_nodes}

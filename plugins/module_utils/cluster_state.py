@@ -1,0 +1,113 @@
+"""Reading and pruning what KubeROS runs in a cluster, with the Kubernetes Python client.
+
+Used by the ``rosdeployment_prune`` and ``rosdeployment_info`` modules (and by tests); the pure
+core stays free of Kubernetes imports.
+"""
+
+from __future__ import annotations
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+    COMPONENT,
+    DEPLOYMENT,
+    INSTANCE,
+    MANAGED_BY,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+
+# Kinds KubeROS renders inside fleet namespaces: (apiVersion, kind, list method, delete method, api).
+MANAGED_KINDS = (
+    ("apps/v1", "Deployment", "list_namespaced_deployment", "delete_namespaced_deployment", "apps"),
+    ("v1", "Service", "list_namespaced_service", "delete_namespaced_service", "core"),
+    ("v1", "ConfigMap", "list_namespaced_config_map", "delete_namespaced_config_map", "core"),
+)
+
+
+def api_clients(kubeconfig: str):
+    from kubernetes import client, config
+
+    api = config.new_client_from_config(config_file=kubeconfig)
+    return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api)}
+
+
+def _key(obj: dict) -> tuple:
+    return (obj["apiVersion"], obj["kind"], obj["metadata"].get("namespace", ""), obj["metadata"]["name"])
+
+
+def managed_objects(clients, namespace: str) -> list[dict]:
+    """Every object KubeROS manages in a namespace, as {apiVersion, kind, metadata{name, namespace, labels}}."""
+    from kubernetes.client.exceptions import ApiException
+
+    found = []
+    for api_version, kind, list_method, _delete, api in MANAGED_KINDS:
+        try:
+            items = getattr(clients[api], list_method)(namespace, label_selector=f"{MANAGED_BY}=kuberos").items
+        except ApiException as exc:
+            if exc.status == 404:
+                return []
+            raise
+        for item in items:
+            found.append(
+                {
+                    "apiVersion": api_version,
+                    "kind": kind,
+                    "metadata": {"name": item.metadata.name, "namespace": namespace, "labels": dict(item.metadata.labels or {})},
+                }
+            )
+    return found
+
+
+def stale_objects(live: list[dict], keep: list[dict], deployments: list[str], remove_discovery: bool) -> list[dict]:
+    """Live objects of ``deployments`` (and discovery servers) that are not in ``keep``."""
+    wanted = {_key(o) for o in keep}
+    stale = []
+    for obj in live:
+        obj_labels = obj["metadata"]["labels"]
+        ours = obj_labels.get(DEPLOYMENT) in deployments
+        discovery = obj_labels.get(COMPONENT) == "discovery-server" and remove_discovery
+        if (ours or discovery) and _key(obj) not in wanted:
+            stale.append(obj)
+    return stale
+
+
+def delete_object(clients, obj: dict) -> None:
+    from kubernetes.client.exceptions import ApiException
+
+    for api_version, kind, _list, delete_method, api in MANAGED_KINDS:
+        if (api_version, kind) == (obj["apiVersion"], obj["kind"]):
+            try:
+                getattr(clients[api], delete_method)(
+                    obj["metadata"]["name"], obj["metadata"]["namespace"], propagation_policy="Background"
+                )
+            except ApiException as exc:
+                if exc.status != 404:
+                    raise
+            return
+    raise ValueError(f"KubeROS does not manage {obj['kind']}")
+
+
+def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[dict]:
+    """Pods of the deployments' modules and of the fleets' discovery servers as the cluster reports
+    them: instance, node, phase, ready."""
+    rows = []
+    for fleet in sorted(set(fleets)):
+        pods = clients["core"].list_namespaced_pod(fleet_namespace(fleet), label_selector=f"{MANAGED_BY}=kuberos").items
+        for pod in pods:
+            pod_labels = pod.metadata.labels or {}
+            discovery = pod_labels.get(COMPONENT) == "discovery-server"
+            if not (discovery or pod_labels.get(DEPLOYMENT) in deployments) or pod.metadata.deletion_timestamp:
+                continue
+            ready = any(c.type == "Ready" and c.status == "True" for c in (pod.status.conditions or []))
+            rows.append(
+                {
+                    "fleet": fleet,
+                    "deployment": pod_labels.get(DEPLOYMENT),
+                    "instance": pod_labels.get(INSTANCE),
+                    "robot_label": pod_labels.get(node_labels.ROBOT),
+                    "pod": pod.metadata.name,
+                    "node": pod.spec.node_name,
+                    "phase": pod.status.phase,
+                    "ready": ready,
+                }
+            )
+    return rows

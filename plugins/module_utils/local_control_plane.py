@@ -1,0 +1,345 @@
+"""A real Kubernetes control plane on this machine: etcd, kube-apiserver, kube-controller-manager,
+kube-scheduler and kwok (simulated nodes), each a background process with a pid file and a log.
+
+No Ansible and no Kubernetes client here: the ``local_cluster`` module and the test fixtures both
+drive ``LocalControlPlane``. Certificates come from ``cryptography``; serving is TLS only, clients
+authenticate with certificates, anonymous access is off.
+"""
+
+from __future__ import annotations
+
+import datetime
+import ipaddress
+import json
+import os
+import signal
+import ssl
+import subprocess
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass, field
+
+COMPONENTS = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler", "kwok")
+SERVICE_CIDR = "10.96.0.0/16"
+
+
+@dataclass
+class Ports:
+    apiserver: int = 16443
+    etcd_client: int = 12379
+    etcd_peer: int = 12380
+    controller_manager: int = 10257 + 6000
+    scheduler: int = 10259 + 6000
+    kwok: int = 10247 + 6000
+
+
+@dataclass
+class LocalControlPlane:
+    state_dir: str
+    binaries: dict  # component -> path
+    ports: Ports = field(default_factory=Ports)
+    kwok_stages: list = field(default_factory=list)  # stage configuration files for kwok
+    log: list = field(default_factory=list)  # what was done, for the caller to report
+
+    # -- paths -----------------------------------------------------------------------------------
+    def path(self, *parts: str) -> str:
+        return os.path.join(self.state_dir, *parts)
+
+    @property
+    def kubeconfig(self) -> str:
+        return self.path("kubeconfig")
+
+    @property
+    def server(self) -> str:
+        return f"https://127.0.0.1:{self.ports.apiserver}"
+
+    # -- certificates ----------------------------------------------------------------------------
+    def ensure_pki(self) -> bool:
+        """CA, serving and client certificates, service-account keys and kubeconfigs; True if created."""
+        from cryptography import x509
+        from cryptography.hazmat.primitives import hashes, serialization
+        from cryptography.hazmat.primitives.asymmetric import ec, rsa
+        from cryptography.x509.oid import NameOID
+
+        pki = self.path("pki")
+        if os.path.exists(os.path.join(pki, "done")):
+            return False
+        os.makedirs(pki, mode=0o700, exist_ok=True)
+        now = datetime.datetime.now(datetime.UTC)
+
+        def key():
+            return ec.generate_private_key(ec.SECP256R1())
+
+        def write_key(name, private):
+            with open(os.path.join(pki, name), "wb") as handle:
+                os.fchmod(handle.fileno(), 0o600)
+                handle.write(
+                    private.private_bytes(
+                        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+                    )
+                )
+
+        def write_cert(name, cert):
+            with open(os.path.join(pki, name), "wb") as handle:
+                handle.write(cert.public_bytes(serialization.Encoding.PEM))
+
+        def name_of(cn, org=None):
+            attrs = [x509.NameAttribute(NameOID.COMMON_NAME, cn)]
+            if org:
+                attrs.append(x509.NameAttribute(NameOID.ORGANIZATION_NAME, org))
+            return x509.Name(attrs)
+
+        ca_key = key()
+        ca_name = name_of("kuberos-local-ca")
+        ca = (
+            x509.CertificateBuilder()
+            .subject_name(ca_name)
+            .issuer_name(ca_name)
+            .public_key(ca_key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=3650))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+            .add_extension(x509.KeyUsage(True, False, False, False, False, True, True, False, False), critical=True)
+            .sign(ca_key, hashes.SHA256())
+        )
+        write_key("ca.key", ca_key)
+        write_cert("ca.crt", ca)
+
+        def issue(name, cn, org=None, server=False):
+            leaf_key = key()
+            builder = (
+                x509.CertificateBuilder()
+                .subject_name(name_of(cn, org))
+                .issuer_name(ca_name)
+                .public_key(leaf_key.public_key())
+                .serial_number(x509.random_serial_number())
+                .not_valid_before(now - datetime.timedelta(minutes=5))
+                .not_valid_after(now + datetime.timedelta(days=365))
+                .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            )
+            if server:
+                sans = [x509.DNSName(n) for n in ("localhost", "kubernetes", "kubernetes.default", "kubernetes.default.svc")]
+                sans += [x509.IPAddress(ipaddress.ip_address(a)) for a in ("127.0.0.1", "10.96.0.1")]
+                builder = builder.add_extension(x509.SubjectAlternativeName(sans), critical=False).add_extension(
+                    x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.SERVER_AUTH]), critical=False
+                )
+            else:
+                builder = builder.add_extension(x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+            write_key(f"{name}.key", leaf_key)
+            write_cert(f"{name}.crt", builder.sign(ca_key, hashes.SHA256()))
+
+        issue("apiserver", "kube-apiserver", server=True)
+        issue("admin", "kuberos-admin", "system:masters")
+        issue("controller-manager", "system:kube-controller-manager")
+        issue("scheduler", "system:kube-scheduler")
+        issue("kwok", "kwok-controller", "system:masters")
+        sa_key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
+        write_key("sa.key", sa_key)
+        with open(os.path.join(pki, "sa.pub"), "wb") as handle:
+            handle.write(
+                sa_key.public_key().public_bytes(serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)
+            )
+        for user in ("admin", "controller-manager", "scheduler", "kwok"):
+            target = self.kubeconfig if user == "admin" else self.path(f"{user}.kubeconfig")
+            self._write_kubeconfig(target, user)
+        with open(os.path.join(pki, "done"), "w", encoding="utf-8") as handle:
+            handle.write("ok\n")
+        self.log.append("generated certificates and kubeconfigs")
+        return True
+
+    def _write_kubeconfig(self, target: str, user: str) -> None:
+        pki = self.path("pki")
+        config = {
+            "apiVersion": "v1",
+            "kind": "Config",
+            "clusters": [{"name": "kuberos-local", "cluster": {"server": self.server, "certificate-authority": f"{pki}/ca.crt"}}],
+            "users": [{"name": user, "user": {"client-certificate": f"{pki}/{user}.crt", "client-key": f"{pki}/{user}.key"}}],
+            "contexts": [{"name": "kuberos-local", "context": {"cluster": "kuberos-local", "user": user}}],
+            "current-context": "kuberos-local",
+        }
+        with open(target, "w", encoding="utf-8") as handle:
+            os.fchmod(handle.fileno(), 0o600)
+            json.dump(config, handle, indent=2)  # JSON is valid YAML; every client reads it
+
+    # -- processes ---------------------------------------------------------------------------------
+    def command(self, component: str) -> list[str]:
+        pki = self.path("pki")
+        p = self.ports
+        binary = self.binaries[component]
+        if component == "etcd":
+            return [
+                binary, "--name=kuberos", f"--data-dir={self.path('etcd')}",
+                f"--listen-client-urls=http://127.0.0.1:{p.etcd_client}", f"--advertise-client-urls=http://127.0.0.1:{p.etcd_client}",
+                f"--listen-peer-urls=http://127.0.0.1:{p.etcd_peer}", f"--initial-advertise-peer-urls=http://127.0.0.1:{p.etcd_peer}",
+                f"--initial-cluster=kuberos=http://127.0.0.1:{p.etcd_peer}", "--unsafe-no-fsync=true",
+                "--quota-backend-bytes=4294967296", "--log-level=warn",
+            ]  # fmt: skip
+        if component == "kube-apiserver":
+            return [
+                binary, f"--etcd-servers=http://127.0.0.1:{p.etcd_client}", "--bind-address=127.0.0.1",
+                "--advertise-address=127.0.0.1", f"--secure-port={p.apiserver}",
+                f"--tls-cert-file={pki}/apiserver.crt", f"--tls-private-key-file={pki}/apiserver.key",
+                f"--client-ca-file={pki}/ca.crt", f"--service-account-key-file={pki}/sa.pub",
+                f"--service-account-signing-key-file={pki}/sa.key",
+                "--service-account-issuer=https://kubernetes.default.svc.cluster.local",
+                f"--service-cluster-ip-range={SERVICE_CIDR}", "--authorization-mode=Node,RBAC", "--anonymous-auth=false",
+                "--allow-privileged=true", "--enable-priority-and-fairness=false", "--max-requests-inflight=2000",
+                "--max-mutating-requests-inflight=1000",
+            ]  # fmt: skip
+        if component == "kube-controller-manager":
+            return [
+                binary, f"--kubeconfig={self.path('controller-manager.kubeconfig')}",
+                f"--authentication-kubeconfig={self.path('controller-manager.kubeconfig')}",
+                f"--authorization-kubeconfig={self.path('controller-manager.kubeconfig')}",
+                "--bind-address=127.0.0.1", f"--secure-port={p.controller_manager}", "--leader-elect=false",
+                f"--service-account-private-key-file={pki}/sa.key", f"--root-ca-file={pki}/ca.crt",
+                f"--cluster-signing-cert-file={pki}/ca.crt", f"--cluster-signing-key-file={pki}/ca.key",
+                "--use-service-account-credentials=true", f"--service-cluster-ip-range={SERVICE_CIDR}",
+                "--kube-api-qps=500", "--kube-api-burst=1000", "--concurrent-deployment-syncs=20",
+                "--concurrent-replicaset-syncs=20", "--node-monitor-grace-period=40s",
+            ]  # fmt: skip
+        if component == "kube-scheduler":
+            return [
+                binary, f"--kubeconfig={self.path('scheduler.kubeconfig')}",
+                f"--authentication-kubeconfig={self.path('scheduler.kubeconfig')}",
+                f"--authorization-kubeconfig={self.path('scheduler.kubeconfig')}",
+                "--bind-address=127.0.0.1", f"--secure-port={p.scheduler}", "--leader-elect=false",
+                "--kube-api-qps=500", "--kube-api-burst=1000",
+            ]  # fmt: skip
+        if component == "kwok":
+            command = [
+                binary, f"--kubeconfig={self.path('kwok.kubeconfig')}", "--manage-all-nodes=false",
+                "--manage-nodes-with-annotation-selector=kwok.x-k8s.io/node=fake",
+                f"--server-address=127.0.0.1:{p.kwok}", "--node-lease-duration-seconds=40",
+            ]  # fmt: skip
+            for stage in self.kwok_stages:
+                command.append(f"--config={stage}")
+            return command
+        raise ValueError(component)
+
+    def pid_of(self, component: str) -> int | None:
+        """The pid of a running component started by us (checked against /proc), or None."""
+        try:
+            with open(self.path("run", f"{component}.pid"), encoding="utf-8") as handle:
+                pid = int(handle.read().strip())
+            with open(f"/proc/{pid}/cmdline", "rb") as handle:
+                argv0 = handle.read().split(b"\0")[0].decode()
+        except (OSError, ValueError):
+            return None
+        return pid if os.path.realpath(argv0) == os.path.realpath(self.binaries[component]) else None
+
+    def start_component(self, component: str) -> None:
+        os.makedirs(self.path("run"), exist_ok=True)
+        os.makedirs(self.path("logs"), exist_ok=True)
+        log = open(self.path("logs", f"{component}.log"), "ab")
+        process = subprocess.Popen(
+            self.command(component), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            start_new_session=True, close_fds=True,
+        )  # fmt: skip
+        log.close()
+        with open(self.path("run", f"{component}.pid"), "w", encoding="utf-8") as handle:
+            handle.write(f"{process.pid}\n")
+        self.log.append(f"started {component} (pid {process.pid})")
+
+    def stop_component(self, component: str, timeout: float = 15.0) -> bool:
+        pid = self.pid_of(component)
+        if pid is None:
+            return False
+        os.kill(pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and self.pid_of(component) == pid and _alive(pid):
+            time.sleep(0.1)
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+        try:
+            os.remove(self.path("run", f"{component}.pid"))
+        except FileNotFoundError:
+            pass
+        self.log.append(f"stopped {component} (pid {pid})")
+        return True
+
+    # -- health ------------------------------------------------------------------------------------
+    def _ssl_context(self) -> ssl.SSLContext:
+        context = ssl.create_default_context(cafile=self.path("pki", "ca.crt"))
+        context.load_cert_chain(self.path("pki", "admin.crt"), self.path("pki", "admin.key"))
+        return context
+
+    def get(self, path: str, timeout: float = 5.0) -> tuple[int, bytes]:
+        request = urllib.request.Request(self.server + path)
+        try:
+            with urllib.request.urlopen(request, timeout=timeout, context=self._ssl_context()) as response:
+                return response.status, response.read()
+        except urllib.error.HTTPError as exc:
+            return exc.code, exc.read()
+        except (urllib.error.URLError, OSError):
+            return 0, b""
+
+    def etcd_healthy(self) -> bool:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{self.ports.etcd_client}/health", timeout=3) as response:
+                return b'"health":"true"' in response.read()
+        except (urllib.error.URLError, OSError):
+            return False
+
+    def apiserver_ready(self) -> bool:
+        status, _body = self.get("/readyz")
+        return status == 200
+
+    def _wait(self, what: str, check, timeout: float, component: str) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if check():
+                return
+            if self.pid_of(component) is None:
+                raise RuntimeError(f"{component} exited; see {self.path('logs', component + '.log')}:\n{self.tail(component)}")
+            time.sleep(0.2)
+        log = self.path("logs", component + ".log")
+        raise RuntimeError(f"{what} not ready after {timeout:.0f} s; see {log}:\n{self.tail(component)}")
+
+    def tail(self, component: str, lines: int = 15) -> str:
+        try:
+            with open(self.path("logs", f"{component}.log"), "rb") as handle:
+                return b"\n".join(handle.read().splitlines()[-lines:]).decode(errors="replace")
+        except OSError:
+            return "(no log)"
+
+    def running(self) -> dict[str, int | None]:
+        return {c: self.pid_of(c) for c in COMPONENTS}
+
+    # -- lifecycle -----------------------------------------------------------------------------------
+    def start(self, timeout: float = 90.0) -> bool:
+        """Start whatever is not running; True when anything was started."""
+        missing = [c for c in COMPONENTS if not os.access(self.binaries.get(c, ""), os.X_OK)]
+        if missing:
+            raise RuntimeError(f"binaries not built: {', '.join(missing)} (run the build first)")
+        os.makedirs(self.state_dir, mode=0o700, exist_ok=True)
+        changed = self.ensure_pki()
+        for component in COMPONENTS:
+            if self.pid_of(component) is None:
+                self.start_component(component)
+                changed = True
+            if component == "etcd":
+                self._wait("etcd", self.etcd_healthy, timeout, "etcd")
+            elif component == "kube-apiserver":
+                self._wait("kube-apiserver", self.apiserver_ready, timeout, "kube-apiserver")
+        return changed
+
+    def stop(self) -> bool:
+        changed = False
+        for component in reversed(COMPONENTS):
+            changed = self.stop_component(component) or changed
+        return changed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8") as handle:
+            return handle.read().split(") ")[-1][:1] != "Z"
+    except OSError:
+        return False

@@ -1,0 +1,135 @@
+#!/usr/bin/python
+# Copyright: KubeROS contributors
+# GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
+"""Start or stop the local control plane."""
+
+from __future__ import annotations
+
+DOCUMENTATION = r"""
+module: local_cluster
+short_description: Run a real Kubernetes control plane on this machine, with kwok for simulated nodes
+version_added: 0.1.0
+description:
+  - Starts etcd, kube-apiserver, kube-controller-manager, kube-scheduler and kwok as background processes
+    (pid files and logs under O(state_dir)), after generating a CA, serving and client certificates and a
+    kubeconfig. TLS only, certificate authentication, anonymous access off.
+  - Starting a running cluster changes nothing; a component that died is started again.
+  - The binaries come from the role C(kuberos.platform.local_cluster), which builds them from the Go module proxy.
+options:
+  state:
+    description: C(started) runs every component; C(stopped) stops them; C(absent) stops them and removes O(state_dir).
+    type: str
+    choices: [started, stopped, absent]
+    default: started
+  state_dir:
+    description: Directory of certificates, etcd data, logs, pid files and the kubeconfig.
+    type: path
+    required: true
+  binaries:
+    description: Path of each program, keys C(etcd), C(kube-apiserver), C(kube-controller-manager), C(kube-scheduler), C(kwok).
+    type: dict
+    required: true
+  kwok_stages:
+    description: kwok stage configuration files (node and pod lifecycle).
+    type: list
+    elements: path
+    default: []
+  ports:
+    description: Ports to use, keys C(apiserver), C(etcd_client), C(etcd_peer), C(controller_manager), C(scheduler), C(kwok).
+    type: dict
+    default: {}
+  timeout:
+    description: Seconds to wait for etcd and the API server to become ready.
+    type: int
+    default: 90
+attributes:
+  check_mode:
+    support: full
+  diff_mode:
+    support: none
+author:
+  - KubeROS contributors
+"""
+
+EXAMPLES = r"""
+- name: Start the local control plane
+  kuberos.platform.local_cluster:
+    state_dir: ~/.cache/kuberos/cluster
+    binaries: "{{ local_cluster__binaries }}"
+"""
+
+RETURN = r"""
+kubeconfig:
+  description: Path of the administrator kubeconfig.
+  returned: always
+  type: str
+server:
+  description: URL of the API server.
+  returned: always
+  type: str
+components:
+  description: Pid of each running component (null when not running).
+  returned: always
+  type: dict
+actions:
+  description: What was done, in order.
+  returned: always
+  type: list
+  elements: str
+"""
+
+import os
+import shutil
+
+from ansible.module_utils.basic import AnsibleModule
+
+from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane, Ports
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=dict(
+            state=dict(type="str", choices=["started", "stopped", "absent"], default="started"),
+            state_dir=dict(type="path", required=True),
+            binaries=dict(type="dict", required=True),
+            kwok_stages=dict(type="list", elements="path", default=[]),
+            ports=dict(type="dict", default={}),
+            timeout=dict(type="int", default=90),
+        ),
+        supports_check_mode=True,
+    )
+    params = module.params
+    try:
+        ports = Ports(**{k: int(v) for k, v in params["ports"].items()})
+    except TypeError as exc:
+        module.fail_json(msg=f"ports: {exc}")
+    plane = LocalControlPlane(params["state_dir"], params["binaries"], ports, params["kwok_stages"])
+    running = plane.running()
+    result = {"kubeconfig": plane.kubeconfig, "server": plane.server, "actions": []}
+    try:
+        if params["state"] == "started":
+            needed = [c for c, pid in running.items() if pid is None]
+            if module.check_mode:
+                result.update(changed=bool(needed), actions=[f"would start {c}" for c in needed])
+            else:
+                result["changed"] = plane.start(params["timeout"])
+        else:
+            active = [c for c, pid in running.items() if pid is not None]
+            gone = params["state"] == "absent" and os.path.exists(params["state_dir"])
+            if module.check_mode:
+                result.update(changed=bool(active) or gone, actions=[f"would stop {c}" for c in active])
+            else:
+                result["changed"] = plane.stop()
+                if gone:
+                    shutil.rmtree(params["state_dir"])
+                    plane.log.append(f"removed {params['state_dir']}")
+                    result["changed"] = True
+    except (RuntimeError, OSError) as exc:
+        module.fail_json(msg=str(exc), actions=plane.log, **{k: v for k, v in result.items() if k != "actions"})
+    result["actions"] = result["actions"] or plane.log
+    result["components"] = plane.running()
+    module.exit_json(**result)
+
+
+if __name__ == "__main__":
+    main()

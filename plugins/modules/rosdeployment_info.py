@@ -1,0 +1,151 @@
+#!/usr/bin/python
+# Copyright: KubeROS contributors
+# GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
+"""Where every module of every robot runs, read back from the cluster."""
+
+from __future__ import annotations
+
+DOCUMENTATION = r"""
+module: rosdeployment_info
+short_description: Read back from the cluster where every module of every robot runs
+version_added: 0.1.0
+description:
+  - Lists the pods of the RosDeployments in O(placement) and reports, for every robot and module, the node
+    the Kubernetes scheduler bound the pod to and its phase, next to the node KubeROS placed it on.
+  - Optionally waits until every module's pod is Running and Ready on its placed node.
+options:
+  kubeconfig:
+    description: Path of the kubeconfig.
+    type: path
+    required: true
+  placement:
+    description: The placement returned by the P(kuberos.platform.place_modules#filter) filter.
+    type: dict
+    required: true
+  wait_timeout:
+    description: Seconds to wait for every pod to be Ready on its placed node; 0 reads once.
+    type: int
+    default: 0
+attributes:
+  check_mode:
+    support: full
+author:
+  - KubeROS contributors
+"""
+
+EXAMPLES = r"""
+- name: Where does everything run?
+  kuberos.platform.rosdeployment_info:
+    kubeconfig: ~/.cache/kuberos/cluster/kubeconfig
+    placement: "{{ placement }}"
+    wait_timeout: 60
+"""
+
+RETURN = r"""
+rows:
+  description: One entry per robot and module, with C(placed_node) (the plan) and C(node), C(phase), C(ready) (the cluster).
+  returned: always
+  type: list
+  elements: dict
+table:
+  description: The rows as a fixed-width table.
+  returned: always
+  type: str
+ready:
+  description: Every module runs, Ready, on the node it was placed on.
+  returned: always
+  type: bool
+"""
+
+import time
+
+from ansible.module_utils.basic import AnsibleModule
+
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import api_clients, running_modules
+
+
+def compare(placement: dict, pods: list[dict]) -> list[dict]:
+    by_instance: dict[str, list[dict]] = {}
+    for pod in pods:
+        by_instance.setdefault(pod["instance"], []).append(pod)
+    rows = []
+    wanted = list(placement["placements"])
+    for entry in placement.get("discovery", []):
+        for server in entry["servers"]:
+            wanted.append(
+                {"deployment": f"(fleet {entry['fleet']})", "robot": "-", "module": server["name"], "tier": server["tier"],
+                 "node": server["node"], "instance": server["name"]}
+            )  # fmt: skip
+    for row in wanted:
+        live = by_instance.get(row["instance"], [])
+        pod = next((p for p in live if p["ready"]), live[0] if live else None)
+        rows.append(
+            {
+                "deployment": row["deployment"],
+                "robot": row["robot"],
+                "module": row["module"],
+                "tier": row["tier"],
+                "placed_node": row["node"],
+                "node": pod["node"] if pod else None,
+                "phase": pod["phase"] if pod else "Missing",
+                "ready": bool(pod and pod["ready"] and pod["node"] == row["node"]),
+                "pod": pod["pod"] if pod else None,
+            }
+        )
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    header = ("DEPLOYMENT", "ROBOT", "MODULE", "TIER", "NODE (CLUSTER)", "PHASE", "PLACED ON")
+    lines = [header] + [
+        (
+            r["deployment"],
+            r["robot"],
+            r["module"],
+            r["tier"],
+            r["node"] or "-",
+            r["phase"] + ("" if r["ready"] or r["phase"] != "Running" else " (not ready)"),
+            "same" if r["node"] == r["placed_node"] else r["placed_node"],
+        )
+        for r in rows
+    ]
+    widths = [max(len(str(line[i])) for line in lines) for i in range(len(header))]
+    return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(line, widths, strict=True)).rstrip() for line in lines)
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=dict(
+            kubeconfig=dict(type="path", required=True),
+            placement=dict(type="dict", required=True),
+            wait_timeout=dict(type="int", default=0),
+        ),
+        supports_check_mode=True,
+    )
+    placement = module.params["placement"]
+    fleets = [d["fleet"] for d in placement.get("deployments", [])]
+    names = [d["name"] for d in placement.get("deployments", [])]
+    deadline = time.monotonic() + module.params["wait_timeout"]
+    try:
+        clients = api_clients(module.params["kubeconfig"])
+        while True:
+            rows = compare(placement, running_modules(clients, fleets, names))
+            ready = all(r["ready"] for r in rows)
+            if ready or time.monotonic() >= deadline:
+                break
+            time.sleep(1)
+    except Exception as exc:  # connection and configuration problems: one clear line, no traceback
+        module.fail_json(msg=f"cannot read the cluster with {module.params['kubeconfig']}: {exc}")
+    result = {"changed": False, "rows": rows, "table": table(rows), "ready": ready}
+    if module.params["wait_timeout"] and not ready:
+        waiting = [f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" for r in rows if not r["ready"]]
+        module.fail_json(
+            msg=f"not every module is Ready on its placed node after {module.params['wait_timeout']} s: "
+            + "; ".join(waiting[:10]),
+            **result,
+        )
+    module.exit_json(**result)
+
+
+if __name__ == "__main__":
+    main()

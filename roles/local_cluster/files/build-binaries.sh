@@ -1,0 +1,336 @@
+#!/usr/bin/env bash
+# Build a local Kubernetes control plane (kube-apiserver, kube-controller-manager,
+# kube-scheduler, kubectl), etcd and kwok from their Go modules, with the ordinary
+# `go` client and the Go module proxy only (no release downloads, no images).
+#
+# Binaries land in a cache outside the repository, keyed by version:
+#   ${KUBEROS_CACHE_DIR:-$HOME/.cache/kuberos}/bin/<program>-<version>
+# The Go module cache and build cache live under the same directory
+# (go/mod, go/build), so CI can cache one directory. Run `--help` for options.
+set -euo pipefail
+
+SCRIPT_NAME=$(basename "$0")
+
+usage() {
+  cat <<EOF
+Usage: $SCRIPT_NAME [--print-paths] [--help]
+
+Build kube-apiserver, kube-controller-manager, kube-scheduler, kubectl, etcd and
+kwok from the Go module proxy into a version-keyed cache. Programs already in the
+cache (and answering --version with the expected version) are not rebuilt.
+
+Options:
+  --print-paths   Do not build; print name=path for each cached binary and exit
+                  (exit 1, with a message on stderr, if any is missing).
+                  Same as KUBEROS_PRINT_PATHS=1.
+  -h, --help      Show this help.
+
+Environment (defaults in brackets):
+  KUBERNETES_VERSION   k8s.io/kubernetes release              [v1.34.4]
+  ETCD_VERSION         go.etcd.io/etcd/server/v3 release      [v3.5.35]
+  KWOK_VERSION         sigs.k8s.io/kwok release               [v0.8.0]
+  SKIP_KUBECTL=1       do not build (or require) kubectl      [0]
+  KUBEROS_CACHE_DIR    cache root                  [\$HOME/.cache/kuberos]
+  KUBEROS_BUILD_JOBS   go build -p value                      [2]
+  GO                   go command                 [go on PATH, else /usr/local/go/bin/go]
+  GOPROXY, GOSUMDB, GOTOOLCHAIN are honoured (GOTOOLCHAIN defaults to local).
+
+Layout under the cache root:
+  bin/<program>-<version>   the binaries
+  go/mod, go/build          GOMODCACHE and GOCACHE
+  work/                     generated wrapper modules (go.mod/go.sum)
+EOF
+}
+
+KUBERNETES_VERSION=${KUBERNETES_VERSION:-v1.34.4}
+ETCD_VERSION=${ETCD_VERSION:-v3.5.35}
+KWOK_VERSION=${KWOK_VERSION:-v0.8.0}
+SKIP_KUBECTL=${SKIP_KUBECTL:-0}
+BUILD_JOBS=${KUBEROS_BUILD_JOBS:-2}
+PRINT_PATHS=${KUBEROS_PRINT_PATHS:-0}
+
+while (($#)); do
+  case $1 in
+    --print-paths) PRINT_PATHS=1 ;;
+    -h | --help) usage; exit 0 ;;
+    *) echo "$SCRIPT_NAME: unknown argument: $1 (try --help)" >&2; exit 2 ;;
+  esac
+  shift
+done
+
+CACHE_DIR=${KUBEROS_CACHE_DIR:-${HOME:?HOME is not set}/.cache/kuberos}
+[[ $CACHE_DIR == /* ]] || CACHE_DIR="$PWD/$CACHE_DIR"   # go needs absolute paths
+BIN_DIR="$CACHE_DIR/bin"
+WORK_DIR="$CACHE_DIR/work"
+
+log() { printf '[%s] %s\n' "$(date +%H:%M:%S)" "$*"; }
+die() { printf '[%s] %s: ERROR: %s\n' "$(date +%H:%M:%S)" "$SCRIPT_NAME" "$*" >&2; exit 1; }
+
+# --- versions and programs ----------------------------------------------------
+
+[[ $KUBERNETES_VERSION =~ ^v1\.([0-9]+)\.([0-9]+)(-[0-9A-Za-z.]+)?$ ]] \
+  || die "KUBERNETES_VERSION must look like v1.34.4, got '$KUBERNETES_VERSION'"
+KUBE_MINOR=${BASH_REMATCH[1]}
+STAGING_VERSION="v0.${KUBERNETES_VERSION#v1.}"   # v1.34.4 -> v0.34.4
+[[ $ETCD_VERSION =~ ^v3\.[0-9]+\.[0-9]+(-[0-9A-Za-z.]+)?$ ]] \
+  || die "ETCD_VERSION must look like v3.5.21, got '$ETCD_VERSION'"
+[[ $KWOK_VERSION =~ ^v[0-9]+\.[0-9]+\.[0-9]+(-[0-9A-Za-z.]+)?$ ]] \
+  || die "KWOK_VERSION must look like v0.7.0, got '$KWOK_VERSION'"
+
+K8S_PROGRAMS=(kube-apiserver kube-controller-manager kube-scheduler)
+[[ $SKIP_KUBECTL == 1 ]] || K8S_PROGRAMS+=(kubectl)
+PROGRAMS=("${K8S_PROGRAMS[@]}" etcd kwok)
+
+version_of() {
+  case $1 in
+    etcd) echo "$ETCD_VERSION" ;;
+    kwok) echo "$KWOK_VERSION" ;;
+    *) echo "$KUBERNETES_VERSION" ;;
+  esac
+}
+path_of() { echo "$BIN_DIR/$1-$(version_of "$1")"; }
+
+# Succeeds if binary $2 runs and reports the version expected for program $1.
+binary_ok() {
+  local name=$1 file=$2 out want
+  [[ -f $file && -x $file ]] || return 1
+  case $name in
+    kubectl) out=$(timeout 60 "$file" version --client 2>&1) || return 1
+             want="Client Version: $KUBERNETES_VERSION" ;;
+    etcd) out=$(timeout 60 "$file" --version 2>&1) || return 1
+          want="etcd Version: ${ETCD_VERSION#v}" ;;
+    kwok) out=$(timeout 60 "$file" --version 2>&1) || return 1
+          want="${KWOK_VERSION}" ;;
+    *) out=$(timeout 60 "$file" --version 2>&1) || return 1
+       want="Kubernetes $KUBERNETES_VERSION" ;;
+  esac
+  [[ $out == *"$want"* ]]
+}
+
+if [[ $PRINT_PATHS == 1 ]]; then
+  missing=0
+  for p in "${PROGRAMS[@]}"; do
+    f=$(path_of "$p")
+    if [[ -x $f ]]; then
+      echo "$p=$f"
+    else
+      echo "$SCRIPT_NAME: missing $p: $f (run $SCRIPT_NAME to build it)" >&2
+      missing=1
+    fi
+  done
+  exit "$missing"
+fi
+
+# --- environment ----------------------------------------------------------------
+
+if [[ -z ${GO:-} ]]; then
+  if command -v go >/dev/null 2>&1; then GO=go
+  elif [[ -x /usr/local/go/bin/go ]]; then GO=/usr/local/go/bin/go
+  else die "no go command found (set GO=/path/to/go)"
+  fi
+fi
+"$GO" version >/dev/null 2>&1 || die "'$GO version' does not run"
+
+mkdir -p "$BIN_DIR" "$WORK_DIR" "$CACHE_DIR/go/mod" "$CACHE_DIR/go/build"
+export GOPATH="$CACHE_DIR/go"
+export GOMODCACHE="$CACHE_DIR/go/mod"
+export GOCACHE="$CACHE_DIR/go/build"
+export GOFLAGS="-modcacherw"            # module cache files deletable by rm -rf / CI cache
+export GOTOOLCHAIN="${GOTOOLCHAIN:-local}"
+export GOWORK=off
+export CGO_ENABLED=0
+unset GOBIN
+cd "$WORK_DIR"                          # never run go inside some other module
+
+# One build at a time per cache directory.
+if command -v flock >/dev/null 2>&1; then
+  exec 9>"$CACHE_DIR/.build.lock"
+  flock -n 9 || { log "another build holds $CACHE_DIR/.build.lock; waiting"; flock 9; }
+fi
+
+STEP="starting"
+TMP_DIRS=()
+on_exit() {
+  local rc=$?
+  local d
+  for d in "${TMP_DIRS[@]}"; do rm -rf "$d"; done
+  if ((rc != 0)); then
+    printf '[%s] %s: FAILED (exit %d) while %s\n' "$(date +%H:%M:%S)" "$SCRIPT_NAME" "$rc" "$STEP" >&2
+  fi
+}
+trap on_exit EXIT
+
+T_START=$SECONDS
+declare -A TIMES=()      # step label -> seconds
+TIME_ORDER=()
+record_time() { TIMES[$1]=$2; TIME_ORDER+=("$1"); }
+fmt_secs() { printf '%dm%02ds' $(($1 / 60)) $(($1 % 60)); }
+
+TOTAL=${#PROGRAMS[@]}
+index_of() { local i; for i in "${!PROGRAMS[@]}"; do [[ ${PROGRAMS[$i]} == "$1" ]] && { echo $((i + 1)); return; }; done; }
+
+log "cache: $CACHE_DIR ($("$GO" version | cut -d' ' -f3-), GOTOOLCHAIN=$GOTOOLCHAIN, -p $BUILD_JOBS)"
+log "versions: kubernetes $KUBERNETES_VERSION (staging $STAGING_VERSION), etcd $ETCD_VERSION, kwok $KWOK_VERSION"
+
+TODO=()
+for p in "${PROGRAMS[@]}"; do
+  if binary_ok "$p" "$(path_of "$p")"; then
+    log "cached   $p $(version_of "$p") ($(index_of "$p")/$TOTAL): $(path_of "$p")"
+  else
+    TODO+=("$p")
+  fi
+done
+wanted() { local p; for p in "${TODO[@]}"; do [[ $p == "$1" ]] && return 0; done; return 1; }
+
+# Move freshly built $2 into place as program $1 after checking its version.
+install_binary() {
+  local name=$1 built=$2 dest
+  dest=$(path_of "$name")
+  STEP="checking $name"
+  binary_ok "$name" "$built" || die "$name built at $built but does not report version $(version_of "$name"): $("$built" --version 2>&1 | head -3)"
+  mv -f "$built" "$dest"
+}
+
+# --- Kubernetes ----------------------------------------------------------------
+
+build_kubernetes() {
+  local todo=() p
+  for p in "${K8S_PROGRAMS[@]}"; do wanted "$p" && todo+=("$p"); done
+  ((${#todo[@]})) || return 0
+
+  local t0=$SECONDS wrap="$WORK_DIR/kubernetes-$KUBERNETES_VERSION" upstream_mod go_line
+  STEP="resolving k8s.io/kubernetes@$KUBERNETES_VERSION"
+  log "$STEP"
+  upstream_mod=$("$GO" list -m -f '{{.GoMod}}' "k8s.io/kubernetes@$KUBERNETES_VERSION") \
+    || die "cannot resolve k8s.io/kubernetes@$KUBERNETES_VERSION from ${GOPROXY:-the Go module proxy}"
+  go_line=$("$GO" list -m -f '{{.GoVersion}}' "k8s.io/kubernetes@$KUBERNETES_VERSION")
+
+  # Staging modules: upstream replaces them with ./staging/src/...; we pin the
+  # published k8s.io/<name> v0.<minor>.<patch> instead.
+  local staging=()
+  mapfile -t staging < <(awk '/=>[[:space:]]*\.\/staging\// {
+      for (i = 1; i <= NF; i++) if ($i ~ /^k8s\.io\//) { print $i; break } }' "$upstream_mod")
+  ((${#staging[@]})) || die "no staging replace directives found in $upstream_mod"
+  local other
+  other=$(grep -E '=>' "$upstream_mod" | grep -vE '=>[[:space:]]*\./staging/' || true)
+  [[ -z $other ]] || log "note: upstream go.mod has other replace directives, not applied: $other"
+  log "k8s.io/kubernetes $KUBERNETES_VERSION: go $go_line, ${#staging[@]} staging modules pinned at $STAGING_VERSION"
+
+  mkdir -p "$wrap"
+  {
+    echo "module kuberos.local/build/kubernetes"
+    echo
+    echo "go $go_line"
+    # keep upstream's godebug defaults (single-line and block form)
+    awk '/^godebug[[:space:]]*\(/ {b=1} b || /^godebug[[:space:]]/ {print} b && /^\)/ {b=0}' "$upstream_mod"
+    echo
+    echo "require k8s.io/kubernetes $KUBERNETES_VERSION"
+    echo
+    echo "replace ("
+    for p in "${staging[@]}"; do printf '\t%s => %s %s\n' "$p" "$p" "$STAGING_VERSION"; done
+    echo ")"
+  } >"$wrap/go.mod.new"
+  mv -f "$wrap/go.mod.new" "$wrap/go.mod"
+
+  local pkgs=() tags="selinux,notest,grpcnotrace"
+  for p in "${todo[@]}"; do pkgs+=("k8s.io/kubernetes/cmd/$p"); done
+
+  STEP="downloading modules for ${todo[*]} $KUBERNETES_VERSION"
+  log "$STEP..."
+  (cd "$wrap" && "$GO" list -mod=mod -deps -tags "$tags" "${pkgs[@]}" >/dev/null) \
+    || die "module download/resolution failed for k8s.io/kubernetes $KUBERNETES_VERSION"
+  record_time "kubernetes modules (resolve+download)" $((SECONDS - t0))
+
+  local ldflags="-s -w" k
+  local build_date
+  # buildDate: the release's publication time from the proxy (reproducible builds)
+  build_date=$("$GO" list -m -f '{{with .Time}}{{.UTC.Format "2006-01-02T15:04:05Z"}}{{end}}' \
+    "k8s.io/kubernetes@$KUBERNETES_VERSION" 2>/dev/null || true)
+  [[ -n $build_date ]] || build_date=$(date -u +%Y-%m-%dT%H:%M:%SZ)
+  for k in k8s.io/component-base/version k8s.io/client-go/pkg/version; do
+    ldflags+=" -X $k.gitVersion=$KUBERNETES_VERSION -X $k.gitMajor=1 -X $k.gitMinor=$KUBE_MINOR"
+    ldflags+=" -X $k.gitTreeState=clean -X $k.buildDate=$build_date"
+  done
+
+  local t1=$SECONDS out
+  out=$(mktemp -d "$BIN_DIR/.build-k8s.XXXXXX"); TMP_DIRS+=("$out")
+  local first last
+  first=$(index_of "${todo[0]}"); last=$(index_of "${todo[-1]}")
+  STEP="building ${todo[*]} $KUBERNETES_VERSION"
+  log "building ${todo[*]} $KUBERNETES_VERSION ($first-$last/$TOTAL, one go build)..."
+  (cd "$wrap" && "$GO" build -mod=mod -p "$BUILD_JOBS" -trimpath -tags "$tags" \
+      -ldflags "$ldflags" -o "$out/" "${pkgs[@]}") \
+    || die "go build failed for ${todo[*]} $KUBERNETES_VERSION"
+  for p in "${todo[@]}"; do install_binary "$p" "$out/$p"; done
+  record_time "kubernetes build (${todo[*]})" $((SECONDS - t1))
+  log "built ${todo[*]} $KUBERNETES_VERSION in $(fmt_secs $((SECONDS - t1))) (plus $(fmt_secs $((t1 - t0))) resolving/downloading)"
+}
+
+# --- etcd ----------------------------------------------------------------------
+
+build_etcd() {
+  wanted etcd || return 0
+  local t0=$SECONDS wrap="$WORK_DIR/etcd-$ETCD_VERSION" mod=go.etcd.io/etcd/server/v3 go_line
+  STEP="resolving $mod@$ETCD_VERSION"
+  log "$STEP"
+  go_line=$("$GO" list -m -f '{{.GoVersion}}' "$mod@$ETCD_VERSION") \
+    || die "cannot resolve $mod@$ETCD_VERSION from ${GOPROXY:-the Go module proxy}"
+  # etcd's server go.mod replaces its sibling modules with ../api etc.; as a
+  # dependency of a wrapper module those replaces are ignored and the published
+  # go.etcd.io/etcd/{api,client,pkg,raft} versions it requires are used.
+  mkdir -p "$wrap"
+  printf 'module kuberos.local/build/etcd\n\ngo %s\n\nrequire %s %s\n' \
+    "$go_line" "$mod" "$ETCD_VERSION" >"$wrap/go.mod.new"
+  mv -f "$wrap/go.mod.new" "$wrap/go.mod"
+  STEP="downloading modules for etcd $ETCD_VERSION"
+  log "$STEP..."
+  (cd "$wrap" && "$GO" list -mod=mod -deps "$mod" >/dev/null) \
+    || die "module download/resolution failed for etcd $ETCD_VERSION"
+  record_time "etcd modules (resolve+download)" $((SECONDS - t0))
+
+  local t1=$SECONDS out
+  out=$(mktemp -d "$BIN_DIR/.build-etcd.XXXXXX"); TMP_DIRS+=("$out")
+  STEP="building etcd $ETCD_VERSION"
+  log "building etcd $ETCD_VERSION ($(index_of etcd)/$TOTAL)..."
+  (cd "$wrap" && "$GO" build -mod=mod -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" -o "$out/etcd" "$mod") \
+    || die "go build failed for etcd $ETCD_VERSION"
+  install_binary etcd "$out/etcd"
+  record_time "etcd build" $((SECONDS - t1))
+  log "built etcd $ETCD_VERSION in $(fmt_secs $((SECONDS - t1))) (plus $(fmt_secs $((t1 - t0))) resolving/downloading)"
+}
+
+# --- kwok ----------------------------------------------------------------------
+
+build_kwok() {
+  wanted kwok || return 0
+  local t0=$SECONDS out
+  out=$(mktemp -d "$BIN_DIR/.build-kwok.XXXXXX"); TMP_DIRS+=("$out")
+  STEP="building kwok $KWOK_VERSION"
+  log "building kwok $KWOK_VERSION ($(index_of kwok)/$TOTAL, go install, download included)..."
+  GOBIN="$out" "$GO" install -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" \
+      "sigs.k8s.io/kwok/cmd/kwok@$KWOK_VERSION" \
+    || die "go install failed for sigs.k8s.io/kwok/cmd/kwok@$KWOK_VERSION"
+  install_binary kwok "$out/kwok"
+  record_time "kwok (download+build)" $((SECONDS - t0))
+  log "built kwok $KWOK_VERSION in $(fmt_secs $((SECONDS - t0)))"
+}
+
+build_kubernetes
+build_etcd
+build_kwok
+STEP="finishing"
+
+# --- summary -------------------------------------------------------------------
+
+log "summary:"
+for p in "${PROGRAMS[@]}"; do
+  binary_ok "$p" "$(path_of "$p")" || die "$p is not usable at $(path_of "$p") after the build"
+  printf '  %-24s %-9s %s\n' "$p" "$(version_of "$p")" "$(path_of "$p")"
+done
+if ((${#TIME_ORDER[@]})); then
+  log "step times:"
+  for k in "${TIME_ORDER[@]}"; do printf '  %-60s %s\n' "$k" "$(fmt_secs "${TIMES[$k]}")"; done
+else
+  log "nothing to build: all ${#PROGRAMS[@]} programs were cached"
+fi
+log "versions: kubernetes $KUBERNETES_VERSION, etcd $ETCD_VERSION, kwok $KWOK_VERSION; total wall time $(fmt_secs $((SECONDS - T_START)))"
