@@ -111,3 +111,24 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
                 }
             )
     return rows
+
+
+def node_allocations(clients, exclude_deployments: list[str]) -> dict[str, dict]:
+    """Resources requested per node by every running pod except those of ``exclude_deployments``
+    (the deployments about to be placed again), in the form the scheduler's ``allocated`` takes."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
+
+    used: dict[str, dict] = {}
+    pods = clients["core"].list_pod_for_all_namespaces(field_selector="status.phase!=Succeeded,status.phase!=Failed").items
+    for pod in pods:
+        node = pod.spec.node_name
+        if not node or (pod.metadata.labels or {}).get(DEPLOYMENT) in exclude_deployments:
+            continue
+        entry = used.setdefault(node, {"cpu": 0, "memory": 0, "gpu": 0, "pods": 0})
+        entry["pods"] += 1
+        for container in pod.spec.containers or []:
+            requests = (container.resources and container.resources.requests) or {}
+            entry["cpu"] += quantities.parse_cpu(requests.get("cpu", "0"))
+            entry["memory"] += quantities.parse_memory(requests.get("memory", "0"))
+            entry["gpu"] += int(requests.get("nvidia.com/gpu", "0"))
+    return {node: {**e, "cpu": f"{e['cpu']}m"} for node, e in sorted(used.items())}

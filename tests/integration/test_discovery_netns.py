@@ -72,7 +72,9 @@ def ros_environment(prefix: str = sys.prefix, log_dir: str | None = None) -> dic
     site_packages = os.path.join(prefix, "lib", f"python{sys.version_info.major}.{sys.version_info.minor}", "site-packages")
     libraries = [os.path.join(prefix, "lib"), *sorted(glob.glob(os.path.join(site_packages, "ros_*.libs")))]
     env = {
-        "PATH": os.pathsep.join([os.path.join(prefix, "bin"), "/usr/local/sbin", "/usr/local/bin", "/usr/sbin", "/usr/bin", "/sbin", "/bin"]),
+        "PATH": os.pathsep.join(
+            [os.path.join(prefix, "bin"), "/usr/local/sbin", "/usr/local/bin", "/usr/sbin", "/usr/bin", "/sbin", "/bin"]
+        ),
         "LD_LIBRARY_PATH": os.pathsep.join(libraries),
         "_ROS_WHEELS_BOOTSTRAP_COMPLETE": "1",
         "PYTHONUNBUFFERED": "1",

@@ -1,0 +1,70 @@
+#!/usr/bin/python
+# Copyright: KubeROS contributors
+# GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
+"""What is already placed on each node of the cluster."""
+
+from __future__ import annotations
+
+DOCUMENTATION = r"""
+module: node_allocations
+short_description: Resources already requested on each node of the cluster
+version_added: 0.1.0
+description:
+  - Sums the cpu, memory and C(nvidia.com/gpu) requests and the pod count of every pod bound to each node,
+    leaving out the pods of O(exclude_deployments) (the deployments about to be placed again).
+  - The result is the C(allocated) input of the P(kuberos.platform.place_modules#filter) filter, so that a new
+    placement accounts for what already runs.
+options:
+  kubeconfig:
+    description: Path of the kubeconfig.
+    type: path
+    required: true
+  exclude_deployments:
+    description: RosDeployments whose pods are not counted.
+    type: list
+    elements: str
+    default: []
+attributes:
+  check_mode:
+    support: full
+author:
+  - KubeROS contributors
+"""
+
+EXAMPLES = r"""
+- name: What is already placed
+  kuberos.platform.node_allocations:
+    kubeconfig: ~/.cache/kuberos/cluster/kubeconfig
+    exclude_deployments: [pick-and-place]
+  register: allocations
+"""
+
+RETURN = r"""
+allocated:
+  description: Per node, C(cpu) (millicores, as C(1500m)), C(memory) (bytes), C(gpu) and C(pods).
+  returned: always
+  type: dict
+"""
+
+from ansible.module_utils.basic import AnsibleModule
+
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import api_clients, node_allocations
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=dict(
+            kubeconfig=dict(type="path", required=True),
+            exclude_deployments=dict(type="list", elements="str", default=[]),
+        ),
+        supports_check_mode=True,
+    )
+    try:
+        allocated = node_allocations(api_clients(module.params["kubeconfig"]), module.params["exclude_deployments"])
+    except Exception as exc:  # connection and configuration problems: one clear line, no traceback
+        module.fail_json(msg=f"cannot read the cluster with {module.params['kubeconfig']}: {exc}")
+    module.exit_json(changed=False, allocated=allocated)
+
+
+if __name__ == "__main__":
+    main()

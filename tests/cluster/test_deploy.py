@@ -1,0 +1,162 @@
+"""playbooks/deploy.yml and undeploy.yml against the real local control plane.
+
+Proves: every pod is bound by the real kube-scheduler to the node KubeROS placed it on; the discovery
+Services exist with endpoints; the environment carries the server list; re-running changes nothing;
+editing the spec changes only what differs; removing a module prunes its objects; undeploy removes one
+deployment and nothing else; a rejected object in the server-side dry run means nothing is applied.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import pytest
+from conftest import ROOT
+
+pytestmark = pytest.mark.cluster
+
+
+def pods_by_instance(core, namespace):
+    pods = core.list_namespaced_pod(namespace, label_selector="app.kubernetes.io/managed-by=kuberos").items
+    return {p.metadata.labels["kuberos.io/instance"]: p for p in pods if not p.metadata.deletion_timestamp}
+
+
+def resource_versions(apps, core, namespace):
+    versions = {}
+    for d in apps.list_namespaced_deployment(namespace).items:
+        versions[("Deployment", d.metadata.name)] = d.metadata.resource_version
+    for c in core.list_namespaced_config_map(namespace, label_selector="app.kubernetes.io/managed-by=kuberos").items:
+        versions[("ConfigMap", c.metadata.name)] = c.metadata.resource_version
+    for s in core.list_namespaced_service(namespace).items:
+        versions[("Service", s.metadata.name)] = s.metadata.resource_version
+    return versions
+
+
+@pytest.fixture
+def spec(tmp_path):
+    path = tmp_path / "pick-and-place.yml"
+    shutil.copy(os.path.join(ROOT, "examples", "pick-and-place.yml"), path)
+    return path
+
+
+def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path):
+    core, apps, discovery = cluster.clients()
+    out = tmp_path / "render"
+    first = cluster.deploy(spec, out)
+    assert first.returncode == 0, first.stdout[-6000:] + first.stderr[-2000:]
+    assert first.changed >= 1
+    placement = json.loads((out / "placement.json").read_text())
+    namespace = "kuberos-test-fleet"
+    pods = pods_by_instance(core, namespace)
+    for inst in placement["instances"]:
+        pod = pods[inst["name"]]
+        assert pod.spec.node_name == inst["node"], inst["name"]  # bound by kube-scheduler, pinned by nodeSelector
+        assert pod.status.phase == "Running"
+        env = {e.name: e.value for e in pod.spec.containers[0].env}
+        assert env["ROS_DISCOVERY_SERVER"] == (
+            "kuberos-discovery-0.kuberos-test-fleet.svc.cluster.local:11811;"
+            "kuberos-discovery-1.kuberos-test-fleet.svc.cluster.local:11811"
+        )
+        assert env["ROS_DOMAIN_ID"] == "7" and env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp"
+    for server in placement["discovery"][0]["servers"]:
+        assert pods[server["name"]].spec.node_name == server["node"]
+        service = core.read_namespaced_service(server["name"], namespace)
+        assert [(p.port, p.protocol) for p in service.spec.ports] == [(11811, "UDP")]
+        slices = discovery.list_namespaced_endpoint_slice(
+            namespace, label_selector=f"kubernetes.io/service-name={server['name']}"
+        )
+        addresses = [a for s in slices.items for e in (s.endpoints or []) for a in e.addresses]
+        assert addresses == [pods[server["name"]].status.pod_ip], server["name"]
+    # The table printed at the end is read back from the cluster.
+    assert "NODE (CLUSTER)" in first.stdout and "Missing" not in first.stdout
+
+    before = resource_versions(apps, core, namespace)
+    again = cluster.deploy(spec, out)
+    assert again.returncode == 0 and again.changed == 0, again.stdout[-6000:]
+    assert resource_versions(apps, core, namespace) == before
+
+    # Edit one parameter: only its ConfigMap changes.
+    spec.write_text(spec.read_text().replace("planning_time: 2.0", "planning_time: 5.0"))
+    edited = cluster.deploy(spec, out)
+    assert edited.returncode == 0 and edited.changed >= 1, edited.stdout[-6000:]
+    after = resource_versions(apps, core, namespace)
+    changed = sorted(k for k in before if before[k] != after.get(k))
+    assert changed == [("ConfigMap", "pick-and-place-motion-planner-params")]
+
+    # Remove the perception module: its Deployments and ConfigMap are pruned, nothing else.
+    text = spec.read_text()
+    start, end = text.index("- name: perception"), text.index("- name: motion-planner")
+    spec.write_text(text[:start] + text[end:])
+    pruned = cluster.deploy(spec, out)
+    assert pruned.returncode == 0, pruned.stdout[-6000:]
+    remaining = resource_versions(apps, core, namespace)
+    gone = sorted(set(after) - set(remaining))
+    assert gone == [
+        ("ConfigMap", "pick-and-place-perception-params"),
+        ("Deployment", "pick-and-place-perception-fetch-1"),
+        ("Deployment", "pick-and-place-perception-fetch-2"),
+    ]
+    assert all(remaining[k] == after[k] for k in remaining)
+
+
+def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
+    core, apps, _discovery = cluster.clients()
+    both = cluster.deploy(os.path.join(ROOT, "examples", "two-fleets.yml"), tmp_path / "two")
+    assert both.returncode == 0, both.stdout[-6000:]
+    test_fleet = {p.spec.node_name for p in pods_by_instance(core, "kuberos-test-fleet").values()}
+    warehouse = pods_by_instance(core, "kuberos-warehouse-fleet")
+    assert {
+        p.metadata.labels["kuberos.io/deployment"] for p in warehouse.values() if "kuberos.io/deployment" in p.metadata.labels
+    } == {"inventory-scan"}
+    assert len([n for n in warehouse if n.startswith("kuberos-discovery-")]) == 3
+    assert "tiago-1" not in test_fleet and "fetch-1" not in {p.spec.node_name for p in warehouse.values()}
+    for name, pod in warehouse.items():
+        if not name.startswith("kuberos-discovery"):
+            env = {e.name: e.value for e in pod.spec.containers[0].env}
+            assert env["ROS_DISCOVERY_SERVER"].count("kuberos-warehouse-fleet") == 3
+
+    # Undeploy the two-fleet file: its deployments go; pick-and-place (same test-fleet) stays.
+    before = resource_versions(apps, core, "kuberos-test-fleet")
+    gone = cluster.undeploy(os.path.join(ROOT, "examples", "two-fleets.yml"))
+    assert gone.returncode == 0, gone.stdout[-6000:]
+    after = resource_versions(apps, core, "kuberos-test-fleet")
+    assert sorted(set(before) - set(after)) == [
+        ("Deployment", "picking-controller-fetch-1"),
+        ("Deployment", "picking-controller-fetch-2"),
+        ("Deployment", "picking-planner-fetch-1"),
+        ("Deployment", "picking-planner-fetch-2"),
+    ]
+    assert all(after[k] == before[k] for k in after), "undeploy touched another deployment"
+    # The warehouse fleet has no other deployment: its discovery servers went too.
+    assert resource_versions(apps, core, "kuberos-warehouse-fleet") == {}
+    assert cluster.undeploy(os.path.join(ROOT, "examples", "two-fleets.yml")).changed == 0
+
+
+def test_a_rejected_object_means_nothing_is_applied(cluster, tmp_path):
+    core, apps, _discovery = cluster.clients()
+    spec = tmp_path / "lonely.yml"
+    spec.write_text(
+        "metadata: {name: lonely, targetFleet: warehouse-fleet}\n"
+        "rosModules:\n- {name: driver, image: ghcr.io/x/driver:1, launch: run, requirements: {onboard: true}}\n"
+    )
+    # An image with a trailing space passes KubeROS (it is a role variable, not the spec) but not the API server.
+    result = cluster.deploy(spec, tmp_path / "render", "-e", "rosdeployment_discovery_image='ros:jazzy '")
+    assert result.returncode != 0
+    assert "nothing was applied" in result.stdout
+    assert "must not have leading or trailing whitespace" in result.stdout
+    assert resource_versions(apps, core, "kuberos-warehouse-fleet") == {}
+
+
+def test_check_mode_applies_nothing(cluster, tmp_path):
+    _core, apps, _discovery = cluster.clients()
+    spec = tmp_path / "checked.yml"
+    spec.write_text(
+        "metadata: {name: checked, targetFleet: warehouse-fleet}\n"
+        "rosModules:\n- {name: driver, image: ghcr.io/x/driver:1, launch: run, requirements: {onboard: true}}\n"
+    )
+    result = cluster.deploy(spec, tmp_path / "render", "--check")
+    assert result.returncode == 0, result.stdout[-6000:]
+    assert result.changed >= 1
+    assert apps.list_namespaced_deployment("kuberos-warehouse-fleet", label_selector="kuberos.io/deployment=checked").items == []
