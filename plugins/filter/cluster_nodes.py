@@ -10,8 +10,8 @@ short_description: Kubernetes Node objects for every robot, edge server and clou
 version_added: 0.1.0
 description:
   - With O(simulated=false), the part of each Node the resource manager owns, ready for server-side apply
-    on a real cluster, the KubeROS labels (role, hostname, robot, fleet, devices, resource group) and,
-    on robots, the taint C(kuberos.io/robot=<robot>:NoSchedule).
+    on a real cluster, the KubeROS labels (role, hostname, robot, fleet, devices, resource group). Robot taints
+    are merged separately (P(kubernetes.core.k8s_taint#module)), see the C(node_labels) role.
   - With O(simulated=true), whole nodes for kwok, with the same labels and taints plus the
     capacity (cpu, memory, pods, nvidia.com/gpu) of the inventory.
 options:

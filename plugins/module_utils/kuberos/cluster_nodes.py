@@ -11,12 +11,12 @@ KWOK_ANNOTATION = "kwok.x-k8s.io/node"
 
 
 def node_label_patch(node: Node) -> dict:
-    """What the resource manager owns on a real node: its labels and the robot taint."""
-    spec = {"taints": labels.node_taints(node)} if node.tier == "onboard" else {}
-    obj = {"apiVersion": "v1", "kind": "Node", "metadata": {"name": node.name, "labels": labels.node_labels(node)}}
-    if spec:
-        obj["spec"] = spec
-    return obj
+    """What the resource manager owns on a real node through server-side apply: its labels.
+
+    Taints are not in it: ``spec.taints`` is an atomic list for server-side apply, so owning it would
+    wipe the taints the node lifecycle controller sets; they are merged separately (``node_taints``).
+    """
+    return {"apiVersion": "v1", "kind": "Node", "metadata": {"name": node.name, "labels": labels.node_labels(node)}}
 
 
 def simulated_node(node: Node) -> dict:
@@ -29,6 +29,8 @@ def simulated_node(node: Node) -> dict:
     if node.gpu:
         capacity["nvidia.com/gpu"] = str(node.gpu)
     obj = node_label_patch(node)
+    if node.tier == "onboard":
+        obj["spec"] = {"taints": labels.node_taints(node)}
     obj["metadata"]["labels"] = {
         **obj["metadata"]["labels"],
         "kubernetes.io/hostname": node.name,
@@ -50,3 +52,8 @@ def cluster_nodes(inventory: Inventory, simulated: bool) -> list[dict]:
     """One object per inventory node, sorted by name."""
     build = simulated_node if simulated else node_label_patch
     return [build(node) for node in inventory.nodes.values()]
+
+
+def robot_taints(inventory: Inventory) -> list[dict]:
+    """``{name, taints}`` for every robot node: the taints to merge into real nodes."""
+    return [{"name": n.name, "taints": labels.node_taints(n)} for n in inventory.nodes.values() if n.tier == "onboard"]
