@@ -13,7 +13,7 @@ import os
 import shutil
 
 import pytest
-from conftest import ROOT
+from helpers import ROOT
 
 pytestmark = pytest.mark.cluster
 

@@ -13,7 +13,7 @@ import shutil
 import subprocess
 
 import pytest
-from conftest import ROOT, venv_tool
+from helpers import ROOT, venv_tool
 
 pytestmark = pytest.mark.playbook
 

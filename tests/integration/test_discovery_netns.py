@@ -33,7 +33,7 @@ import time
 from dataclasses import dataclass, field
 
 import pytest
-from conftest import ROOT
+from helpers import ROOT
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, scheduler, spec
 

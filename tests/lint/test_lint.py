@@ -5,7 +5,7 @@ from __future__ import annotations
 import subprocess
 
 import pytest
-from conftest import ROOT, venv_tool
+from helpers import ROOT, venv_tool
 
 pytestmark = pytest.mark.lint
 

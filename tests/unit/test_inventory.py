@@ -63,7 +63,7 @@ def test_node_labels_follow_the_scheme(local_inventory):
 
 
 def test_sample_inventory_is_a_valid_site():
-    from conftest import inventory_raw
+    from helpers import inventory_raw
 
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 

@@ -1,0 +1,88 @@
+"""Helpers shared by the test suites: paths, the embedded inventory, running playbooks, a test cluster."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import re
+import subprocess
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+VENV_BIN = os.path.join(ROOT, ".venv", "bin")
+
+
+def venv_tool(name: str) -> str:
+    path = os.path.join(VENV_BIN, name)
+    return path if os.path.exists(path) else os.path.join(os.path.dirname(sys.executable), name)
+
+
+@functools.cache
+def inventory_raw(path: str = "inventories/local") -> dict:
+    """Read an inventory with Ansible's own inventory manager, then the fleet_inventory filter."""
+    from ansible.inventory.manager import InventoryManager
+    from ansible.parsing.dataloader import DataLoader
+    from ansible.vars.manager import VariableManager
+
+    from ansible_collections.kuberos.platform.plugins.filter.fleet_inventory import fleet_inventory
+
+    loader = DataLoader()
+    manager = InventoryManager(loader=loader, sources=[os.path.join(ROOT, path)])
+    variables = VariableManager(loader=loader, inventory=manager)
+    groups = {name: [h.name for h in group.get_hosts()] for name, group in manager.groups.items()}
+    hostvars = {}
+    for host in manager.get_hosts():
+        values = variables.get_vars(host=host, include_hostvars=False)
+        hostvars[host.name] = {k: v for k, v in values.items() if k.startswith("kuberos_")}
+    return fleet_inventory(groups, hostvars)
+
+
+def playbook(name, *extra, inventory="inventories/local", timeout=1800):
+    """Run playbooks/<name> from the checkout; the result carries ``changed`` from the recap."""
+    env = {**os.environ, "ANSIBLE_CONFIG": os.path.join(ROOT, "ansible.cfg"), "ANSIBLE_NOCOLOR": "1", "ANSIBLE_FORCE_COLOR": "0"}
+    command = [venv_tool("ansible-playbook"), f"playbooks/{name}", "-i", str(inventory), *[str(e) for e in extra]]
+    result = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+    recap = re.search(r"localhost\s+: ok=(\d+)\s+changed=(\d+)\s+unreachable=\d+\s+failed=(\d+)", result.stdout)
+    result.changed = int(recap.group(2)) if recap else None
+    return result
+
+
+TEST_PORTS = {
+    "apiserver": 26443,
+    "etcd_client": 22379,
+    "etcd_peer": 22380,
+    "controller_manager": 26257,
+    "scheduler": 26259,
+    "kwok": 26247,
+}
+
+
+class Cluster:
+    """The local control plane on test ports, driven through the playbooks as a user would."""
+
+    def __init__(self, state_dir):
+        self.state_dir = str(state_dir)
+        self.kubeconfig = os.path.join(self.state_dir, "kubeconfig")
+        self.vars = ["-e", json.dumps({"local_cluster_state_dir": self.state_dir, "local_cluster_ports": TEST_PORTS})]
+
+    def start(self):
+        return playbook("local_cluster.yml", *self.vars)
+
+    def stop(self, state="stopped"):
+        return playbook("local_cluster.yml", *self.vars, "-e", f"local_cluster_state={state}")
+
+    def deploy(self, spec, render_dir, *extra):
+        return playbook(
+            "deploy.yml", "-e", f"rosdeployment_file={spec}", "-e", f"kuberos_render_dir={render_dir}",
+            "-e", f"kuberos_kubeconfig={self.kubeconfig}", *extra, timeout=600,
+        )  # fmt: skip
+
+    def undeploy(self, spec, *extra):
+        return playbook("undeploy.yml", "-e", f"rosdeployment_file={spec}", "-e", f"kuberos_kubeconfig={self.kubeconfig}", *extra)
+
+    def clients(self):
+        from kubernetes import client, config
+
+        api = config.new_client_from_config(config_file=self.kubeconfig)
+        return client.CoreV1Api(api), client.AppsV1Api(api), client.DiscoveryV1Api(api)
