@@ -5,17 +5,32 @@ SPEC ?= examples/pick-and-place.yml
 export ANSIBLE_CONFIG := $(CURDIR)/ansible.cfg
 export PATH := $(CURDIR)/.venv/bin:$(PATH)
 
-.PHONY: setup demo test lint unit schema bench clean
+# Versions of the local control plane: one place, the local_cluster role's defaults.
+version = $(shell sed -n 's/^local_cluster_$(1)_version: *//p' roles/local_cluster/defaults/main.yml)
+BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call version,etcd) KWOK_VERSION=$(call version,kwok)
+
+.PHONY: setup binaries cluster cluster-stop demo test lint unit schema bench bench-deploy clean
 
 setup:
 	@scripts/setup.sh
 
+## Build the control plane from the Go module proxy, once (cached by version outside the repo).
+binaries: setup
+	@$(BUILD_ENV) SKIP_KUBECTL=$(if $(WITH_KUBECTL),0,1) roles/local_cluster/files/build-binaries.sh
+
+## Start the local cluster (a real control plane, kwok nodes from inventories/local).
+cluster: binaries
+	$(VENV)/ansible-playbook playbooks/local_cluster.yml -i inventories/local
+
+cluster-stop: setup
+	$(VENV)/ansible-playbook playbooks/local_cluster.yml -i inventories/local -e local_cluster_state=stopped
+
 ## Deploy the example application to the embedded default site (inventories/local).
-demo: setup
+demo: cluster
 	$(VENV)/ansible-playbook playbooks/deploy.yml -i inventories/local -e rosdeployment_file=$(SPEC)
 
-## Lint and every test.
-test: setup
+## Lint and every test (the cluster tests start their own control plane).
+test: binaries
 	$(VENV)/python -m pytest
 
 unit: setup
@@ -28,6 +43,11 @@ schema: setup
 ## Scheduler benchmark; results go to bench/RESULTS.md by hand, with machine and date.
 bench: setup
 	$(VENV)/python bench/bench_scheduler.py
+
+## Deploy benchmark against the local control plane (needs kubectl for the side-by-side ratio).
+bench-deploy:
+	$(MAKE) binaries WITH_KUBECTL=1
+	$(VENV)/python bench/bench_deploy.py
 
 clean:
 	rm -rf rendered bench/out .pytest_cache .hypothesis
