@@ -113,16 +113,21 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
     return rows
 
 
-def node_allocations(clients, exclude_deployments: list[str]) -> dict[str, dict]:
-    """Resources requested per node by every running pod except those of ``exclude_deployments``
-    (the deployments about to be placed again), in the form the scheduler's ``allocated`` takes."""
+def node_allocations(clients, exclude_deployments: list[str], exclude_discovery_of_fleets: list[str]) -> dict[str, dict]:
+    """Resources requested per node by every running pod except those about to be placed again (of
+    ``exclude_deployments``, and the discovery servers of ``exclude_discovery_of_fleets``), in the form
+    the scheduler's ``allocated`` takes."""
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 
     used: dict[str, dict] = {}
     pods = clients["core"].list_pod_for_all_namespaces(field_selector="status.phase!=Succeeded,status.phase!=Failed").items
     for pod in pods:
         node = pod.spec.node_name
-        if not node or (pod.metadata.labels or {}).get(DEPLOYMENT) in exclude_deployments:
+        pod_labels = pod.metadata.labels or {}
+        replaced = pod_labels.get(DEPLOYMENT) in exclude_deployments or (
+            pod_labels.get(COMPONENT) == "discovery-server" and pod_labels.get(node_labels.FLEET) in exclude_discovery_of_fleets
+        )
+        if not node or replaced:
             continue
         entry = used.setdefault(node, {"cpu": 0, "memory": 0, "gpu": 0, "pods": 0})
         entry["pods"] += 1

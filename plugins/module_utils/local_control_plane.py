@@ -316,14 +316,21 @@ class LocalControlPlane:
             raise RuntimeError(f"binaries not built: {', '.join(missing)} (run the build first)")
         os.makedirs(self.state_dir, mode=0o700, exist_ok=True)
         changed = self.ensure_pki()
-        for component in COMPONENTS:
-            if self.pid_of(component) is None:
-                self.start_component(component)
-                changed = True
-            if component == "etcd":
-                self._wait("etcd", self.etcd_healthy, timeout, "etcd")
-            elif component == "kube-apiserver":
-                self._wait("kube-apiserver", self.apiserver_ready, timeout, "kube-apiserver")
+        started = []
+        try:
+            for component in COMPONENTS:
+                if self.pid_of(component) is None:
+                    self.start_component(component)
+                    started.append(component)
+                    changed = True
+                if component == "etcd":
+                    self._wait("etcd", self.etcd_healthy, timeout, "etcd")
+                elif component == "kube-apiserver":
+                    self._wait("kube-apiserver", self.apiserver_ready, timeout, "kube-apiserver")
+        except RuntimeError:
+            for component in reversed(started):  # leave nothing half-started behind
+                self.stop_component(component)
+            raise
         return changed
 
     def stop(self) -> bool:

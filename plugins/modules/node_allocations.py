@@ -11,7 +11,8 @@ short_description: Resources already requested on each node of the cluster
 version_added: 0.1.0
 description:
   - Sums the cpu, memory and C(nvidia.com/gpu) requests and the pod count of every pod bound to each node,
-    leaving out the pods of O(exclude_deployments) (the deployments about to be placed again).
+    leaving out the pods of O(exclude_deployments) and the discovery servers of O(exclude_discovery_of_fleets)
+    (what is about to be placed again).
   - The result is the C(allocated) input of the P(kuberos.platform.place_modules#filter) filter, so that a new
     placement accounts for what already runs.
 options:
@@ -21,6 +22,11 @@ options:
     required: true
   exclude_deployments:
     description: RosDeployments whose pods are not counted.
+    type: list
+    elements: str
+    default: []
+  exclude_discovery_of_fleets:
+    description: Fleets whose discovery server pods are not counted.
     type: list
     elements: str
     default: []
@@ -56,11 +62,16 @@ def main():
         argument_spec=dict(
             kubeconfig=dict(type="path", required=True),
             exclude_deployments=dict(type="list", elements="str", default=[]),
+            exclude_discovery_of_fleets=dict(type="list", elements="str", default=[]),
         ),
         supports_check_mode=True,
     )
     try:
-        allocated = node_allocations(api_clients(module.params["kubeconfig"]), module.params["exclude_deployments"])
+        allocated = node_allocations(
+            api_clients(module.params["kubeconfig"]),
+            module.params["exclude_deployments"],
+            module.params["exclude_discovery_of_fleets"],
+        )
     except Exception as exc:  # connection and configuration problems: one clear line, no traceback
         module.fail_json(msg=f"cannot read the cluster with {module.params['kubeconfig']}: {exc}")
     module.exit_json(changed=False, allocated=allocated)

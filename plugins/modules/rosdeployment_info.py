@@ -67,17 +67,17 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
 def compare(placement: dict, pods: list[dict]) -> list[dict]:
     by_instance: dict[str, list[dict]] = {}
     for pod in pods:
-        by_instance.setdefault(pod["instance"], []).append(pod)
+        by_instance.setdefault((pod["fleet"], pod["instance"]), []).append(pod)
     rows = []
     wanted = list(placement["placements"])
     for entry in placement.get("discovery", []):
         for server in entry["servers"]:
             wanted.append(
-                {"deployment": f"(fleet {entry['fleet']})", "robot": "-", "module": server["name"], "tier": server["tier"],
-                 "node": server["node"], "instance": server["name"]}
+                {"deployment": f"(fleet {entry['fleet']})", "fleet": entry["fleet"], "robot": "-", "module": server["name"],
+                 "tier": server["tier"], "node": server["node"], "instance": server["name"]}
             )  # fmt: skip
     for row in wanted:
-        live = by_instance.get(row["instance"], [])
+        live = by_instance.get((row["fleet"], row["instance"]), [])
         pod = next((p for p in live if p["ready"]), live[0] if live else None)
         rows.append(
             {

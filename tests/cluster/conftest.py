@@ -10,8 +10,10 @@ from helpers import Cluster
 @pytest.fixture(scope="session")
 def cluster(tmp_path_factory):
     cluster = Cluster(tmp_path_factory.mktemp("cluster"))
-    started = cluster.start()
-    assert started.returncode == 0, started.stdout[-6000:] + started.stderr[-3000:]
-    cluster.first_start = started
-    yield cluster
-    cluster.stop(state="absent")
+    try:
+        started = cluster.start()
+        assert started.returncode == 0, started.stdout[-6000:] + started.stderr[-3000:]
+        cluster.first_start = started
+        yield cluster
+    finally:
+        cluster.stop(state="absent")

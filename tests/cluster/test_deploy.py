@@ -135,18 +135,67 @@ def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
 
 
 def test_a_rejected_object_means_nothing_is_applied(cluster, tmp_path):
+    """A cluster policy rejects one Deployment; the objects before it passed their dry run, yet none is written."""
+    import time
+
+    from kubernetes import client
+
     core, apps, _discovery = cluster.clients()
-    spec = tmp_path / "lonely.yml"
-    spec.write_text(
-        "metadata: {name: lonely, targetFleet: warehouse-fleet}\n"
-        "rosModules:\n- {name: driver, image: ghcr.io/x/driver:1, launch: run, requirements: {onboard: true}}\n"
+    admission = client.AdmissionregistrationV1Api(apps.api_client)
+    admission.create_validating_admission_policy(
+        {
+            "apiVersion": "admissionregistration.k8s.io/v1",
+            "kind": "ValidatingAdmissionPolicy",
+            "metadata": {"name": "no-forbidden-modules"},
+            "spec": {
+                "failurePolicy": "Fail",
+                "matchConstraints": {
+                    "resourceRules": [
+                        {
+                            "apiGroups": ["apps"],
+                            "apiVersions": ["v1"],
+                            "operations": ["CREATE", "UPDATE"],
+                            "resources": ["deployments"],
+                        }
+                    ]
+                },
+                "validations": [
+                    {
+                        "expression": "object.metadata.?labels[?'kuberos.io/module'].orValue('') != 'zz-forbidden'",
+                        "message": "module zz-forbidden is not allowed in this cluster",
+                    }
+                ],
+            },
+        }
     )
-    # An image with a trailing space passes KubeROS (it is a role variable, not the spec) but not the API server.
-    result = cluster.deploy(spec, tmp_path / "render", "-e", "rosdeployment_discovery_image='ros:jazzy '")
-    assert result.returncode != 0
-    assert "nothing was applied" in result.stdout
-    assert "must not have leading or trailing whitespace" in result.stdout
-    assert resource_versions(apps, core, "kuberos-warehouse-fleet") == {}
+    admission.create_validating_admission_policy_binding(
+        {
+            "apiVersion": "admissionregistration.k8s.io/v1",
+            "kind": "ValidatingAdmissionPolicyBinding",
+            "metadata": {"name": "no-forbidden-modules"},
+            "spec": {"policyName": "no-forbidden-modules", "validationActions": ["Deny"]},
+        }
+    )
+    try:
+        spec = tmp_path / "guarded.yml"
+        spec.write_text(
+            "metadata: {name: guarded, targetFleet: warehouse-fleet}\nrosModules:\n"
+            "- {name: allowed, image: ghcr.io/x/a:1, launch: run, requirements: {onboard: true}, rosParameters: {rate: 5}}\n"
+            "- {name: zz-forbidden, image: ghcr.io/x/f:1, launch: run, requirements: {onboard: true}}\n"
+        )
+        deadline = time.monotonic() + 30
+        while True:  # the policy takes a moment to be enforced
+            result = cluster.deploy(spec, tmp_path / "render")
+            if result.returncode != 0 or time.monotonic() > deadline:
+                break
+            cluster.undeploy(spec)
+        assert result.returncode != 0, result.stdout[-4000:]
+        assert "nothing was applied" in result.stdout, result.stdout[-4000:]
+        assert "module zz-forbidden is not allowed in this cluster" in result.stdout
+        assert resource_versions(apps, core, "kuberos-warehouse-fleet") == {}
+    finally:
+        admission.delete_validating_admission_policy_binding("no-forbidden-modules")
+        admission.delete_validating_admission_policy("no-forbidden-modules")
 
 
 def test_check_mode_applies_nothing(cluster, tmp_path):

@@ -180,6 +180,20 @@ for p in "${PROGRAMS[@]}"; do
     TODO+=("$p")
   fi
 done
+# Run "$@" with its output in log file $1; on failure show the log's tail.
+run_logged() {
+  local logfile=$1 rc=0
+  shift
+  "$@" >"$logfile" 2>&1 || rc=$?
+  if ((rc != 0)); then
+    printf -- '--- last lines of %s ---\n' "$logfile" >&2
+    tail -n 40 "$logfile" >&2
+    printf -- '---\n' >&2
+  fi
+  return "$rc"
+}
+downloads_in() { local n; n=$(grep -c '^go: downloading' "$1" || true); echo "${n:-0} modules downloaded"; }
+
 wanted() { local p; for p in "${TODO[@]}"; do [[ $p == "$1" ]] && return 0; done; return 1; }
 
 # Move freshly built $2 into place as program $1 after checking its version.
@@ -237,8 +251,9 @@ build_kubernetes() {
 
   STEP="downloading modules for ${todo[*]} $KUBERNETES_VERSION"
   log "$STEP..."
-  (cd "$wrap" && "$GO" list -mod=mod -deps -tags "$tags" "${pkgs[@]}" >/dev/null) \
-    || die "module download/resolution failed for k8s.io/kubernetes $KUBERNETES_VERSION"
+  (cd "$wrap" && run_logged "$wrap.download.log" "$GO" list -mod=mod -deps -tags "$tags" "${pkgs[@]}") \
+    || die "module download/resolution failed for k8s.io/kubernetes $KUBERNETES_VERSION (log: $wrap.download.log)"
+  log "modules ready ($(downloads_in "$wrap.download.log"))"
   record_time "kubernetes modules (resolve+download)" $((SECONDS - t0))
 
   local ldflags="-s -w" k
@@ -284,8 +299,9 @@ build_etcd() {
   mv -f "$wrap/go.mod.new" "$wrap/go.mod"
   STEP="downloading modules for etcd $ETCD_VERSION"
   log "$STEP..."
-  (cd "$wrap" && "$GO" list -mod=mod -deps "$mod" >/dev/null) \
-    || die "module download/resolution failed for etcd $ETCD_VERSION"
+  (cd "$wrap" && run_logged "$wrap.download.log" "$GO" list -mod=mod -deps "$mod") \
+    || die "module download/resolution failed for etcd $ETCD_VERSION (log: $wrap.download.log)"
+  log "modules ready ($(downloads_in "$wrap.download.log"))"
   record_time "etcd modules (resolve+download)" $((SECONDS - t0))
 
   local t1=$SECONDS out
@@ -307,12 +323,14 @@ build_kwok() {
   out=$(mktemp -d "$BIN_DIR/.build-kwok.XXXXXX"); TMP_DIRS+=("$out")
   STEP="building kwok $KWOK_VERSION"
   log "building kwok $KWOK_VERSION ($(index_of kwok)/$TOTAL, go install, download included)..."
-  GOBIN="$out" "$GO" install -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" \
+  # go install pkg@version uses kwok's own go.mod (it has no replace directives).
+  local logfile="$WORK_DIR/kwok-$KWOK_VERSION.log"
+  run_logged "$logfile" env GOBIN="$out" "$GO" install -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" \
       "sigs.k8s.io/kwok/cmd/kwok@$KWOK_VERSION" \
-    || die "go install failed for sigs.k8s.io/kwok/cmd/kwok@$KWOK_VERSION"
+    || die "go install failed for sigs.k8s.io/kwok/cmd/kwok@$KWOK_VERSION (log: $logfile)"
   install_binary kwok "$out/kwok"
   record_time "kwok (download+build)" $((SECONDS - t0))
-  log "built kwok $KWOK_VERSION in $(fmt_secs $((SECONDS - t0)))"
+  log "built kwok $KWOK_VERSION in $(fmt_secs $((SECONDS - t0))) ($(downloads_in "$logfile"))"
 }
 
 build_kubernetes

@@ -1,15 +1,16 @@
 # Copyright: KubeROS contributors
 # GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
-"""Names of the RosDeployments in a spec file."""
+"""Names and fleets of the RosDeployments in a spec file."""
 
 from __future__ import annotations
 
 DOCUMENTATION = r"""
-name: rosdeployment_names
-short_description: The names of the RosDeployments in a spec file
+name: rosdeployment_targets
+short_description: The name and target fleet of each RosDeployment in a spec file
 version_added: 0.1.0
 description:
-  - Reads and validates a RosDeployment file (or spec data) and returns the C(metadata.name) of each document.
+  - Reads and validates a RosDeployment file (or spec data) and returns C({name, fleet}) for each document
+    (C(metadata.name) and C(metadata.targetFleet)).
   - Fails with every validation problem (file, line, field path, reason).
 options:
   _input:
@@ -21,14 +22,14 @@ options:
 EXAMPLES = r"""
 - name: Which deployments does this file hold?
   ansible.builtin.debug:
-    msg: "{{ 'examples/two-fleets.yml' | kuberos.platform.rosdeployment_names }}"
+    msg: "{{ 'examples/two-fleets.yml' | kuberos.platform.rosdeployment_targets }}"
 """
 
 RETURN = r"""
 _value:
-  description: The deployment names, in file order.
+  description: One C({name, fleet}) per deployment, in file order.
   type: list
-  elements: str
+  elements: dict
 """
 
 from ansible.errors import AnsibleFilterError
@@ -37,13 +38,13 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
 
 
-def rosdeployment_names(spec):
+def rosdeployment_targets(spec):
     try:
-        return [deployment.name for deployment in load_specs(spec)]
+        return [{"name": deployment.name, "fleet": deployment.fleet} for deployment in load_specs(spec)]
     except KuberosError as exc:
         raise AnsibleFilterError(str(exc)) from None
 
 
 class FilterModule:
     def filters(self):
-        return {"rosdeployment_names": rosdeployment_names}
+        return {"rosdeployment_targets": rosdeployment_targets}
