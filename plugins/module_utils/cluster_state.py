@@ -15,6 +15,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
 
+# The argument every module that talks to a cluster takes (documented by the kuberos.platform.cluster fragment).
+KUBECONFIG_ARG = {"kubeconfig": {"type": "path", "required": True}}
+
 # Kinds KubeROS renders inside fleet namespaces: (apiVersion, kind, list method, delete method, api).
 MANAGED_KINDS = (
     ("apps/v1", "Deployment", "list_namespaced_deployment", "delete_namespaced_deployment", "apps"),

@@ -190,24 +190,14 @@ class LocalControlPlane:
             ]  # fmt: skip
         if component == "kube-controller-manager":
             return [
-                binary, f"--kubeconfig={self.path('controller-manager.kubeconfig')}",
-                f"--authentication-kubeconfig={self.path('controller-manager.kubeconfig')}",
-                f"--authorization-kubeconfig={self.path('controller-manager.kubeconfig')}",
-                "--bind-address=127.0.0.1", f"--secure-port={p.controller_manager}", "--leader-elect=false",
+                *self._controller_flags(binary, "controller-manager", p.controller_manager),
                 f"--service-account-private-key-file={pki}/sa.key", f"--root-ca-file={pki}/ca.crt",
                 f"--cluster-signing-cert-file={pki}/ca.crt", f"--cluster-signing-key-file={pki}/ca.key",
                 "--use-service-account-credentials=true", f"--service-cluster-ip-range={SERVICE_CIDR}",
-                "--kube-api-qps=500", "--kube-api-burst=1000", "--concurrent-deployment-syncs=20",
-                "--concurrent-replicaset-syncs=20", "--node-monitor-grace-period=40s",
+                "--concurrent-deployment-syncs=20", "--concurrent-replicaset-syncs=20", "--node-monitor-grace-period=40s",
             ]  # fmt: skip
         if component == "kube-scheduler":
-            return [
-                binary, f"--kubeconfig={self.path('scheduler.kubeconfig')}",
-                f"--authentication-kubeconfig={self.path('scheduler.kubeconfig')}",
-                f"--authorization-kubeconfig={self.path('scheduler.kubeconfig')}",
-                "--bind-address=127.0.0.1", f"--secure-port={p.scheduler}", "--leader-elect=false",
-                "--kube-api-qps=500", "--kube-api-burst=1000",
-            ]  # fmt: skip
+            return self._controller_flags(binary, "scheduler", p.scheduler)
         if component == "kwok":
             command = [
                 binary, f"--kubeconfig={self.path('kwok.kubeconfig')}", "--manage-all-nodes=false",
@@ -218,6 +208,16 @@ class LocalControlPlane:
                 command.append(f"--config={stage}")
             return command
         raise ValueError(component)
+
+    def _controller_flags(self, binary: str, user: str, port: int) -> list[str]:
+        """What kube-controller-manager and kube-scheduler share: their kubeconfig for the API, for
+        delegated authentication and authorization, serving on loopback, no leader election."""
+        kubeconfig = self.path(f"{user}.kubeconfig")
+        return [
+            binary, f"--kubeconfig={kubeconfig}", f"--authentication-kubeconfig={kubeconfig}",
+            f"--authorization-kubeconfig={kubeconfig}", "--bind-address=127.0.0.1", f"--secure-port={port}",
+            "--leader-elect=false", "--kube-api-qps=500", "--kube-api-burst=1000",
+        ]  # fmt: skip
 
     def pid_of(self, component: str) -> int | None:
         """The pid of a running component started by us (checked against /proc), or None."""

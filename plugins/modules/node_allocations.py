@@ -16,10 +16,6 @@ description:
   - The result is the C(allocated) input of the P(kuberos.platform.place_modules#filter) filter, so that a new
     placement accounts for what already runs.
 options:
-  kubeconfig:
-    description: Path of the kubeconfig.
-    type: path
-    required: true
   exclude_deployments:
     description: RosDeployments whose pods are not counted.
     type: list
@@ -33,6 +29,8 @@ options:
 attributes:
   check_mode:
     support: full
+extends_documentation_fragment:
+  - kuberos.platform.cluster
 author:
   - KubeROS contributors
 """
@@ -54,13 +52,13 @@ allocated:
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import api_clients, node_allocations
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, api_clients, node_allocations
 
 
 def main():
     module = AnsibleModule(
         argument_spec=dict(
-            kubeconfig=dict(type="path", required=True),
+            **KUBECONFIG_ARG,
             exclude_deployments=dict(type="list", elements="str", default=[]),
             exclude_discovery_of_fleets=dict(type="list", elements="str", default=[]),
         ),

@@ -14,10 +14,6 @@ description:
     the Kubernetes scheduler bound the pod to and its phase, next to the node KubeROS placed it on.
   - Optionally waits until every module's pod is Running and Ready on its placed node.
 options:
-  kubeconfig:
-    description: Path of the kubeconfig.
-    type: path
-    required: true
   placement:
     description: The placement returned by the P(kuberos.platform.place_modules#filter) filter.
     type: dict
@@ -29,6 +25,8 @@ options:
 attributes:
   check_mode:
     support: full
+extends_documentation_fragment:
+  - kuberos.platform.cluster
 author:
   - KubeROS contributors
 """
@@ -61,7 +59,7 @@ import time
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import api_clients, running_modules
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, api_clients, running_modules
 
 
 def compare(placement: dict, pods: list[dict]) -> list[dict]:
@@ -116,7 +114,7 @@ def table(rows: list[dict]) -> str:
 def main():
     module = AnsibleModule(
         argument_spec=dict(
-            kubeconfig=dict(type="path", required=True),
+            **KUBECONFIG_ARG,
             placement=dict(type="dict", required=True),
             wait_timeout=dict(type="int", default=0),
         ),

@@ -16,10 +16,6 @@ description:
   - Discovery servers of a fleet are pruned to those in O(keep); with O(keep) empty (undeploy) they are
     removed only when no other deployment runs in the fleet. Namespaces are never removed.
 options:
-  kubeconfig:
-    description: Path of the kubeconfig.
-    type: path
-    required: true
   deployments:
     description: Names of the RosDeployments concerned.
     type: list
@@ -40,6 +36,8 @@ attributes:
     support: full
   diff_mode:
     support: full
+extends_documentation_fragment:
+  - kuberos.platform.cluster
 author:
   - KubeROS contributors
 """
@@ -64,6 +62,7 @@ removed:
 from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
+    KUBECONFIG_ARG,
     api_clients,
     delete_object,
     managed_objects,
@@ -76,7 +75,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming im
 def main():
     module = AnsibleModule(
         argument_spec=dict(
-            kubeconfig=dict(type="path", required=True),
+            **KUBECONFIG_ARG,
             deployments=dict(type="list", elements="str", required=True),
             fleets=dict(type="list", elements="str", required=True),
             keep=dict(type="list", elements="dict", default=[]),
