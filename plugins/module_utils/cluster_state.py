@@ -26,11 +26,37 @@ MANAGED_KINDS = (
 )
 
 
+START_HINT = "start the local cluster with `make cluster`, or set kuberos_kubeconfig to your cluster's kubeconfig"
+
+
+class ClusterUnreachable(Exception):
+    """The cluster cannot be reached; the message says which and what to do."""
+
+
 def api_clients(kubeconfig: str):
+    import os
+
     from kubernetes import client, config
 
+    if not os.path.exists(kubeconfig):
+        raise ClusterUnreachable(f"no kubeconfig at {kubeconfig}; {START_HINT}")
     api = config.new_client_from_config(config_file=kubeconfig)
     return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api)}
+
+
+def explain(exc: Exception, kubeconfig: str) -> str:
+    """One line for a failure to talk to the cluster: unreachable, refused, or what the API server said."""
+    from kubernetes.client.exceptions import ApiException
+    from urllib3.exceptions import HTTPError
+
+    if isinstance(exc, ClusterUnreachable):
+        return str(exc)
+    if isinstance(exc, ApiException):
+        return f"the API server refused: {exc.status} {exc.reason}: {(exc.body or '')[:500]}"
+    if isinstance(exc, (HTTPError, OSError)):
+        reason = getattr(exc, "reason", None) or exc
+        return f"the cluster of {kubeconfig} is not reachable ({reason}); {START_HINT}"
+    return f"cannot use the cluster of {kubeconfig}: {exc}"
 
 
 def _key(obj: dict) -> tuple:

@@ -52,7 +52,12 @@ allocated:
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, api_clients, node_allocations
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
+    KUBECONFIG_ARG,
+    api_clients,
+    explain,
+    node_allocations,
+)
 
 
 def main():
@@ -71,7 +76,7 @@ def main():
             module.params["exclude_discovery_of_fleets"],
         )
     except Exception as exc:  # connection and configuration problems: one clear line, no traceback
-        module.fail_json(msg=f"cannot read the cluster with {module.params['kubeconfig']}: {exc}")
+        module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
     module.exit_json(changed=False, allocated=allocated)
 
 

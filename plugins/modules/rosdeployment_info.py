@@ -59,7 +59,12 @@ import time
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, api_clients, running_modules
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
+    KUBECONFIG_ARG,
+    api_clients,
+    explain,
+    running_modules,
+)
 
 
 def compare(placement: dict, pods: list[dict]) -> list[dict]:
@@ -133,7 +138,7 @@ def main():
                 break
             time.sleep(1)
     except Exception as exc:  # connection and configuration problems: one clear line, no traceback
-        module.fail_json(msg=f"cannot read the cluster with {module.params['kubeconfig']}: {exc}")
+        module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
     result = {"changed": False, "rows": rows, "table": table(rows), "ready": ready}
     if module.params["wait_timeout"] and not ready:
         waiting = [f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" for r in rows if not r["ready"]]

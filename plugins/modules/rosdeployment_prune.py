@@ -65,6 +65,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     KUBECONFIG_ARG,
     api_clients,
     delete_object,
+    explain,
     managed_objects,
     stale_objects,
 )
@@ -83,10 +84,6 @@ def main():
         supports_check_mode=True,
     )
     params = module.params
-    try:
-        from kubernetes.client.exceptions import ApiException
-    except ImportError:
-        module.fail_json(msg="the kubernetes Python package is required (make setup installs it)")
     removed = []
     try:
         clients = api_clients(params["kubeconfig"])
@@ -105,10 +102,8 @@ def main():
                 removed.append(f"{obj['kind']}/{namespace}/{obj['metadata']['name']}")
                 if not module.check_mode:
                     delete_object(clients, obj)
-    except ApiException as exc:
-        module.fail_json(msg=f"the API server refused: {exc.status} {exc.reason}: {exc.body}", removed=removed)
     except Exception as exc:  # connection and configuration problems: one clear line, no traceback
-        module.fail_json(msg=f"cannot reach the cluster with {params['kubeconfig']}: {exc}", removed=removed)
+        module.fail_json(msg=explain(exc, module.params["kubeconfig"]), removed=removed)
     result = {"changed": bool(removed), "removed": removed}
     if module._diff:
         result["diff"] = {"before": "\n".join(removed) + ("\n" if removed else ""), "after": ""}
