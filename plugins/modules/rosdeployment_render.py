@@ -62,6 +62,21 @@ objects:
   returned: success
   type: list
   elements: dict
+namespaces:
+  description: The Namespace objects, to create first.
+  returned: success
+  type: list
+  elements: dict
+apply_objects:
+  description: The other objects, in apply order (after the namespaces).
+  returned: success
+  type: list
+  elements: dict
+object_refs:
+  description: C(apiVersion), C(kind), C(metadata.name) and C(metadata.namespace) of every object other than namespaces.
+  returned: success
+  type: list
+  elements: dict
 table:
   description: Where every module of every robot runs, as a fixed-width table.
   returned: success
@@ -105,9 +120,16 @@ def run(module: AnsibleModule) -> dict:
     plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement))
     if plan.changed and not module.check_mode:
         apply_plan(plan)
+    others = [o for o in objects if o["kind"] != "Namespace"]
     result = {
         "changed": plan.changed,
         "objects": objects,
+        "namespaces": [o for o in objects if o["kind"] == "Namespace"],
+        "apply_objects": others,
+        "object_refs": [
+            {"apiVersion": o["apiVersion"], "kind": o["kind"], "metadata": {k: o["metadata"][k] for k in ("name", "namespace")}}
+            for o in others
+        ],
         "table": table,
         "dest": plan.root,
         "files": {"created": plan.created, "updated": plan.updated, "removed": plan.removed},
