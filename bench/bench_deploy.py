@@ -42,6 +42,8 @@ import threading
 import time
 from pathlib import Path
 
+from workload import pick_and_place  # bench/ is on sys.path when a benchmark runs
+
 REPO = Path(__file__).resolve().parent.parent
 VENV_BIN = REPO / ".venv" / "bin"
 CACHE_DIR = Path(os.environ.get("KUBEROS_CACHE_DIR") or Path.home() / ".cache" / "kuberos")
@@ -120,50 +122,7 @@ def write_inventory(directory: Path, robots: int) -> Path:
 
 def write_spec(path: Path) -> Path:
     """Pick-and-place with four dedicated modules per robot (the coordinator is dedicated here)."""
-    spec = {
-        "apiVersion": "kuberos.io/v1alpha1",
-        "kind": "RosDeployment",
-        "metadata": {"name": SPEC_NAME, "targetFleet": FLEET, "labels": {"app.kubernetes.io/part-of": SPEC_NAME}},
-        "rosDomainId": 7,
-        "discovery": {"servers": DISCOVERY_SERVERS},
-        "rosModules": [
-            {
-                "name": "perception",
-                "image": "ghcr.io/kuberos/pnp-perception:0.1",
-                "launch": ["ros2 launch kuberos_pnp perception.launch.py"],
-                "preference": ["edge", "cloud"],
-                "requirements": {"max_latency": "20 ms", "arch": "amd64"},
-                "resources": {"cpu": "500m", "memory": "512Mi"},
-                "rosParameters": {"voxel_size": 0.01, "camera_topic": "/head_camera/depth"},
-            },
-            {
-                "name": "motion-planner",
-                "image": "ghcr.io/kuberos/pnp-planner:0.1",
-                "launch": ["ros2 launch kuberos_pnp planner.launch.py"],
-                "preference": "cloud",
-                "requirements": {"max_latency": "200 ms"},
-                "resources": {"cpu": "500m", "memory": "512Mi"},
-                "rosParameters": {"planner": "RRTConnect", "planning_time": 2.0},
-            },
-            {
-                "name": "controller",
-                "image": "ghcr.io/kuberos/pnp-control:0.1",
-                "launch": ["ros2 launch kuberos_pnp control.launch.py"],
-                "requirements": {"onboard": True, "devices": ["gripper"]},
-                "resources": {"cpu": "500m", "memory": "512Mi"},
-            },
-            {
-                "name": "task-coordinator",
-                "image": "ghcr.io/kuberos/pnp-coordinator:0.1",
-                "launch": ["ros2 run kuberos_pnp coordinator"],
-                "preference": "edge",
-                "strategy": "dedicated",
-                "resources": {"cpu": "100m", "memory": "128Mi"},
-                "env": {"LOG_LEVEL": "info"},
-            },
-        ],
-    }
-    path.write_text(json.dumps(spec, indent=2) + "\n")
+    path.write_text(json.dumps(pick_and_place(SPEC_NAME, FLEET, "dedicated"), indent=2) + "\n")
     return path
 
 

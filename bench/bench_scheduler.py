@@ -37,6 +37,8 @@ import time
 import tracemalloc
 from pathlib import Path
 
+from workload import pick_and_place  # bench/ is on sys.path when a benchmark runs
+
 REPO = Path(__file__).resolve().parent.parent
 COLLECTIONS = REPO / ".collections"
 
@@ -89,47 +91,7 @@ def make_inventory(robots: int) -> dict:
 
 def make_spec(fleet: str) -> dict:
     """One pick-and-place RosDeployment for ``fleet``, as loaded YAML."""
-    return {
-        "apiVersion": "kuberos.io/v1alpha1",
-        "kind": "RosDeployment",
-        "metadata": {"name": f"pnp-{fleet}", "targetFleet": fleet},
-        "rosDomainId": 7,
-        "discovery": {"servers": 2},
-        "rosModules": [
-            {
-                "name": "perception",
-                "image": "ghcr.io/kuberos/pnp-perception:0.1",
-                "launch": ["ros2 launch kuberos_pnp perception.launch.py"],
-                "preference": ["edge", "cloud"],
-                "requirements": {"max_latency": "20 ms", "arch": "amd64"},
-                "resources": {"cpu": "500m", "memory": "512Mi"},
-            },
-            {
-                "name": "motion-planner",
-                "image": "ghcr.io/kuberos/pnp-planner:0.1",
-                "launch": ["ros2 launch kuberos_pnp planner.launch.py"],
-                "preference": "cloud",
-                "requirements": {"max_latency": "200 ms"},
-                "resources": {"cpu": "500m", "memory": "512Mi"},
-            },
-            {
-                "name": "controller",
-                "image": "ghcr.io/kuberos/pnp-control:0.1",
-                "launch": ["ros2 launch kuberos_pnp control.launch.py"],
-                "requirements": {"onboard": True, "devices": ["gripper"]},
-                "resources": {"cpu": "500m", "memory": "512Mi"},
-            },
-            {
-                "name": "task-coordinator",
-                "image": "ghcr.io/kuberos/pnp-coordinator:0.1",
-                "launch": ["ros2 run kuberos_pnp coordinator"],
-                "preference": "edge",
-                "strategy": "shared",
-                "robotsPerInstance": ROBOTS_PER_SHARED_INSTANCE,
-                "resources": {"cpu": "100m", "memory": "128Mi"},
-            },
-        ],
-    }
+    return pick_and_place(f"pnp-{fleet}", fleet, "shared", ROBOTS_PER_SHARED_INSTANCE)
 
 
 def expected_instances(robots: int) -> int:

@@ -41,6 +41,7 @@ class LocalControlPlane:
     ports: Ports = field(default_factory=Ports)
     kwok_stages: list = field(default_factory=list)  # stage configuration files for kwok
     log: list = field(default_factory=list)  # what was done, for the caller to report
+    _children: dict = field(default_factory=dict, repr=False)  # processes started by this object
 
     # -- paths -----------------------------------------------------------------------------------
     def path(self, *parts: str) -> str:
@@ -241,6 +242,7 @@ class LocalControlPlane:
         log.close()
         with open(self.path("run", f"{component}.pid"), "w", encoding="utf-8") as handle:
             handle.write(f"{process.pid}\n")
+        self._children[component] = process
         self.log.append(f"started {component} (pid {process.pid})")
 
     def stop_component(self, component: str, timeout: float = 15.0) -> bool:
@@ -289,11 +291,22 @@ class LocalControlPlane:
 
     def _wait(self, what: str, check, timeout: float, component: str) -> None:
         deadline = time.monotonic() + timeout
+        retried = False
         while time.monotonic() < deadline:
             if check():
                 return
-            if self.pid_of(component) is None:
-                raise RuntimeError(f"{component} exited; see {self.path('logs', component + '.log')}:\n{self.tail(component)}")
+            child = self._children.get(component)
+            code = child.poll() if child is not None else None
+            if code is not None or self.pid_of(component) is None:
+                if not retried and child is not None:
+                    # One more try: a program that dies at once (seen rarely under heavy load) usually starts.
+                    self.log.append(f"{component} exited at once (status {code}); starting it again")
+                    retried = True
+                    time.sleep(1)
+                    self.start_component(component)
+                    continue
+                log = self.path("logs", component + ".log")
+                raise RuntimeError(f"{component} exited (status {code}); see {log}:\n{self.tail(component)}")
             time.sleep(0.2)
         log = self.path("logs", component + ".log")
         raise RuntimeError(f"{what} not ready after {timeout:.0f} s; see {log}:\n{self.tail(component)}")
