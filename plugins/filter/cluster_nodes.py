@@ -41,18 +41,14 @@ _value:
   elements: dict
 """
 
-from ansible.errors import AnsibleFilterError
-
+from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import cluster_nodes as build_nodes
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 
 
+@reports_kuberos_errors
 def cluster_nodes(inventory, simulated=False):
-    try:
-        return build_nodes(load_inventory(inventory), bool(simulated))
-    except KuberosError as exc:
-        raise AnsibleFilterError(str(exc)) from None
+    return build_nodes(load_inventory(inventory), bool(simulated))
 
 
 class FilterModule:

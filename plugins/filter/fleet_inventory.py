@@ -35,9 +35,7 @@ _value:
   type: dict
 """
 
-from ansible.errors import AnsibleFilterError
-
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import TIER_GROUPS, load_inventory
 
 
@@ -55,6 +53,7 @@ def _plain(value):
     return str(value)
 
 
+@reports_kuberos_errors
 def fleet_inventory(groups, hostvars):
     members = {group: sorted(groups.get(group, [])) for group in TIER_GROUPS}
     hosts = {}
@@ -64,10 +63,7 @@ def fleet_inventory(groups, hostvars):
         hosts[host] = {key: _plain(host_vars[key]) for key in host_vars if str(key).startswith("kuberos_")}
         defaults = hosts[host].pop("kuberos_default_latency_ms", defaults) or defaults
     raw = {"hosts": hosts, "groups": members, "default_latency_ms": defaults}
-    try:
-        load_inventory(raw)
-    except KuberosError as exc:
-        raise AnsibleFilterError(str(exc)) from None
+    load_inventory(raw)  # validates: every problem named by host and variable
     return raw
 
 

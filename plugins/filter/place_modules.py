@@ -49,17 +49,13 @@ _value:
   type: dict
 """
 
-from ansible.errors import AnsibleFilterError
-
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_and_place
 
 
+@reports_kuberos_errors
 def place_modules(spec, inventory, allocated=None):
-    try:
-        _deployments, placement = load_and_place(spec, inventory, allocated)
-    except KuberosError as exc:
-        raise AnsibleFilterError(str(exc)) from None
+    _deployments, placement = load_and_place(spec, inventory, allocated)
     return placement.to_dict()
 
 

@@ -33,18 +33,14 @@ _value:
   elements: dict
 """
 
-from ansible.errors import AnsibleFilterError
-
+from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import robot_taints as build_taints
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 
 
+@reports_kuberos_errors
 def robot_taints(inventory):
-    try:
-        return build_taints(load_inventory(inventory))
-    except KuberosError as exc:
-        raise AnsibleFilterError(str(exc)) from None
+    return build_taints(load_inventory(inventory))
 
 
 class FilterModule:

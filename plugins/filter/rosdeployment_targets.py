@@ -32,17 +32,13 @@ _value:
   elements: dict
 """
 
-from ansible.errors import AnsibleFilterError
-
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
 
 
+@reports_kuberos_errors
 def rosdeployment_targets(spec):
-    try:
-        return [{"name": deployment.name, "fleet": deployment.fleet} for deployment in load_specs(spec)]
-    except KuberosError as exc:
-        raise AnsibleFilterError(str(exc)) from None
+    return [{"name": deployment.name, "fleet": deployment.fleet} for deployment in load_specs(spec)]
 
 
 class FilterModule:

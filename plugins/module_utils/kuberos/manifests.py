@@ -11,6 +11,8 @@ from __future__ import annotations
 import shlex
 from dataclasses import dataclass
 
+import yaml
+
 from . import labels as node_labels
 from . import naming
 from .quantities import format_cpu, format_memory
@@ -134,8 +136,6 @@ def params_configmap_name(deployment: str, module: str) -> str:
 
 
 def _params_configmap(dep: RosDeployment, module: RosModule, namespace: str, base_labels: dict) -> dict:
-    import yaml  # local: only rendering with parameters needs it
-
     document = {"/**": {"ros__parameters": module.ros_parameters}}
     return {
         "apiVersion": "v1",

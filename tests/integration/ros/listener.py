@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from node_runner import spin_until_killed  # beside this file, on sys.path when it runs
 from std_msgs.msg import String
 
 
@@ -19,13 +19,7 @@ def main() -> None:
     node = rclpy.create_node("kuberos_listener")
     node.create_subscription(String, topic, lambda msg: print(f"received {msg.data}", flush=True), 10)
     print("ready", flush=True)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_killed(node)
 
 
 if __name__ == "__main__":

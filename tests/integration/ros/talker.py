@@ -10,7 +10,7 @@ from __future__ import annotations
 import sys
 
 import rclpy
-from rclpy.executors import ExternalShutdownException
+from node_runner import spin_until_killed  # beside this file, on sys.path when it runs
 from std_msgs.msg import String
 
 
@@ -29,13 +29,7 @@ def main() -> None:
         print(f"published kuberos {count} subscribers={publisher.get_subscription_count()}", flush=True)
 
     node.create_timer(period, publish)
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_until_killed(node)
 
 
 if __name__ == "__main__":
