@@ -86,6 +86,15 @@ class Inventory:
             return math.inf
         return target.latency_ms
 
+    def with_measured_latency(self, measured: dict[str, dict[str, float]]) -> Inventory:
+        """A copy in which measured robot-to-node round-trip times replace the configured latencies."""
+        robots = {}
+        for name, robot in self.robots.items():
+            links = dict(robot.link_latency_ms)
+            links.update({node: float(ms) for node, ms in measured.get(name, {}).items() if node in self.nodes})
+            robots[name] = Robot(robot.name, robot.fleet, robot.node, tuple(sorted(links.items())))
+        return Inventory(self.nodes, robots)
+
     def tier_nodes(self, tier: str, fleet: str) -> tuple[Node, ...]:
         """Edge or cloud nodes the fleet may use, by name."""
         key = (tier, fleet)

@@ -168,14 +168,24 @@ def _fmt_mem(size: int) -> str:
 
 
 class _Scheduler:
-    def __init__(self, inventory: Inventory, allocated: dict | None):
+    def __init__(self, inventory: Inventory, allocated: dict | None, unavailable: dict[str, str] | None = None):
         self.inventory = inventory
         self.free = _initial_free(inventory, allocated)
         self.failures: list[str] = []
+        # Nodes nothing may be placed on (e.g. NotReady), and for the instance being placed, nodes it must avoid.
+        self.unavailable = dict(unavailable or {})
+        self.avoid: dict[str, str] = {}
 
     # -- feasibility -------------------------------------------------------------------------
     def rejection(self, node: Node, module: RosModule, robots, cpu: int, memory: int, gpu: int) -> str | None:
         """Why ``node`` cannot run this instance for ``robots``, or None when it can."""
+        why = self.unavailable.get(node.name) or self.avoid.get(node.name)
+        if why:
+            return why
+        return self.requirement_rejection(node, module, robots) or self.capacity_rejection(node, cpu, memory, gpu)
+
+    def requirement_rejection(self, node: Node, module: RosModule | None, robots) -> str | None:
+        """Why the module's hard requirements (arch, devices, max_latency) rule ``node`` out, or None."""
         req = module.requirements if module is not None else None
         if req is not None:
             if req.arch and node.arch not in req.arch:
@@ -188,6 +198,9 @@ class _Scheduler:
                     latency = self.inventory.latency_ms(robot, node.name)
                     if latency > req.max_latency_ms:
                         return f"latency {latency:g} ms to {robot} > max_latency {req.max_latency_ms:g} ms"
+        return None
+
+    def capacity_rejection(self, node: Node, cpu: int, memory: int, gpu: int) -> str | None:
         free = self.free[node.name]
         if free.pods < 1:
             return "no pod slots left"
@@ -350,7 +363,9 @@ class _Scheduler:
             )
 
     # -- discovery servers -------------------------------------------------------------------
-    def place_discovery(self, fleet: str, count: int, port: int) -> list[DiscoveryServer]:
+    def place_discovery(self, fleet: str, count: int, port: int, keep: dict | None = None) -> list[DiscoveryServer]:
+        """Place the fleet's discovery servers on distinct nodes; servers in ``keep`` (by id) stay where they are."""
+        keep = keep or {}
         namespace = naming.fleet_namespace(fleet)
         robots = self.inventory.fleets[fleet]
         tiers = [
@@ -359,9 +374,12 @@ class _Scheduler:
             ("onboard", tuple(self.inventory.nodes[self.inventory.robots[r].node] for r in robots)),
         ]
         servers: list[DiscoveryServer] = []
-        used: set[str] = set()
+        used: set[str] = {s.node for s in keep.values()}
         accounts: list[str] = []
         for server_id in range(count):
+            if server_id in keep:
+                servers.append(keep[server_id])
+                continue
             chosen = None
             for distinct in (True, False):
                 for tier, nodes in tiers:
@@ -477,6 +495,176 @@ def place_modules(deployments: list[RosDeployment], inventory: Inventory, alloca
         raise PlacementError(scheduler.failures)
     placement.nodes = _node_summaries(inventory, scheduler.free, placement)
     return placement
+
+
+@dataclass(frozen=True)
+class Move:
+    """An instance (or a discovery server) that left its node, and why."""
+
+    instance: str
+    deployment: str
+    module: str
+    robots: tuple[str, ...]
+    from_node: str
+    to_node: str
+    why: str
+
+
+@dataclass(frozen=True)
+class Stranded:
+    """An instance whose node is ruled out but that has nowhere to go; it stays where it was."""
+
+    instance: str
+    deployment: str
+    module: str
+    robots: tuple[str, ...]
+    node: str
+    why: str
+
+
+@dataclass
+class Replacement:
+    placement: Placement
+    moves: list[Move] = field(default_factory=list)
+    stranded: list[Stranded] = field(default_factory=list)
+
+
+def replace_modules(
+    deployments: list[RosDeployment],
+    inventory: Inventory,
+    previous: Placement,
+    allocated: dict | None = None,
+    unavailable: dict[str, str] | None = None,
+    avoid: dict[str, dict[str, str]] | None = None,
+    hold: frozenset | set = frozenset(),
+) -> Replacement:
+    """Keep every instance of ``previous`` where it is unless its node is ruled out, and move only those.
+
+    A node is ruled out for an instance when it is ``unavailable`` (node name -> why, e.g. NotReady),
+    when ``avoid[instance]`` names it (e.g. the pod keeps failing there), when it left the inventory,
+    or when the module's hard requirements no longer hold there (e.g. a measured latency above
+    ``max_latency``). Kept instances keep their resources first; the others are placed again with the
+    same rules as ``place_modules``. An instance that has no other feasible node (onboard modules of a
+    robot whose computer is down, or no capacity anywhere) stays on its node and is reported as
+    stranded, so one fault never removes a running module. Discovery servers move the same way.
+    Instances named in ``hold`` stay where they are whatever their node (a fault not yet confirmed).
+    """
+    problems = _check_against_inventory(deployments, inventory)
+    if problems:
+        raise SpecError(problems, title="the RosDeployment does not match the inventory")
+    avoid = avoid or {}
+    scheduler = _Scheduler(inventory, allocated, unavailable)
+    modules = {(d.name, m.name): (d, m) for d in deployments for m in d.modules}
+    result = Replacement(Placement(deployments=list(previous.deployments)))
+
+    def ruled_out(name: str, node: str, module: RosModule | None, robots) -> str | None:
+        if name in hold and node in inventory.nodes:
+            return None
+        if node not in inventory.nodes:
+            return f"node {node} is no longer in the inventory"
+        why = scheduler.unavailable.get(node) or avoid.get(name, {}).get(node)
+        if why:
+            return why
+        return scheduler.requirement_rejection(inventory.nodes[node], module, robots)
+
+    # 1. What stays keeps its resources before anything moves.
+    kept_discovery: dict[str, dict[int, DiscoveryServer]] = {}
+    leaving_discovery: dict[str, dict[int, tuple[DiscoveryServer, str]]] = {}
+    for fleet, servers in previous.discovery.items():
+        for server in servers:
+            why = ruled_out(server.name, server.node, None, ())
+            if why is None:
+                kept_discovery.setdefault(fleet, {})[server.server_id] = server
+                scheduler.take(server.node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+            else:
+                leaving_discovery.setdefault(fleet, {})[server.server_id] = (server, why)
+    slots: list[Instance | None] = []
+    leaving: list[tuple[int, Instance, str]] = []
+    for inst in previous.instances:
+        found = modules.get((inst.deployment, inst.module))
+        if found is None:
+            continue  # the module is gone from the spec: deploying again prunes it, moving is not our job
+        why = ruled_out(inst.name, inst.node, found[1], inst.robots)
+        if why is None:
+            slots.append(inst)
+            if inst.node in scheduler.free:
+                scheduler.take(inst.node, inst.cpu_millis, inst.memory_bytes, inst.gpu)
+        else:
+            leaving.append((len(slots), inst, why))
+            slots.append(None)
+
+    # 2. Discovery servers, then module instances, go to the best other node.
+    for fleet, servers in previous.discovery.items():
+        moving = leaving_discovery.get(fleet, {})
+        if not moving:
+            result.placement.discovery[fleet] = servers
+            continue
+        placed = scheduler.place_discovery(fleet, len(servers), servers[0].port, kept_discovery.get(fleet, {}))
+        scheduler.failures.clear()
+        by_id = {s.server_id: s for s in placed}
+        final = []
+        for server in servers:
+            new = by_id.get(server.server_id)
+            if server.server_id in moving and new is not None:
+                why = moving[server.server_id][1]
+                new = DiscoveryServer(
+                    new.fleet,
+                    new.namespace,
+                    new.server_id,
+                    new.name,
+                    new.node,
+                    new.tier,
+                    new.port,
+                    f"moved from {server.node} ({why}); {new.reason}",
+                )
+                result.moves.append(Move(new.name, "", "discovery-server", (), server.node, new.node, why))
+            elif server.server_id in moving:
+                new = server
+                scheduler.take(server.node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+                result.stranded.append(
+                    Stranded(
+                        server.name, "", "discovery-server", (), server.node, f"{moving[server.server_id][1]}; no other node"
+                    )
+                )
+            final.append(new)
+        result.placement.discovery[fleet] = final
+    for index, inst, why in leaving:
+        dep, module = modules[(inst.deployment, inst.module)]
+        res = module.resources
+        scheduler.avoid = dict(avoid.get(inst.name, {}))
+        scheduler.avoid.setdefault(inst.node, why)
+        node, tier, latency, detail = scheduler.choose(dep, module, inst.robots)
+        scheduler.avoid = {}
+        if node is None:
+            if inst.node in scheduler.free:
+                scheduler.take(inst.node, inst.cpu_millis, inst.memory_bytes, inst.gpu)
+            stay = "onboard modules stay with their robot" if module.requirements.onboard else "no other feasible node"
+            accounts = [a for a in detail if not a.startswith(f"{inst.node} ")]
+            result.stranded.append(
+                Stranded(inst.name, inst.deployment, inst.module, inst.robots, inst.node, "; ".join([why, stay, *accounts[:5]]))
+            )
+            slots[index] = inst
+            continue
+        slots[index] = Instance(
+            inst.name,
+            inst.deployment,
+            inst.fleet,
+            inst.namespace,
+            inst.module,
+            node.name,
+            tier,
+            inst.robots,
+            f"moved from {inst.node} ({why}); {detail}",
+            latency,
+            res.cpu_millis,
+            res.memory_bytes,
+            res.gpu,
+            inst.shared,
+        )
+        result.moves.append(Move(inst.name, inst.deployment, inst.module, inst.robots, inst.node, node.name, why))
+    result.placement.instances = [inst for inst in slots if inst is not None]
+    result.placement.nodes = _node_summaries(inventory, scheduler.free, result.placement)
+    return result
 
 
 def _node_summaries(inventory: Inventory, free: dict[str, _Free], placement: Placement) -> list[dict]:
