@@ -39,6 +39,17 @@ options:
     description: Container image that provides C(fast-discovery-server).
     type: str
     default: ros:jazzy-ros-base
+  inventory:
+    description:
+      - The fleet resource model (P(kuberos.platform.fleet_inventory#filter)). When given, one record
+        ConfigMap per RosDeployment (C(kuberos-record-<name>) in the fleet namespace) is rendered too: the spec,
+        the inventory, the render options and the placement, which the KubeROS controller reads to move modules
+        when nodes fail or links degrade.
+    type: dict
+  field_manager:
+    description: The server-side apply field manager the objects are applied with; the controller applies with it too.
+    type: str
+    default: kuberos
 attributes:
   check_mode:
     support: full
@@ -91,8 +102,13 @@ files:
 from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, render_deployment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+    RenderOptions,
+    object_order,
+    render_deployment,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import (
     RenderDirError,
     apply_plan,
@@ -107,6 +123,8 @@ ARGUMENT_SPEC = dict(
     dest=dict(type="path", required=True),
     cluster_domain=dict(type="str", default="cluster.local"),
     discovery_image=dict(type="str", default="ros:jazzy-ros-base"),
+    inventory=dict(type="dict"),
+    field_manager=dict(type="str", default="kuberos"),
 )
 
 
@@ -116,6 +134,13 @@ def run(module: AnsibleModule) -> dict:
     placement = Placement.from_dict(params["placement"])
     options = RenderOptions(cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"])
     objects = render_deployment(deployments, placement, options)
+    if params["inventory"] is not None:
+        with open(params["src"], encoding="utf-8") as handle:
+            spec_text = handle.read()
+        records = build_records(
+            spec_text, params["src"], deployments, placement, params["inventory"], options, params["field_manager"]
+        )
+        objects = sorted(objects + records, key=object_order)
     table = placement_table(placement)
     plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement))
     if plan.changed and not module.check_mode:

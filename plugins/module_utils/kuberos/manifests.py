@@ -217,6 +217,11 @@ def _module_deployment(
 _KIND_ORDER = {"Namespace": 0, "ConfigMap": 1, "Service": 2, "Deployment": 3}
 
 
+def object_order(obj: dict) -> tuple:
+    """Apply order: namespaces, then ConfigMaps, Services and Deployments, each by namespace and name."""
+    return (_KIND_ORDER[obj["kind"]], obj["metadata"].get("namespace", ""), obj["metadata"]["name"])
+
+
 def render_deployment(deployments: list[RosDeployment], placement: Placement, options: RenderOptions | None = None) -> list[dict]:
     """Every object the placement needs, ordered for applying (namespaces first)."""
     options = options or RenderOptions()
@@ -246,5 +251,5 @@ def render_deployment(deployments: list[RosDeployment], placement: Placement, op
             seen_params.add((dep.name, module.name))
             objects.append(_params_configmap(dep, module, inst.namespace, base_labels))
         objects.append(_module_deployment(dep, module, inst, addresses[dep.fleet], base_labels, options))
-    objects.sort(key=lambda o: (_KIND_ORDER[o["kind"]], o["metadata"].get("namespace", ""), o["metadata"]["name"]))
+    objects.sort(key=object_order)
     return objects

@@ -1,0 +1,604 @@
+"""The KubeROS controller: keeps every module of every RosDeployment placed well.
+
+It watches (list, then watch from the resourceVersion, relisting after errors or a 410) the nodes,
+the KubeROS pods and Deployments, and the deployment records that deploy writes
+(``kuberos-record-<deployment>`` ConfigMaps in the fleet namespaces). On every change, and when a
+fault's grace period ends, it runs one pass per record:
+
+1. decide (``kuberos.reconcile.decide``, pure): which instances move and where, with the scheduler's
+   own rules, or which faults still wait for their grace period;
+2. write the new placement into the record first (optimistic: the record's resourceVersion must not
+   have changed), so a controller killed mid-move restarts from the truth in the cluster;
+3. converge: every Deployment whose pinned node differs from the record is applied again (server-side
+   apply, the record's field manager), and pods of moved instances left on a node that is down are
+   deleted at once, so the Recreate strategy can start the new pod (the module never runs twice);
+4. report: a Kubernetes Event per move or stranded module, and the status ConfigMap
+   ``kuberos-status-<deployment>`` (a table and JSON per robot and module: node, phase, pod, last move).
+
+Run it as a process: ``python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller
+--kubeconfig FILE`` (``--once`` for a single pass; in a pod, without ``--kubeconfig``, it uses the
+ServiceAccount). Measured round-trip times come from the robot nodes' ``kuberos.io/rtt-ms``
+annotation: JSON mapping a node's inventory name to milliseconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+    DEPLOYMENT,
+    INSTANCE,
+    MANAGED_BY,
+    render_deployment,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import (
+    ClusterView,
+    Memory,
+    NodeView,
+    PodView,
+    Settings,
+    decide,
+    status_rows,
+    status_table,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
+    RECORD_LABEL,
+    STATUS_LABEL,
+    Record,
+    parse_record,
+    placement_patch,
+    status_name,
+)
+
+RTT_ANNOTATION = "kuberos.io/rtt-ms"
+CONTROLLER_MANAGER = "kuberos-controller"
+FAILPOINT_ENV = "KUBEROS_CONTROLLER_FAILPOINT"  # tests: "after-record" exits right after a record write
+log = logging.getLogger("kuberos.controller")
+
+
+def _epoch(stamp: str | None) -> float | None:
+    if not stamp:
+        return None
+    try:
+        return datetime.datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
+    except ValueError:
+        return None
+
+
+def _now_rfc3339() -> str:
+    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _key(obj: dict) -> tuple[str, str]:
+    meta = obj["metadata"]
+    return meta.get("namespace", ""), meta["name"]
+
+
+class Store:
+    """A watched set of objects of one kind: list, then watch, relist on errors; thread-safe reads."""
+
+    def __init__(self, name: str, list_call, changed: threading.Event, **selector):
+        self.name = name
+        self.list_call = list_call
+        self.selector = selector
+        self.changed = changed
+        self.items: dict[tuple[str, str], dict] = {}
+        self.synced = threading.Event()
+        self.lock = threading.Lock()
+        self.errors = 0
+
+    def snapshot(self) -> list[dict]:
+        with self.lock:
+            return list(self.items.values())
+
+    def relist(self) -> str:
+        response = self.list_call(_preload_content=False, **self.selector)
+        body = json.loads(response.data)
+        with self.lock:
+            self.items = {_key(item): item for item in body.get("items", [])}
+        self.synced.set()
+        self.changed.set()
+        return body["metadata"]["resourceVersion"]
+
+    def run(self, stop: threading.Event) -> None:
+        from kubernetes.client.exceptions import ApiException
+        from kubernetes.watch.watch import iter_resp_lines
+
+        backoff = 0.2
+        version = None
+        while not stop.is_set():
+            try:
+                if version is None:
+                    version = self.relist()
+                    backoff = 0.2
+                response = self.list_call(
+                    watch=True, resource_version=version, timeout_seconds=60, allow_watch_bookmarks=True,
+                    _preload_content=False, _request_timeout=90, **self.selector,
+                )  # fmt: skip
+                try:
+                    for line in iter_resp_lines(response):
+                        if stop.is_set():
+                            break
+                        version = self.handle(json.loads(line), version)
+                        if version is None:
+                            break  # 410 Gone or another error event: relist
+                finally:
+                    response.release_conn()
+            except ApiException as exc:
+                self.errors += 1
+                version = None
+                log.warning("watch %s: %s %s; relisting in %.1f s", self.name, exc.status, exc.reason, backoff)
+                stop.wait(backoff)
+                backoff = min(backoff * 2, 5.0)
+            except Exception as exc:  # connection refused, reset, timeouts: the API server may be restarting
+                self.errors += 1
+                version = None
+                log.warning("watch %s: %s; relisting in %.1f s", self.name, exc.__class__.__name__, backoff)
+                stop.wait(backoff)
+                backoff = min(backoff * 2, 5.0)
+
+    def handle(self, event: dict, version: str) -> str | None:
+        """Apply one watch event; returns the resourceVersion to continue from, or None to relist."""
+        kind, obj = event.get("type"), event.get("object") or {}
+        if kind == "ERROR":
+            log.info("watch %s: %s; relisting", self.name, obj.get("message", obj))
+            return None
+        version = obj.get("metadata", {}).get("resourceVersion", version)
+        if kind == "BOOKMARK":
+            return version
+        with self.lock:
+            if kind == "DELETED":
+                self.items.pop(_key(obj), None)
+            else:
+                self.items[_key(obj)] = obj
+        self.changed.set()
+        return version
+
+
+def _pod_requests(pod: dict) -> dict:
+    cpu = memory = gpu = 0
+    for container in pod.get("spec", {}).get("containers", []):
+        requests = (container.get("resources") or {}).get("requests") or {}
+        cpu += quantities.parse_cpu(requests.get("cpu", "0"))
+        memory += quantities.parse_memory(requests.get("memory", "0"))
+        gpu += int(requests.get("nvidia.com/gpu", "0"))
+    return {"cpu": cpu, "memory": memory, "gpu": gpu}
+
+
+class Controller:
+    def __init__(self, api_client, settings: Settings | None = None, resync_s: float = 30.0, dry_run: bool = False):
+        from kubernetes import client
+
+        self.api_client = api_client
+        self.core = client.CoreV1Api(api_client)
+        self.apps = client.AppsV1Api(api_client)
+        self.settings = settings or Settings()
+        self.dry_run = dry_run  # decide and report, write nothing (check mode)
+        self.resync_s = resync_s
+        self.changed = threading.Event()
+        self.stop_event = threading.Event()
+        managed = f"{MANAGED_BY}=kuberos"
+        self.nodes = Store("nodes", self.core.list_node, self.changed)
+        self.pods = Store("pods", self.core.list_pod_for_all_namespaces, self.changed, label_selector=managed)
+        self.deployments = Store(
+            "deployments", self.apps.list_deployment_for_all_namespaces, self.changed, label_selector=managed
+        )
+        self.records = Store(
+            "records", self.core.list_config_map_for_all_namespaces, self.changed, label_selector=f"{RECORD_LABEL}=true"
+        )
+        self.stores = (self.nodes, self.pods, self.deployments, self.records)
+        self.memory: dict[tuple[str, str], Memory] = {}
+        self.history: dict[tuple[str, str], dict] = {}  # record -> instance -> last move
+        self.reported: dict[tuple[str, str], dict] = {}  # record -> stranded instance -> why (events sent once)
+        self.parsed: dict[tuple[str, str], tuple[str, Record | None, str]] = {}
+        self.status_written: dict[tuple[str, str], str] = {}
+        self.passes = 0
+        self.moves = 0
+        self.last_pass: list[dict] = []  # per record: deployment, moves, stranded, waiting, table
+
+    # -- observing --------------------------------------------------------------------------
+    def _node_names(self) -> dict[str, str]:
+        """Kubernetes node name -> inventory name (the hostname label, else the node name)."""
+        return {
+            n["metadata"]["name"]: (n["metadata"].get("labels") or {}).get(node_labels.HOSTNAME, n["metadata"]["name"])
+            for n in self.nodes.snapshot()
+        }
+
+    def cluster_view(self) -> ClusterView:
+        view = ClusterView()
+        names = self._node_names()
+        for node in self.nodes.snapshot():
+            meta = node["metadata"]
+            name = names[meta["name"]]
+            ready = next((c for c in node.get("status", {}).get("conditions", []) if c.get("type") == "Ready"), None)
+            ok = bool(ready) and ready.get("status") == "True"
+            condition = f"Ready={ready.get('status')} ({ready.get('reason', '')})" if ready else ""
+            view.nodes[name] = NodeView(name, ok, condition, _epoch(ready.get("lastTransitionTime")) if ready else None)
+            robot = (meta.get("labels") or {}).get(node_labels.ROBOT)
+            rtt = (meta.get("annotations") or {}).get(RTT_ANNOTATION)
+            if robot and rtt:
+                try:
+                    view.measured[robot] = {str(k): float(v) for k, v in json.loads(rtt).items()}
+                except (ValueError, TypeError, AttributeError):
+                    log.warning("node %s: annotation %s is not a JSON mapping of node to ms: %.80r", name, RTT_ANNOTATION, rtt)
+        for pod in self.pods.snapshot():
+            meta = pod["metadata"]
+            instance = (meta.get("labels") or {}).get(INSTANCE)
+            if not instance:
+                continue
+            status = pod.get("status", {})
+            statuses = status.get("containerStatuses") or []
+            waiting = next((s["state"]["waiting"].get("reason", "") for s in statuses if "waiting" in (s.get("state") or {})), "")
+            node = pod.get("spec", {}).get("nodeName") or ""
+            view.pods.setdefault(f"{meta.get('namespace')}/{instance}", []).append(
+                PodView(
+                    meta["name"],
+                    meta.get("namespace", ""),
+                    instance,
+                    names.get(node, node),
+                    status.get("phase", ""),
+                    any(c.get("type") == "Ready" and c.get("status") == "True" for c in status.get("conditions") or []),
+                    sum(int(s.get("restartCount", 0)) for s in statuses),
+                    waiting,
+                    bool(meta.get("deletionTimestamp")),
+                )
+            )
+        return view
+
+    @staticmethod
+    def _record_view(view: ClusterView, namespace: str) -> ClusterView:
+        """The view with pods keyed by bare instance name, for one namespace."""
+        prefix = namespace + "/"
+        pods = {k[len(prefix) :]: v for k, v in view.pods.items() if k.startswith(prefix)}
+        return ClusterView(view.nodes, view.measured, pods)
+
+    def _allocated(self, record: Record) -> dict:
+        """Requests of every other KubeROS pod per node (this record's own modules are placed again)."""
+        names = self._node_names()
+        used: dict[str, dict] = {}
+        own = {i.name for i in record.placement.instances} | {
+            s.name for servers in record.placement.discovery.values() for s in servers
+        }
+        for pod in self.pods.snapshot():
+            meta = pod["metadata"]
+            node = pod.get("spec", {}).get("nodeName")
+            if not node or meta.get("deletionTimestamp") or pod.get("status", {}).get("phase") in ("Succeeded", "Failed"):
+                continue
+            if meta.get("namespace") == record.namespace and (meta.get("labels") or {}).get(INSTANCE) in own:
+                continue
+            entry = used.setdefault(names.get(node, node), {"cpu": 0, "memory": 0, "gpu": 0, "pods": 0})
+            entry["pods"] += 1
+            for k, v in _pod_requests(pod).items():
+                entry[k] += v
+        return {n: {**e, "cpu": f"{e['cpu']}m"} for n, e in used.items()}
+
+    def _record(self, configmap: dict) -> Record | None:
+        key = _key(configmap)
+        version = configmap["metadata"].get("resourceVersion", "")
+        cached = self.parsed.get(key)
+        if cached and cached[0] == version:
+            return cached[1]
+        try:
+            record = parse_record(configmap)
+            error = ""
+        except KuberosError as exc:
+            record, error = None, str(exc)
+            log.error("record %s/%s cannot be read: %s", *key, error)
+        self.parsed[key] = (version, record, error)
+        return record
+
+    # -- acting -----------------------------------------------------------------------------
+    def _write_placement(self, record: Record, placement) -> bool:
+        from kubernetes.client.exceptions import ApiException
+
+        if self.dry_run:
+            return True
+        patch = placement_patch(record.name, record.namespace, placement)
+        patch["metadata"]["resourceVersion"] = record.resource_version  # refuse if deploy rewrote it meanwhile
+        try:
+            self.core.patch_namespaced_config_map(record.name, record.namespace, patch)
+        except ApiException as exc:
+            if exc.status in (404, 409):
+                log.info("record %s/%s changed while moving (%s); deciding again", record.namespace, record.name, exc.status)
+                return False
+            raise
+        if os.environ.get(FAILPOINT_ENV) == "after-record":
+            log.error("failpoint after-record: exiting before applying")
+            os._exit(3)
+        return True
+
+    def _apply(self, obj: dict, manager: str) -> None:
+        if self.dry_run:
+            return
+        meta = obj["metadata"]
+        body = json.dumps(obj)
+        if obj["kind"] == "Deployment":
+            self.apps.patch_namespaced_deployment(
+                meta["name"], meta["namespace"], json.loads(body), field_manager=manager, force=True,
+                _content_type="application/apply-patch+yaml",
+            )  # fmt: skip
+        else:
+            self.core.patch_namespaced_config_map(
+                meta["name"], meta["namespace"], json.loads(body), field_manager=manager, force=True,
+                _content_type="application/apply-patch+yaml",
+            )  # fmt: skip
+
+    def converge(self, record: Record, view: ClusterView) -> int:
+        """Apply every Deployment of the record whose node differs from the cluster's; free moved pods."""
+        wanted = render_deployment(record.deployments, record.placement, record.options)
+        live = {_key(d): d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace}
+        applied = 0
+        for obj in wanted:
+            if obj["kind"] != "Deployment":
+                continue
+            current = live.get(_key(obj))
+            if current is None:
+                continue  # not created yet (deploy is applying) or removed (undeploy): not the controller's to create
+            want = obj["spec"]["template"]["spec"]["nodeSelector"]
+            have = current.get("spec", {}).get("template", {}).get("spec", {}).get("nodeSelector")
+            if want != have:
+                self._apply(obj, record.field_manager)
+                applied += 1
+        placed = {i.name: i.node for i in record.placement.instances}
+        placed.update({s.name: s.node for servers in record.placement.discovery.values() for s in servers})
+        for instance, pods in view.pods.items():
+            for pod in pods:
+                target = placed.get(instance)
+                down = view.nodes.get(pod.node) is None or not view.nodes[pod.node].ready
+                if target and pod.node and pod.node != target and down:
+                    self._force_delete(pod)
+        return applied
+
+    def _force_delete(self, pod: PodView) -> None:
+        from kubernetes.client.exceptions import ApiException
+
+        if self.dry_run:
+            return
+        try:
+            self.core.delete_namespaced_pod(pod.name, pod.namespace, grace_period_seconds=0)
+            log.info("deleted pod %s/%s left on %s, which is down", pod.namespace, pod.name, pod.node)
+        except ApiException as exc:
+            if exc.status != 404:
+                raise
+
+    def _event(self, record: Record, name: str, reason: str, message: str, warning: bool) -> None:
+        from kubernetes.client.exceptions import ApiException
+
+        if self.dry_run:
+            return
+        now = _now_rfc3339()
+        body = {
+            "metadata": {"generateName": f"{name}.", "namespace": record.namespace},
+            "involvedObject": {"apiVersion": "apps/v1", "kind": "Deployment", "name": name, "namespace": record.namespace},
+            "reason": reason,
+            "message": message[:1000],
+            "type": "Warning" if warning else "Normal",
+            "source": {"component": CONTROLLER_MANAGER},
+            "firstTimestamp": now,
+            "lastTimestamp": now,
+            "count": 1,
+        }
+        try:
+            self.core.create_namespaced_event(record.namespace, body)
+        except ApiException as exc:
+            log.warning("event %s for %s not recorded: %s %s", reason, name, exc.status, exc.reason)
+
+    def _write_status(self, record: Record, view: ClusterView, stranded: dict[str, str], waiting: list[str]) -> str:
+        key = (record.namespace, record.name)
+        rows = status_rows(record, view, stranded, self.history.get(key, {}))
+        table = status_table(record.deployment, rows)
+        content = json.dumps({"rows": rows, "waiting": waiting}, sort_keys=True)
+        if self.status_written.get(key) == content:
+            return table
+        configmap = self.records.items.get(key, {})
+        owner = {
+            "apiVersion": "v1",
+            "kind": "ConfigMap",
+            "name": record.name,
+            "uid": configmap.get("metadata", {}).get("uid", ""),
+        }
+        body = {
+            "apiVersion": "v1",
+            "kind": "ConfigMap",
+            "metadata": {
+                "name": status_name(record.deployment),
+                "namespace": record.namespace,
+                "labels": {MANAGED_BY: CONTROLLER_MANAGER, STATUS_LABEL: "true", DEPLOYMENT: record.deployment},
+                "ownerReferences": [owner] if owner["uid"] else [],
+            },
+            "data": {
+                "table": table + "\n",
+                "status.json": json.dumps(
+                    {"deployment": record.deployment, "updated": _now_rfc3339(), "rows": rows, "waiting": waiting}
+                ),
+                "moves.json": json.dumps(self.history.get(key, {}), sort_keys=True),
+            },
+        }
+        self._apply(body, CONTROLLER_MANAGER)
+        self.status_written[key] = content
+        return table
+
+    def _load_history(self, record: Record) -> None:
+        """After a restart, the last moves come back from the status ConfigMap."""
+        from kubernetes.client.exceptions import ApiException
+
+        key = (record.namespace, record.name)
+        if key in self.history:
+            return
+        self.history[key] = {}
+        try:
+            configmap = self.core.read_namespaced_config_map(status_name(record.deployment), record.namespace)
+            self.history[key] = json.loads((configmap.data or {}).get("moves.json", "{}"))
+        except ApiException as exc:
+            if exc.status != 404:
+                raise
+        except ValueError:
+            pass
+
+    def reconcile_record(self, configmap: dict, view: ClusterView, now: float) -> float | None:
+        record = self._record(configmap)
+        if record is None:
+            return None
+        key = (record.namespace, record.name)
+        self._load_history(record)
+        memory = self.memory.setdefault(key, Memory())
+        rview = self._record_view(view, record.namespace)
+        decision = decide(record, rview, memory, self.settings, now, self._allocated(record))
+        stranded = dict(self.reported.get(key, {}))
+        if decision.replacement is not None:
+            replacement = decision.replacement
+            stranded = {s.instance: s.why for s in replacement.stranded}
+            if replacement.moves:
+                if not self._write_placement(record, replacement.placement):
+                    self.changed.set()
+                    return None
+                record.placement = replacement.placement
+                self.parsed.pop(key, None)
+                for move in replacement.moves:
+                    who = f"{move.module} for {', '.join(move.robots)}" if move.robots else move.instance
+                    message = f"{who} moved from {move.from_node} to {move.to_node}: {move.why}"
+                    log.info("%s/%s: %s", record.namespace, record.deployment, message)
+                    self.history[key][move.instance] = {
+                        "at": _now_rfc3339(),
+                        "from": move.from_node,
+                        "to": move.to_node,
+                        "why": move.why,
+                    }
+                    self._event(record, move.instance, "ModuleMoved", message, warning=False)
+                    self.moves += 1
+            for inst, why in stranded.items():
+                if self.reported.get(key, {}).get(inst) != why:
+                    log.warning("%s/%s: %s stays on its node: %s", record.namespace, record.deployment, inst, why)
+                    self._event(record, inst, "ModuleStranded", why, warning=True)
+        else:
+            # Still stranded while its node is down; once the node is back it runs where it was.
+            where = {i.name: i.node for i in record.placement.instances}
+            stranded = {
+                i: w for i, w in stranded.items() if i in where and not getattr(rview.nodes.get(where[i]), "ready", False)
+            }
+        self.reported[key] = stranded
+        for line in decision.waiting:
+            log.debug("%s/%s waits: %s", record.namespace, record.deployment, line)
+        applied = self.converge(record, rview)
+        table = self._write_status(record, rview, stranded, decision.waiting)
+        moves = decision.replacement.moves if decision.replacement is not None else []
+        self.last_pass.append(
+            {
+                "namespace": record.namespace,
+                "deployment": record.deployment,
+                "moves": [{"instance": m.instance, "from": m.from_node, "to": m.to_node, "why": m.why} for m in moves],
+                "stranded": stranded,
+                "waiting": decision.waiting,
+                "applied": applied,
+                "table": table,
+            }
+        )
+        return decision.wake_at
+
+    def reconcile(self) -> float | None:
+        """One pass over every record; returns when the earliest waiting fault becomes due."""
+        self.passes += 1
+        self.last_pass = []
+        view = self.cluster_view()
+        now = time.time()
+        wake = []
+        for configmap in sorted(self.records.snapshot(), key=_key):
+            try:
+                at = self.reconcile_record(configmap, view, now)
+            except KuberosError as exc:
+                log.error("record %s/%s: %s", *_key(configmap), exc)
+                continue
+            if at is not None:
+                wake.append(at)
+        return min(wake) if wake else None
+
+    # -- running ----------------------------------------------------------------------------
+    def run_once(self) -> None:
+        for store in self.stores:
+            store.relist()
+        self.reconcile()
+
+    def run(self) -> None:
+        threads = [threading.Thread(target=s.run, args=(self.stop_event,), name=s.name, daemon=True) for s in self.stores]
+        for thread in threads:
+            thread.start()
+        log.info("controller started (grace %.1f s, resync %.0f s)", self.settings.grace_s, self.resync_s)
+        wake_at = None
+        while not self.stop_event.is_set():
+            timeout = self.resync_s if wake_at is None else max(0.05, min(self.resync_s, wake_at - time.time() + 0.05))
+            self.changed.wait(timeout)
+            self.changed.clear()
+            if self.stop_event.is_set():
+                break
+            if not all(s.synced.is_set() for s in self.stores):
+                continue
+            time.sleep(0.05)  # let a burst of events land in one pass
+            self.changed.clear()
+            try:
+                wake_at = self.reconcile()
+            except Exception as exc:  # the API server restarting, a conflict: try again shortly
+                log.warning("pass failed (%s: %s); retrying", exc.__class__.__name__, str(exc)[:300])
+                wake_at = time.time() + 1.0
+        log.info("controller stopped after %d passes, %d moves", self.passes, self.moves)
+
+
+def build_api_client(kubeconfig: str | None):
+    from kubernetes import client, config
+
+    if kubeconfig:
+        return config.new_client_from_config(config_file=kubeconfig)
+    config.load_incluster_config()
+    return client.ApiClient()
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="kuberos-controller",
+        description="Keep every module of every RosDeployment placed well: move modules off nodes that fail, "
+        "pods that keep failing and links whose measured latency breaks max_latency.",
+    )
+    parser.add_argument("--kubeconfig", help="kubeconfig file (default: the pod's ServiceAccount)")
+    parser.add_argument("--once", action="store_true", help="run one reconcile pass and exit")
+    parser.add_argument("--grace", type=float, default=Settings.grace_s, help="seconds a fault must last before modules move")
+    parser.add_argument(
+        "--restart-threshold", type=int, default=Settings.restart_threshold, help="restarts that count as failing"
+    )
+    parser.add_argument(
+        "--cooldown", type=float, default=Settings.cooldown_s, help="seconds before a moved module may move again"
+    )
+    parser.add_argument("--resync", type=float, default=30.0, help="seconds between passes without any change")
+    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    return parser.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
+    settings = Settings(grace_s=args.grace, restart_threshold=args.restart_threshold, cooldown_s=args.cooldown)
+    try:
+        controller = Controller(build_api_client(args.kubeconfig), settings, args.resync)
+    except Exception as exc:
+        print(f"kuberos-controller: cannot reach the cluster: {exc}", file=sys.stderr)
+        return 2
+    if args.once:
+        controller.run_once()
+        return 0
+    signal.signal(signal.SIGTERM, lambda *_: (controller.stop_event.set(), controller.changed.set()))
+    signal.signal(signal.SIGINT, lambda *_: (controller.stop_event.set(), controller.changed.set()))
+    controller.run()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
