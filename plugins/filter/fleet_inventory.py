@@ -10,7 +10,9 @@ short_description: The KubeROS resource model of an Ansible inventory
 version_added: 0.1.0
 description:
   - Takes C(groups) and C(hostvars) and returns the plain-data resource model that the scheduler uses,
-    made of every host of the groups C(robots), C(edge) and C(cloud) with its C(kuberos_*) variables.
+    made of every host of the groups C(robots), C(edge) and C(cloud) with its resource-model variables
+    (C(kuberos_cpu), C(kuberos_fleet)... as listed in docs/inventory.md; site settings such as
+    C(kuberos_kubeconfig) are left out).
   - Validates it, failing with the host, the variable and the reason for each problem.
 options:
   _input:
@@ -36,7 +38,7 @@ _value:
 """
 
 from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import TIER_GROUPS, load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import HOST_VARS, TIER_GROUPS, load_inventory
 
 
 def _plain(value):
@@ -60,7 +62,7 @@ def fleet_inventory(groups, hostvars):
     defaults = {}
     for host in sorted({h for names in members.values() for h in names}):
         host_vars = hostvars[host]
-        hosts[host] = {key: _plain(host_vars[key]) for key in host_vars if str(key).startswith("kuberos_")}
+        hosts[host] = {key: _plain(host_vars[key]) for key in HOST_VARS if key in host_vars}
         defaults = hosts[host].pop("kuberos_default_latency_ms", defaults) or defaults
     raw = {"hosts": hosts, "groups": members, "default_latency_ms": defaults}
     load_inventory(raw)  # validates: every problem named by host and variable

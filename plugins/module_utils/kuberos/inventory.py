@@ -19,6 +19,12 @@ from . import quantities
 from .errors import Problem, SpecError, describe, did_you_mean
 
 TIER_GROUPS = {"robots": "onboard", "edge": "edge", "cloud": "cloud"}
+# The host variables of the resource model (docs/inventory.md); other kuberos_* variables are site settings.
+HOST_VARS = (
+    "kuberos_arch", "kuberos_cpu", "kuberos_default_latency_ms", "kuberos_devices", "kuberos_fleet", "kuberos_fleets",
+    "kuberos_gpu", "kuberos_latency_ms", "kuberos_link_latency_ms", "kuberos_memory", "kuberos_node_name", "kuberos_pods",
+    "kuberos_resource_group", "kuberos_robot", "kuberos_shared",
+)  # fmt: skip
 DEFAULT_LATENCY_MS = {"onboard": 0.0, "edge": 5.0, "cloud": 50.0}
 _NAME = re.compile(r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?$")
 _LABEL_VALUE = re.compile(r"^[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?$")

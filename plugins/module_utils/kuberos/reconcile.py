@@ -160,6 +160,8 @@ def decide(record: Record, cluster: ClusterView, memory: Memory, settings: Setti
                 due_any = True
                 if kind == "pod":
                     memory.avoid.setdefault(inst.name, {})[inst.node] = (why, now + settings.avoid_s)
+                else:
+                    avoid.setdefault(inst.name, {})[inst.node] = why  # says what was measured
             else:
                 hold.add(inst.name)
                 decision.waiting.append(f"{inst.name}: {why}" + (" (cooling down after a move)" if due else ""))
@@ -177,7 +179,7 @@ def decide(record: Record, cluster: ClusterView, memory: Memory, settings: Setti
     for inst_name, nodes in list(memory.avoid.items()):
         live = {n: why for n, (why, until) in nodes.items() if until > now}
         if live:
-            avoid[inst_name] = live
+            avoid[inst_name] = {**live, **avoid.get(inst_name, {})}
         else:
             memory.avoid.pop(inst_name, None)
 

@@ -501,6 +501,7 @@ def place_modules(deployments: list[RosDeployment], inventory: Inventory, alloca
 class Move:
     """An instance (or a discovery server) that left its node, and why."""
 
+    namespace: str
     instance: str
     deployment: str
     module: str
@@ -514,6 +515,7 @@ class Move:
 class Stranded:
     """An instance whose node is ruled out but that has nowhere to go; it stays where it was."""
 
+    namespace: str
     instance: str
     deployment: str
     module: str
@@ -617,13 +619,19 @@ def replace_modules(
                     new.port,
                     f"moved from {server.node} ({why}); {new.reason}",
                 )
-                result.moves.append(Move(new.name, "", "discovery-server", (), server.node, new.node, why))
+                result.moves.append(Move(new.namespace, new.name, "", "discovery-server", (), server.node, new.node, why))
             elif server.server_id in moving:
                 new = server
                 scheduler.take(server.node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
                 result.stranded.append(
                     Stranded(
-                        server.name, "", "discovery-server", (), server.node, f"{moving[server.server_id][1]}; no other node"
+                        server.namespace,
+                        server.name,
+                        "",
+                        "discovery-server",
+                        (),
+                        server.node,
+                        f"{moving[server.server_id][1]}; no other node",
                     )
                 )
             final.append(new)
@@ -641,7 +649,15 @@ def replace_modules(
             stay = "onboard modules stay with their robot" if module.requirements.onboard else "no other feasible node"
             accounts = [a for a in detail if not a.startswith(f"{inst.node} ")]
             result.stranded.append(
-                Stranded(inst.name, inst.deployment, inst.module, inst.robots, inst.node, "; ".join([why, stay, *accounts[:5]]))
+                Stranded(
+                    inst.namespace,
+                    inst.name,
+                    inst.deployment,
+                    inst.module,
+                    inst.robots,
+                    inst.node,
+                    "; ".join([why, stay, *accounts[:5]]),
+                )
             )
             slots[index] = inst
             continue
@@ -661,7 +677,7 @@ def replace_modules(
             res.gpu,
             inst.shared,
         )
-        result.moves.append(Move(inst.name, inst.deployment, inst.module, inst.robots, inst.node, node.name, why))
+        result.moves.append(Move(inst.namespace, inst.name, inst.deployment, inst.module, inst.robots, inst.node, node.name, why))
     result.placement.instances = [inst for inst in slots if inst is not None]
     result.placement.nodes = _node_summaries(inventory, scheduler.free, result.placement)
     return result

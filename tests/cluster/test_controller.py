@@ -1,0 +1,370 @@
+"""The controller against the real local control plane: faults injected, modules moved, nothing lost.
+
+The pick-and-place example is deployed to test-fleet with playbooks/deploy.yml and the controller is
+started with playbooks/controller.yml (grace 2 s). Each test injects one fault the way it shows in a
+real cluster (a kwok node whose heartbeats stop and whose Ready condition turns Unknown, a Node
+deleted, a pod that keeps restarting, a measured RTT above max_latency, the controller killed between
+its two writes, the API server restarted), then checks the invariant: every module instance of every
+robot runs exactly once, Running and Ready, on the node the deployment record says, and the record is
+what the scheduler keeps given the faults (``replace_modules`` moves nothing more).
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import signal
+import time
+
+import pytest
+from helpers import inventory_raw, playbook
+
+pytestmark = pytest.mark.cluster
+
+SPEC = "examples/pick-and-place.yml"
+NAMESPACE = "kuberos-test-fleet"
+RECORD = "kuberos-record-pick-and-place"
+STATUS = "kuberos-status-pick-and-place"
+GRACE = 2
+KWOK = "kwok.x-k8s.io/node"
+RTT = "kuberos.io/rtt-ms"
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+class Fleet:
+    def __init__(self, cluster, state_dir):
+        self.cluster = cluster
+        self.state_dir = str(state_dir)
+        self.core, self.apps, _ = cluster.clients()
+
+    # -- the controller, through its playbook ------------------------------------------------
+    def controller(self, state="started", env=None, timeout=120):
+        extra = {
+            "controller_kubeconfig": self.cluster.kubeconfig,
+            "controller_state_dir": self.state_dir,
+            "controller_grace": GRACE,
+            "controller_state": state,
+        }
+        old = {k: os.environ.get(k) for k in (env or {})}
+        os.environ.update(env or {})
+        try:
+            return playbook("controller.yml", "-e", json.dumps(extra), timeout=timeout)
+        finally:
+            for key, value in old.items():
+                if value is None:
+                    os.environ.pop(key, None)
+                else:
+                    os.environ[key] = value
+
+    def log(self) -> str:
+        with open(os.path.join(self.state_dir, "controller.log"), encoding="utf-8", errors="replace") as handle:
+            return handle.read()
+
+    def pid(self) -> int | None:
+        try:
+            with open(os.path.join(self.state_dir, "controller.pid"), encoding="utf-8") as handle:
+                pid = int(handle.read())
+            os.kill(pid, 0)
+            return pid
+        except (OSError, ValueError):
+            return None
+
+    # -- faults ------------------------------------------------------------------------------
+    def node_down(self, name):
+        """What a dead kubelet looks like: no heartbeats (kwok lets go of the node) and Ready=Unknown."""
+        self.core.patch_node(name, {"metadata": {"annotations": {KWOK: None}}})
+        condition = {
+            "type": "Ready", "status": "Unknown", "reason": "NodeStatusUnknown", "message": "Kubelet stopped posting status.",
+            "lastTransitionTime": _now(), "lastHeartbeatTime": _now(),
+        }  # fmt: skip
+        self.core.patch_node_status(name, {"status": {"conditions": [condition]}})
+
+    def node_up(self, name):
+        self.core.patch_node(name, {"metadata": {"annotations": {KWOK: "fake"}}})
+        wait_for(lambda: self.ready(name), 60, f"node {name} Ready again")
+
+    def ready(self, name) -> bool:
+        try:
+            node = self.core.read_node(name)
+        except Exception:
+            return False
+        return _ready(node)
+
+    # -- reading back ------------------------------------------------------------------------
+    def record(self):
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import parse_record
+
+        configmap = self.core.read_namespaced_config_map(RECORD, NAMESPACE)
+        return parse_record(self.core.api_client.sanitize_for_serialization(configmap))
+
+    def placed(self) -> dict[str, str]:
+        placement = self.record().placement
+        where = {i.name: i.node for i in placement.instances}
+        where.update({s.name: s.node for servers in placement.discovery.values() for s in servers})
+        return where
+
+    def pods(self) -> dict[str, list]:
+        found: dict[str, list] = {}
+        for pod in self.core.list_namespaced_pod(NAMESPACE, label_selector="app.kubernetes.io/managed-by=kuberos").items:
+            found.setdefault(pod.metadata.labels.get("kuberos.io/instance"), []).append(pod)
+        return found
+
+    def down_nodes(self) -> dict[str, str]:
+        names = {n.metadata.name for n in self.core.list_node().items if not self.ready(n.metadata.name)}
+        present = {n.metadata.name for n in self.core.list_node().items}
+        down = {n: f"{n} is down" for n in names}
+        down.update({n: f"{n} is gone" for n in self.record().inventory.nodes if n not in present})
+        return down
+
+    def problems(self, allow_stranded=()) -> list[str]:
+        """Everything that breaks the invariant now (empty when it holds)."""
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import replace_modules
+
+        record = self.record()
+        placed = self.placed()
+        pods = self.pods()
+        problems = []
+        for instance, node in sorted(placed.items()):
+            live = [p for p in pods.get(instance, []) if not p.metadata.deletion_timestamp]
+            running = [p for p in live if p.status.phase == "Running" and _ready(p)]
+            if instance in allow_stranded:
+                continue
+            if len(live) != 1 or len(running) != 1 or running[0].spec.node_name != node:
+                problems.append(
+                    f"{instance}: placed on {node}, pods {[(p.metadata.name, p.spec.node_name, p.status.phase) for p in live]}"
+                )
+        for instance in set(pods) - set(placed):
+            problems.append(f"{instance}: pods of an instance that is not placed")
+        again = replace_modules(record.deployments, record.inventory, record.placement, unavailable=self.down_nodes())
+        problems += [f"{m.instance} should move from {m.from_node}: {m.why}" for m in again.moves]
+        return problems
+
+    def converge(self, timeout=60, allow_stranded=()):
+        last = []
+
+        def ok():
+            nonlocal last
+            last = self.problems(allow_stranded)
+            return not last
+
+        wait_for(ok, timeout, "every module running exactly once where the record says", lambda: "\n".join(last))
+
+    def events(self, reason) -> list:
+        return [e for e in self.core.list_namespaced_event(NAMESPACE).items if e.reason == reason]
+
+    def status(self) -> dict:
+        configmap = self.core.read_namespaced_config_map(STATUS, NAMESPACE)
+        return json.loads(configmap.data["status.json"])
+
+    def busiest_edge(self) -> tuple[str, list[str]]:
+        placed = self.placed()
+        edges = [n for n in sorted(set(placed.values())) if n.startswith("edge-")]
+        node = max(edges, key=lambda n: sum(1 for v in placed.values() if v == n))
+        return node, sorted(i for i, n in placed.items() if n == node)
+
+
+def _ready(obj) -> bool:
+    return any(c.type == "Ready" and c.status == "True" for c in obj.status.conditions or [])
+
+
+def wait_for(check, timeout, what, detail=lambda: ""):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if check():
+            return
+        time.sleep(0.3)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}\n{detail()}")
+
+
+@pytest.fixture(scope="module")
+def fleet(cluster, tmp_path_factory):
+    render = tmp_path_factory.mktemp("render-controller")
+    deployed = cluster.deploy(SPEC, render)
+    assert deployed.returncode == 0, deployed.stdout[-4000:]
+    fleet = Fleet(cluster, tmp_path_factory.mktemp("controller"))
+    started = fleet.controller()
+    assert started.returncode == 0, started.stdout[-3000:]
+    try:
+        fleet.converge()
+        yield fleet
+    finally:
+        fleet.controller("stopped")
+        for node in fleet.core.list_node().items:  # leave every node as the cluster fixture made it
+            if (node.metadata.annotations or {}).get(KWOK) != "fake":
+                fleet.node_up(node.metadata.name)
+        restored = cluster.start()  # recreates deleted nodes from the inventory
+        assert restored.returncode == 0, restored.stdout[-3000:]
+        cluster.undeploy(SPEC)
+
+
+def test_a_not_ready_node_loses_its_modules_and_only_those_move(fleet):
+    node, leaving = fleet.busiest_edge()
+    before = fleet.placed()
+    moved_events = len(fleet.events("ModuleMoved"))
+    fleet.node_down(node)
+    try:
+        fleet.converge()
+        after = fleet.placed()
+        assert {i for i in before if before[i] != after[i]} == set(leaving), "only the dead node's instances move"
+        assert node not in after.values()
+        assert len(fleet.events("ModuleMoved")) >= moved_events + len(leaving)
+        rows = {r["instance"]: r for r in fleet.status()["rows"]}
+        for instance in leaving:
+            assert rows[instance]["phase"] == "Running"
+            assert rows[instance]["last_move"]["from"] == node and "NotReady" in rows[instance]["last_move"]["why"]
+        table = playbook("status.yml", "-e", f"kuberos_kubeconfig={fleet.cluster.kubeconfig}")
+        assert table.returncode == 0 and f"from {node}: node {node} is NotReady" in table.stdout, table.stdout[-3000:]
+    finally:
+        fleet.node_up(node)
+    time.sleep(GRACE + 2)
+    assert fleet.placed() == after, "a recovered node does not pull modules back (no ping-pong)"
+    fleet.converge()
+
+
+def test_a_short_blip_inside_the_grace_period_moves_nothing(fleet):
+    node, _ = fleet.busiest_edge()
+    before = fleet.placed()
+    fleet.node_down(node)
+    time.sleep(GRACE / 4)
+    fleet.node_up(node)
+    time.sleep(GRACE + 2)
+    assert fleet.placed() == before
+    fleet.converge()
+
+
+def test_a_deleted_node_loses_its_modules(fleet):
+    node, _ = fleet.busiest_edge()
+    fleet.core.delete_node(node)
+    try:
+        fleet.converge()
+        assert node not in fleet.placed().values()
+        assert "is not in the cluster" in fleet.log()
+    finally:
+        restored = fleet.cluster.start()  # the local_cluster playbook creates the inventory's nodes again
+        assert restored.returncode == 0, restored.stdout[-3000:]
+        wait_for(lambda: fleet.ready(node), 60, f"{node} back")
+    fleet.converge()
+
+
+def test_onboard_modules_of_a_dead_robot_stay_and_are_reported(fleet):
+    before = fleet.placed()
+    onboard = "pick-and-place-controller-fetch-1"
+    stranded_events = len(fleet.events("ModuleStranded"))
+    fleet.node_down("fetch-1")
+    try:
+        wait_for(
+            lambda: any(r["instance"] == onboard and r["phase"] == "Stranded" for r in fleet.status()["rows"]),
+            30,
+            "the onboard controller module reported as stranded",
+        )
+        assert fleet.placed() == before, "nothing moves: the robot's other modules still run on healthy nodes"
+        events = fleet.events("ModuleStranded")[stranded_events:]
+        assert any(e.involved_object.name == onboard and "onboard modules stay with their robot" in e.message for e in events)
+        fleet.converge(allow_stranded={onboard})
+    finally:
+        fleet.node_up("fetch-1")
+    wait_for(
+        lambda: all(r["phase"] == "Running" for r in fleet.status()["rows"] if r["instance"] == onboard),
+        30,
+        "the onboard module running again",
+    )
+    fleet.converge()
+
+
+def test_a_measured_latency_above_max_latency_moves_the_module(fleet):
+    instance = "pick-and-place-perception-fetch-2"  # max_latency 20 ms
+    node = fleet.placed()[instance]
+    fleet.core.patch_node("fetch-2", {"metadata": {"annotations": {RTT: json.dumps({node: 45.0})}}})
+    try:
+        wait_for(lambda: fleet.placed()[instance] != node, 30, f"{instance} to leave {node}")
+        fleet.converge()
+        assert f"measured RTT 45 ms from fetch-2 to {node} > max_latency 20 ms" in fleet.log()
+    finally:
+        fleet.core.patch_node("fetch-2", {"metadata": {"annotations": {RTT: None}}})
+
+
+def test_a_pod_that_keeps_failing_moves_to_another_node(fleet):
+    instance = "pick-and-place-motion-planner-fetch-1"
+    node = fleet.placed()[instance]
+    pod = next(p for p in fleet.pods()[instance] if not p.metadata.deletion_timestamp)
+    statuses = [
+        {
+            "name": c.name, "ready": False, "restartCount": 5, "image": c.image, "imageID": "", "started": False,
+            "state": {"waiting": {"reason": "CrashLoopBackOff", "message": "back-off restarting failed container"}},
+        }
+        for c in pod.spec.containers
+    ]  # fmt: skip
+    fleet.core.patch_namespaced_pod_status(pod.metadata.name, NAMESPACE, {"status": {"containerStatuses": statuses}})
+    wait_for(lambda: fleet.placed()[instance] != node, 30, f"{instance} to leave {node}")
+    fleet.converge()
+    assert "keeps failing" in fleet.log()
+
+
+def test_a_controller_killed_between_its_writes_finishes_the_move_after_a_restart(fleet):
+    assert fleet.controller("stopped").returncode == 0
+    restarted = fleet.controller(env={"KUBEROS_CONTROLLER_FAILPOINT": "after-record"})
+    assert restarted.returncode == 0, restarted.stdout[-3000:]
+    node, leaving = fleet.busiest_edge()
+    fleet.node_down(node)
+    try:
+        wait_for(lambda: fleet.pid() is None, 30, "the controller to die at the failpoint")
+        assert "failpoint after-record" in fleet.log()
+        # The record says where modules go, but nothing was applied: the old pods are still on the dead node.
+        assert node not in fleet.placed().values()
+        assert any(p.spec.node_name == node for i in leaving for p in fleet.pods().get(i, []))
+        started = fleet.controller()
+        assert started.returncode == 0, started.stdout[-3000:]
+        fleet.converge()
+    finally:
+        fleet.node_up(node)
+    fleet.converge()
+
+
+def test_the_controller_survives_an_api_server_restart(fleet):
+    with open(os.path.join(fleet.cluster.state_dir, "run", "kube-apiserver.pid"), encoding="utf-8") as handle:
+        os.kill(int(handle.read()), signal.SIGKILL)
+    time.sleep(2)
+    restarted = fleet.cluster.start()
+    assert restarted.returncode == 0, restarted.stdout[-3000:]
+    assert fleet.pid() is not None, "the controller kept running"
+    node, _ = fleet.busiest_edge()
+    fleet.node_down(node)
+    try:
+        fleet.converge(timeout=90)
+        assert node not in fleet.placed().values()
+    finally:
+        fleet.node_up(node)
+    assert "relisting" in fleet.log(), "the watches noticed the restart and listed again"
+    fleet.converge()
+
+
+def test_reconcile_playbook_does_one_pass_and_check_mode_changes_nothing(fleet):
+    assert fleet.controller("stopped").returncode == 0
+    try:
+        node, leaving = fleet.busiest_edge()
+        before = fleet.placed()
+        fleet.node_down(node)
+        try:
+            time.sleep(GRACE + 1)
+            kube = ("-e", f"kuberos_kubeconfig={fleet.cluster.kubeconfig}", "-e", f"kuberos_reconcile_grace={GRACE}")
+            checked = playbook("reconcile.yml", *kube, "--check")
+            assert checked.returncode == 0, checked.stdout[-3000:]
+            assert all(f"moved {i}: {node} ->" in checked.stdout for i in leaving), checked.stdout[-3000:]
+            assert fleet.placed() == before, "check mode writes nothing"
+            done = playbook("reconcile.yml", *kube)
+            assert done.returncode == 0 and done.changed == 1, done.stdout[-3000:]
+            fleet.converge()
+            assert node not in fleet.placed().values()
+        finally:
+            fleet.node_up(node)
+    finally:
+        assert fleet.controller().returncode == 0
+
+
+def test_the_record_holds_the_inventory_deploy_placed_with(fleet):
+    """The controller re-places with the fleet model deploy used, read back from the cluster."""
+    assert fleet.record().inventory_raw == inventory_raw()
