@@ -368,3 +368,100 @@ def test_reconcile_playbook_does_one_pass_and_check_mode_changes_nothing(fleet):
 def test_the_record_holds_the_inventory_deploy_placed_with(fleet):
     """The controller re-places with the fleet model deploy used, read back from the cluster."""
     assert fleet.record().inventory_raw == inventory_raw()
+
+
+FORBIDDEN = [
+    ("get", "", "secrets", "kuberos-test-fleet"),
+    ("list", "", "secrets", ""),
+    ("patch", "", "nodes", ""),
+    ("delete", "", "nodes", ""),
+    ("create", "", "pods", "kuberos-test-fleet"),
+    ("create", "apps", "deployments", "kuberos-test-fleet"),
+    ("delete", "apps", "deployments", "kuberos-test-fleet"),
+    ("patch", "", "configmaps", "kube-system"),
+    ("delete", "", "pods", "kube-system"),
+    ("patch", "apps", "deployments", "default"),
+    ("create", "", "pods/exec", "kuberos-test-fleet"),
+    ("patch", "", "nodes/status", ""),
+]
+ALLOWED = [
+    ("watch", "", "nodes", ""),
+    ("list", "", "pods", ""),
+    ("watch", "apps", "deployments", ""),
+    ("patch", "apps", "deployments", "kuberos-test-fleet"),
+    ("delete", "", "pods", "kuberos-test-fleet"),
+    ("create", "", "configmaps", "kuberos-test-fleet"),
+    ("create", "", "events", "kuberos-test-fleet"),
+]
+
+
+def test_the_in_cluster_rights_are_enough_for_a_move_and_no_more(fleet, tmp_path):
+    """The role's in-cluster objects applied; the controller then runs with the ServiceAccount's token only."""
+    import subprocess
+    import sys
+
+    import yaml
+    from kubernetes import client
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controller_manifests import NAME
+
+    applied = playbook(
+        "controller.yml", "-e", json.dumps({
+            "controller_mode": "in_cluster", "controller_kubeconfig": fleet.cluster.kubeconfig,
+            "controller_image": "registry.invalid/kuberos-controller:test", "controller_fleets": ["test-fleet"],
+        }),
+    )  # fmt: skip
+    assert applied.returncode == 0, applied.stdout[-3000:]
+    subject = f"system:serviceaccount:kuberos-system:{NAME}"
+    authz = client.AuthorizationV1Api(fleet.core.api_client)
+
+    def allowed(verb, group, resource, namespace) -> bool:
+        sub = [*resource.split("/"), ""]
+        attributes = {"verb": verb, "group": group, "resource": sub[0], "subresource": sub[1], "namespace": namespace}
+        review = {"spec": {"user": subject, "groups": ["system:serviceaccounts"], "resourceAttributes": attributes}}
+        return authz.create_subject_access_review(review).status.allowed
+
+    assert [a for a in ALLOWED if not allowed(*a)] == []
+    assert [f for f in FORBIDDEN if allowed(*f)] == []
+
+    token = fleet.core.create_namespaced_service_account_token(NAME, "kuberos-system", {"spec": {"expirationSeconds": 3600}})
+    with open(fleet.cluster.kubeconfig, encoding="utf-8") as handle:
+        admin = yaml.safe_load(handle)
+    admin["users"] = [{"name": NAME, "user": {"token": token.status.token}}]
+    admin["contexts"][0]["context"]["user"] = NAME
+    kubeconfig = tmp_path / "sa.kubeconfig"
+    kubeconfig.write_text(yaml.safe_dump(admin))
+
+    assert fleet.controller("stopped").returncode == 0
+    log = tmp_path / "sa-controller.log"
+    entry = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p.endswith(".collections"))}
+    with open(log, "wb") as out:
+        process = subprocess.Popen(
+            [sys.executable, "-m", entry, "--kubeconfig", str(kubeconfig), "--grace", str(GRACE)],
+            stdout=out, stderr=subprocess.STDOUT, env=env,
+        )  # fmt: skip
+    node, leaving = fleet.busiest_edge()
+    try:
+        wait_for(lambda: "controller started" in log.read_text(), 30, "the controller with the ServiceAccount's token")
+        time.sleep(1)
+        fleet.node_down(node)
+        fleet.converge()
+        assert node not in fleet.placed().values()
+        rows = {r["instance"]: r for r in fleet.status()["rows"]}
+        assert all(rows[i]["last_move"].get("from") == node for i in leaving), "it wrote the status"
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.wait(timeout=20)
+        fleet.node_up(node)
+        removed = playbook(
+            "controller.yml", "-e", json.dumps({
+                "controller_mode": "in_cluster", "controller_state": "stopped", "controller_kubeconfig": fleet.cluster.kubeconfig,
+                "controller_image": "registry.invalid/kuberos-controller:test", "controller_fleets": ["test-fleet"],
+            }),
+        )  # fmt: skip
+        assert fleet.controller().returncode == 0
+    text = log.read_text()
+    assert "403" not in text and "Forbidden" not in text, text[-3000:]
+    assert "moved from" in text
+    assert removed.returncode == 0, removed.stdout[-3000:]
