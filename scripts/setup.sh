@@ -24,6 +24,20 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; th
   echo "$want" > "$stamp"
 fi
 
+# System programs of the network tests (namespaces and real pings): installed when missing, as root with apt.
+missing=()
+command -v ip >/dev/null 2>&1 || missing+=(iproute2)
+command -v ping >/dev/null 2>&1 || missing+=(iputils-ping)
+if [ ${#missing[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing ${missing[*]} (network namespace and latency probe tests)"
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null; } ||
+      echo "setup: could not install ${missing[*]}; the tests that need them will be skipped" >&2
+  else
+    echo "setup: ${missing[*]} missing and not root with apt-get; the tests that need them will be skipped" >&2
+  fi
+fi
+
 mkdir -p .collections/ansible_collections/kuberos
 ln -sfn ../../.. .collections/ansible_collections/kuberos/platform
 echo "setup: ready (.venv, collection kuberos.platform linked from this checkout)"

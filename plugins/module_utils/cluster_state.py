@@ -166,3 +166,8 @@ def node_allocations(clients, exclude_deployments: list[str], exclude_discovery_
             entry["memory"] += quantities.parse_memory(requests.get("memory", "0"))
             entry["gpu"] += int(requests.get("nvidia.com/gpu", "0"))
     return {node: {**e, "cpu": f"{e['cpu']}m"} for node, e in sorted(used.items())}
+
+
+def namespace_names(clients) -> list[str]:
+    """Names of the namespaces that exist in the cluster, sorted."""
+    return sorted(ns.metadata.name for ns in clients["core"].list_namespace().items)

@@ -55,6 +55,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
     RECORD_LABEL,
     STATUS_LABEL,
+    WRITER_CONTROLLER,
     Record,
     parse_record,
     placement_patch,
@@ -335,7 +336,10 @@ class Controller:
             )  # fmt: skip
 
     def converge(self, record: Record, view: ClusterView) -> int:
-        """Apply every Deployment of the record whose node differs from the cluster's; free moved pods."""
+        """Finish the controller's own moves: re-pin every Deployment whose node differs from the record, and
+        delete pods of moved instances left on a node that is down. A placement deploy wrote is deploy's to apply."""
+        if record.writer != WRITER_CONTROLLER:
+            return 0
         wanted = render_deployment(record.deployments, record.placement, record.options)
         live = {_key(d): d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace}
         applied = 0
@@ -464,6 +468,7 @@ class Controller:
                     self.changed.set()
                     return None
                 record.placement = replacement.placement
+                record.writer = WRITER_CONTROLLER
                 self.parsed.pop(key, None)
                 for move in replacement.moves:
                     who = f"{move.module} for {', '.join(move.robots)}" if move.robots else move.instance

@@ -29,6 +29,10 @@ STATUS_LABEL = "kuberos.io/status"
 RECORD_PREFIX = "kuberos-record-"
 STATUS_PREFIX = "kuberos-status-"
 FORMAT = "1"
+# Who wrote the placement last. The controller re-pins Deployments only to finish its own moves: while
+# deploy is applying a placement it wrote, the Deployments are deploy's to change.
+WRITER_DEPLOY = "deploy"
+WRITER_CONTROLLER = "controller"
 
 
 def record_name(deployment: str) -> str:
@@ -84,6 +88,7 @@ def build_records(
                 },
                 "data": {
                     "format": FORMAT,
+                    "writer": WRITER_DEPLOY,
                     "deployment": dep.name,
                     "source": source,
                     "spec.yaml": spec_text,
@@ -107,11 +112,12 @@ def build_records(
 
 
 def placement_patch(name: str, namespace: str, placement: Placement) -> dict:
-    """The controller's update of a record: only the placement."""
+    """The controller's update of a record: the placement, and that the controller wrote it."""
     return {
         "apiVersion": "v1",
         "kind": "ConfigMap",
         "metadata": {"name": name, "namespace": namespace},
+        "data": {"writer": WRITER_CONTROLLER},
         "binaryData": {"placement.json.gz": _pack(placement.to_dict())},
     }
 
@@ -128,6 +134,7 @@ class Record:
     options: RenderOptions
     field_manager: str
     resource_version: str = ""
+    writer: str = WRITER_DEPLOY
 
     @property
     def spec(self) -> RosDeployment:
@@ -170,4 +177,5 @@ def parse_record(configmap: dict) -> Record:
         ),
         field_manager=options.get("field_manager", "kuberos"),
         resource_version=meta.get("resourceVersion", ""),
+        writer=data.get("writer", WRITER_DEPLOY),
     )
