@@ -9,7 +9,7 @@ export PATH := $(CURDIR)/.venv/bin:$(PATH)
 version = $(shell sed -n 's/^local_cluster_$(1)_version: *//p' roles/local_cluster/defaults/main.yml)
 BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call version,etcd) KWOK_VERSION=$(call version,kwok)
 
-.PHONY: setup binaries cluster cluster-stop demo test lint unit schema bench bench-deploy clean
+.PHONY: setup binaries cluster cluster-stop demo controller controller-stop status test lint unit schema bench bench-deploy bench-controller clean
 
 setup:
 	@scripts/setup.sh
@@ -22,12 +22,24 @@ binaries: setup
 cluster: binaries
 	$(VENV)/ansible-playbook playbooks/local_cluster.yml -i inventories/local
 
-cluster-stop: setup
+cluster-stop: setup controller-stop
 	$(VENV)/ansible-playbook playbooks/local_cluster.yml -i inventories/local -e local_cluster_state=stopped
 
-## Deploy the example application to the embedded default site (inventories/local).
+## Deploy the example application to the embedded default site (inventories/local), and start the controller.
 demo: cluster
 	$(VENV)/ansible-playbook playbooks/deploy.yml -i inventories/local -e rosdeployment_file=$(SPEC)
+	$(VENV)/ansible-playbook playbooks/controller.yml -i inventories/local
+
+## The controller: moves modules off failed nodes, failing pods and slow links (docs/controller.md).
+controller: setup
+	$(VENV)/ansible-playbook playbooks/controller.yml -i inventories/local
+
+controller-stop: setup
+	$(VENV)/ansible-playbook playbooks/controller.yml -i inventories/local -e controller_state=stopped
+
+## Where every module of every robot runs, as the controller reports it.
+status: setup
+	$(VENV)/ansible-playbook playbooks/status.yml -i inventories/local
 
 ## Lint and every test (the cluster tests start their own control plane).
 test: binaries
@@ -48,6 +60,10 @@ bench: setup
 bench-deploy:
 	$(MAKE) binaries WITH_KUBECTL=1
 	$(VENV)/python bench/bench_deploy.py
+
+## Controller failover benchmark: node NotReady -> affected modules Running elsewhere (p50/p95).
+bench-controller: binaries
+	$(VENV)/python bench/bench_controller.py
 
 clean:
 	rm -rf rendered bench/out .pytest_cache .hypothesis
