@@ -20,6 +20,8 @@ import urllib.error
 import urllib.request
 from dataclasses import dataclass, field
 
+from ansible_collections.kuberos.platform.plugins.module_utils.background_process import alive
+
 COMPONENTS = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler", "kwok")
 SERVICE_CIDR = "10.96.0.0/16"
 
@@ -251,9 +253,9 @@ class LocalControlPlane:
             return False
         os.kill(pid, signal.SIGTERM)
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and self.pid_of(component) == pid and _alive(pid):
+        while time.monotonic() < deadline and self.pid_of(component) == pid and alive(pid):
             time.sleep(0.1)
-        if _alive(pid):
+        if alive(pid):
             os.kill(pid, signal.SIGKILL)
         try:
             os.remove(self.path("run", f"{component}.pid"))
@@ -351,15 +353,3 @@ class LocalControlPlane:
         for component in reversed(COMPONENTS):
             changed = self.stop_component(component) or changed
         return changed
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:
-        with open(f"/proc/{pid}/stat", encoding="utf-8") as handle:
-            return handle.read().split(") ")[-1][:1] != "Z"
-    except OSError:
-        return False

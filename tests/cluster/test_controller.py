@@ -405,12 +405,14 @@ def test_the_in_cluster_rights_are_enough_for_a_move_and_no_more(fleet, tmp_path
 
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controller_manifests import NAME
 
-    applied = playbook(
-        "controller.yml", "-e", json.dumps({
-            "controller_mode": "in_cluster", "controller_kubeconfig": fleet.cluster.kubeconfig,
+    def in_cluster(state):
+        settings = {
+            "controller_mode": "in_cluster", "controller_state": state, "controller_kubeconfig": fleet.cluster.kubeconfig,
             "controller_image": "registry.invalid/kuberos-controller:test", "controller_fleets": ["test-fleet"],
-        }),
-    )  # fmt: skip
+        }  # fmt: skip
+        return playbook("controller.yml", "-e", json.dumps(settings))
+
+    applied = in_cluster("started")
     assert applied.returncode == 0, applied.stdout[-3000:]
     subject = f"system:serviceaccount:kuberos-system:{NAME}"
     authz = client.AuthorizationV1Api(fleet.core.api_client)
@@ -454,12 +456,7 @@ def test_the_in_cluster_rights_are_enough_for_a_move_and_no_more(fleet, tmp_path
         process.send_signal(signal.SIGTERM)
         process.wait(timeout=20)
         fleet.node_up(node)
-        removed = playbook(
-            "controller.yml", "-e", json.dumps({
-                "controller_mode": "in_cluster", "controller_state": "stopped", "controller_kubeconfig": fleet.cluster.kubeconfig,
-                "controller_image": "registry.invalid/kuberos-controller:test", "controller_fleets": ["test-fleet"],
-            }),
-        )  # fmt: skip
+        removed = in_cluster("stopped")
         assert fleet.controller().returncode == 0
     text = log.read_text()
     assert "403" not in text and "Forbidden" not in text, text[-3000:]
