@@ -1,0 +1,74 @@
+"""Parts of the controller that need no cluster: the watch cache, the cluster view, the in-cluster objects."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controller_manifests import (
+    FLEET_RULES,
+    READ_RULES,
+    controller_objects,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import RTT_ANNOTATION, Controller, Store
+
+
+def _node(name, labels=None, annotations=None, ready="True", since="2026-11-22T01:00:00Z"):
+    return {
+        "metadata": {"name": name, "labels": labels or {}, "annotations": annotations or {}, "resourceVersion": "1"},
+        "status": {"conditions": [{"type": "Ready", "status": ready, "reason": "KubeletReady", "lastTransitionTime": since}]},
+    }
+
+
+def test_the_watch_cache_applies_events_and_asks_to_relist_after_an_error():
+    store = Store("nodes", None, threading.Event())
+    assert store.handle({"type": "ADDED", "object": _node("edge-1")}, "0") == "1"
+    assert store.changed.is_set()
+    store.changed.clear()
+    assert store.handle({"type": "BOOKMARK", "object": {"metadata": {"resourceVersion": "7"}}}, "1") == "7"
+    assert not store.changed.is_set(), "a bookmark changes nothing"
+    assert store.handle({"type": "DELETED", "object": _node("edge-1")}, "7") == "1"
+    assert store.snapshot() == []
+    assert store.handle({"type": "ERROR", "object": {"code": 410, "message": "too old resource version"}}, "7") is None
+
+
+def test_the_cluster_view_maps_nodes_readiness_rtt_and_pods():
+    controller = Controller.__new__(Controller)
+    controller.nodes = Store("nodes", None, threading.Event())
+    controller.pods = Store("pods", None, threading.Event())
+    controller.nodes.items = {
+        ("", "k8s-edge-1"): _node("k8s-edge-1", {"device.kuberos.io/hostname": "edge-1"}, ready="Unknown"),
+        ("", "fetch-1"): _node("fetch-1", {"robot.kuberos.io/name": "fetch-1"}, {RTT_ANNOTATION: json.dumps({"edge-1": 7})}),
+        ("", "fetch-2"): _node("fetch-2", {"robot.kuberos.io/name": "fetch-2"}, {RTT_ANNOTATION: "not json"}),
+    }  # fmt: skip
+    controller.pods.items = {
+        ("ns", "p"): {
+            "metadata": {"name": "p", "namespace": "ns", "labels": {"kuberos.io/instance": "i"}, "deletionTimestamp": "x"},
+            "spec": {"nodeName": "k8s-edge-1"},
+            "status": {
+                "phase": "Running",
+                "containerStatuses": [{"restartCount": 4, "state": {"waiting": {"reason": "CrashLoopBackOff"}}}],
+            },
+        }
+    }
+    view = controller.cluster_view()
+    assert not view.nodes["edge-1"].ready and view.nodes["edge-1"].since == 1795309200.0  # 2026-11-22T01:00:00Z
+    assert view.nodes["fetch-1"].ready
+    assert view.measured == {"fetch-1": {"edge-1": 7.0}}, "a malformed annotation is ignored (and logged)"
+    (pod,) = view.pods["ns/i"]
+    assert (pod.node, pod.restarts, pod.waiting_reason, pod.deleting) == ("edge-1", 4, "CrashLoopBackOff", True)
+
+
+def test_the_in_cluster_rights_are_narrow():
+    objects = controller_objects("kuberos-system", "img", ["a", "b"], ["--grace", "5"])
+    kinds = [o["kind"] for o in objects]
+    assert kinds.count("RoleBinding") == 2 and "Role" not in kinds
+    bindings = {o["metadata"]["namespace"] for o in objects if o["kind"] == "RoleBinding"}
+    assert bindings == {"kuberos-a", "kuberos-b"}
+    for rule in READ_RULES + FLEET_RULES:
+        assert "*" not in rule["verbs"] and "*" not in rule["resources"] and "secrets" not in rule["resources"]
+    assert all(set(r["verbs"]) <= {"list", "watch"} for r in READ_RULES), "cluster-wide rights are read-only"
+    deployment = next(o for o in objects if o["kind"] == "Deployment")
+    container = deployment["spec"]["template"]["spec"]["containers"][0]
+    assert deployment["spec"]["replicas"] == 1 and container["securityContext"]["runAsNonRoot"]
+    assert container["args"][-2:] == ["--grace", "5"]
