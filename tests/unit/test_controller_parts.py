@@ -72,3 +72,18 @@ def test_the_in_cluster_rights_are_narrow():
     container = deployment["spec"]["template"]["spec"]["containers"][0]
     assert deployment["spec"]["replicas"] == 1 and container["securityContext"]["runAsNonRoot"]
     assert container["args"][-2:] == ["--grace", "5"]
+
+
+def test_the_failover_picture_is_drawn_from_the_recorded_benchmark(root):
+    import sys
+
+    sys.path.insert(0, f"{root}/bench")
+    try:
+        from plot_failover import draw
+    finally:
+        sys.path.pop(0)
+    with open(f"{root}/bench/results/controller-failover.json", encoding="utf-8") as handle:
+        data = json.load(handle)
+    with open(f"{root}/docs/images/controller-failover.svg", encoding="utf-8") as handle:
+        assert handle.read() == draw(data), "run bench/plot_failover.py again"
+    assert data["summary"]["ok"] >= 10 and data["summary"]["failed"] == 0
