@@ -28,6 +28,12 @@ options:
     description: "Resources already used per node by other workloads, as C({node: {cpu, memory, gpu, pods}})."
     type: dict
     required: false
+  unavailable:
+    description:
+      - "Nodes that must take nothing, with why, as C({node: reason}): e.g. nodes that are NotReady or missing in the
+        cluster (P(kuberos.platform.node_allocations#module) returns them)."
+    type: dict
+    required: false
 """
 
 EXAMPLES = r"""
@@ -54,8 +60,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service i
 
 
 @reports_kuberos_errors
-def place_modules(spec, inventory, allocated=None):
-    _deployments, placement = load_and_place(spec, inventory, allocated)
+def place_modules(spec, inventory, allocated=None, unavailable=None):
+    _deployments, placement = load_and_place(spec, inventory, allocated, unavailable)
     return placement.to_dict()
 
 

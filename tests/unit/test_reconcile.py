@@ -241,3 +241,11 @@ def test_status_rows_and_table(record):
     assert by[("fetch-2", "perception")]["phase"] == "Missing"
     table = status_table("pick-and-place", rows)
     assert "from edge-9: node edge-9 is NotReady" in table and "robot down" in table
+
+
+def test_deploy_places_nothing_on_an_unavailable_node_and_says_why_when_that_leaves_no_room(local_raw, root):
+    _, placement = load_and_place(f"{root}/{SPEC}", local_raw, unavailable={"edge-1": "node edge-1 is NotReady"})
+    assert "edge-1" not in nodes_of(placement).values()
+    with pytest.raises(Exception) as raised:
+        load_and_place(f"{root}/{SPEC}", local_raw, unavailable={"fetch-1": "node fetch-1 is NotReady"})
+    assert "fetch-1 (onboard): node fetch-1 is NotReady" in str(raised.value)

@@ -465,12 +465,18 @@ def _check_against_inventory(deployments: list[RosDeployment], inventory: Invent
     return problems
 
 
-def place_modules(deployments: list[RosDeployment], inventory: Inventory, allocated: dict | None = None) -> Placement:
-    """Place every module instance of every deployment; see the module docstring."""
+def place_modules(
+    deployments: list[RosDeployment],
+    inventory: Inventory,
+    allocated: dict | None = None,
+    unavailable: dict[str, str] | None = None,
+) -> Placement:
+    """Place every module instance of every deployment; see the module docstring. Nodes in ``unavailable``
+    (node name -> why, e.g. NotReady in the cluster) take nothing; the reason shows in a failure's account."""
     problems = _check_against_inventory(deployments, inventory)
     if problems:
         raise SpecError(problems, title="the RosDeployment does not match the inventory")
-    scheduler = _Scheduler(inventory, allocated)
+    scheduler = _Scheduler(inventory, allocated, unavailable)
     placement = Placement()
     fleets: dict[str, list[RosDeployment]] = {}
     for dep in deployments:

@@ -33,7 +33,7 @@ def load_specs(spec) -> list[RosDeployment]:
     raise SpecError([Problem("<spec>", "", f"expected a spec file path or a RosDeployment mapping, got {type(spec).__name__}")])
 
 
-def load_and_place(spec, inventory, allocated=None) -> tuple[list[RosDeployment], Placement]:
+def load_and_place(spec, inventory, allocated=None, unavailable=None) -> tuple[list[RosDeployment], Placement]:
     deployments = load_specs(spec)
     model = load_inventory(inventory)
-    return deployments, place_modules(deployments, model, allocated)
+    return deployments, place_modules(deployments, model, allocated, unavailable)
