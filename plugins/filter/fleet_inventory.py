@@ -33,12 +33,19 @@ EXAMPLES = r"""
 
 RETURN = r"""
 _value:
-  description: C(hosts) (each host's kuberos_* variables), C(groups) (robots, edge, cloud) and C(default_latency_ms).
+  description: >-
+    C(hosts) (each host's resource-model variables), C(groups) (robots, edge, cloud, and clusters when there are
+    third-party clusters) and C(default_latency_ms).
   type: dict
 """
 
 from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import HOST_VARS, TIER_GROUPS, load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import (
+    CLUSTERS_GROUP,
+    HOST_VARS,
+    TIER_GROUPS,
+    load_inventory,
+)
 
 
 def _plain(value):
@@ -58,6 +65,8 @@ def _plain(value):
 @reports_kuberos_errors
 def fleet_inventory(groups, hostvars):
     members = {group: sorted(groups.get(group, [])) for group in TIER_GROUPS}
+    if groups.get(CLUSTERS_GROUP):
+        members[CLUSTERS_GROUP] = sorted(groups[CLUSTERS_GROUP])
     hosts = {}
     defaults = {}
     for host in sorted({h for names in members.values() for h in names}):

@@ -15,15 +15,19 @@ import math
 import re
 from dataclasses import dataclass
 
-from . import quantities
+from . import naming, quantities
 from .errors import Problem, SpecError, describe, did_you_mean
 
 TIER_GROUPS = {"robots": "onboard", "edge": "edge", "cloud": "cloud"}
+CLUSTERS_GROUP = "clusters"  # third-party clusters, reached through the KubeROS-Bridge
+DEFAULT_BRIDGE_NODE_PORT = naming.BRIDGE_NODE_PORT
 # The host variables of the resource model (docs/inventory.md); other kuberos_* variables are site settings.
 HOST_VARS = (
     "kuberos_arch", "kuberos_cpu", "kuberos_default_latency_ms", "kuberos_devices", "kuberos_fleet", "kuberos_fleets",
     "kuberos_gpu", "kuberos_latency_ms", "kuberos_link_latency_ms", "kuberos_memory", "kuberos_node_name", "kuberos_pods",
     "kuberos_resource_group", "kuberos_robot", "kuberos_shared",
+    # third-party clusters (their API server, CA and token are credentials, never part of the model)
+    "kuberos_cluster_domain", "kuberos_bridge_endpoint", "kuberos_bridge_node_port",
 )  # fmt: skip
 DEFAULT_LATENCY_MS = {"onboard": 0.0, "edge": 5.0, "cloud": 50.0}
 _NAME = re.compile(r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?$")
@@ -56,6 +60,21 @@ class Node:
 
 
 @dataclass(frozen=True)
+class ExternalCluster:
+    """A third-party cluster: modules run there unchanged, their topics cross the KubeROS-Bridge."""
+
+    name: str
+    latency_ms: float
+    fleets: tuple[str, ...] = ()  # fleets that may use it; empty: every fleet
+    cluster_domain: str = "cluster.local"
+    bridge_endpoint: str = ""  # the main cluster's address, as the third-party cluster reaches it
+    bridge_node_port: int = DEFAULT_BRIDGE_NODE_PORT
+
+    def serves_fleet(self, fleet: str) -> bool:
+        return not self.fleets or fleet in self.fleets
+
+
+@dataclass(frozen=True)
 class Robot:
     name: str
     fleet: str
@@ -66,7 +85,8 @@ class Robot:
 class Inventory:
     """Nodes, robots and fleets with the latency between each robot and each node."""
 
-    def __init__(self, nodes: dict[str, Node], robots: dict[str, Robot]):
+    def __init__(self, nodes: dict[str, Node], robots: dict[str, Robot], clusters: dict[str, ExternalCluster] | None = None):
+        self.clusters = dict(sorted((clusters or {}).items()))
         self.nodes = dict(sorted(nodes.items()))
         self.robots = dict(sorted(robots.items()))
         fleets: dict[str, list[str]] = {}
@@ -99,7 +119,7 @@ class Inventory:
             links = dict(robot.link_latency_ms)
             links.update({node: float(ms) for node, ms in measured.get(name, {}).items() if node in self.nodes})
             robots[name] = Robot(robot.name, robot.fleet, robot.node, tuple(sorted(links.items())))
-        return Inventory(self.nodes, robots)
+        return Inventory(self.nodes, robots, self.clusters)
 
     def tier_nodes(self, tier: str, fleet: str) -> tuple[Node, ...]:
         """Edge or cloud nodes the fleet may use, by name."""
@@ -387,6 +407,62 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
                     _host_problem(source, host, f"kuberos_link_latency_ms.{target}", f"{describe(value)} is not valid; {exc}")
                 )
         resolved[name] = Robot(robot.name, robot.fleet, robot.node, tuple(overrides))
+    clusters = _clusters(raw, hosts, source, defaults, known_fleets, set(nodes), problems)
     if problems:
         raise SpecError(problems, title=f"{source} is not a valid KubeROS inventory")
-    return Inventory(nodes, resolved)
+    return Inventory(nodes, resolved, clusters)
+
+
+def _clusters(raw, hosts, source, defaults, known_fleets, node_names, problems) -> dict[str, ExternalCluster]:
+    """The hosts of the group ``clusters``: third-party clusters and how the bridge reaches them."""
+    names = (raw.get("groups") or {}).get(CLUSTERS_GROUP) if isinstance(raw.get("groups"), dict) else None
+    if names is None:
+        return {}
+    if not isinstance(names, (list, tuple)):
+        problems.append(Problem(source, f"groups.{CLUSTERS_GROUP}", f"{describe(names)} is not valid; expected a list of names"))
+        return {}
+    clusters = {}
+    for host in names:
+        hv = hosts.get(host) or {}
+        name = _name(host, source, host, "", problems, "cluster name")
+        if name in node_names:
+            problems.append(_host_problem(source, host, "", "is also a node; expected a cluster name that is not a node"))
+        latency = _parse_number(
+            hv.get("kuberos_latency_ms"),
+            quantities.parse_latency_ms,
+            source,
+            host,
+            "kuberos_latency_ms",
+            problems,
+            defaults["cloud"],
+        )
+        fleets = _string_list(hv.get("kuberos_fleets"), source, host, "kuberos_fleets", problems)
+        for fleet in fleets:
+            if fleet not in known_fleets:
+                message = f"'{fleet}' is not a fleet of any robot{did_you_mean(fleet, known_fleets)}"
+                problems.append(_host_problem(source, host, "kuberos_fleets", message))
+        endpoint = hv.get("kuberos_bridge_endpoint", "")
+        if not isinstance(endpoint, str) or not endpoint or any(c.isspace() for c in endpoint):
+            problems.append(
+                _host_problem(
+                    source, host, "kuberos_bridge_endpoint",
+                    f"{describe(endpoint)} is not valid; expected the address (host name or IP) at which this cluster reaches "
+                    "the main cluster's bridge servers",
+                )
+            )  # fmt: skip
+        port = hv.get("kuberos_bridge_node_port", DEFAULT_BRIDGE_NODE_PORT)
+        if isinstance(port, bool) or not isinstance(port, int) or not 30000 <= port <= 32767:
+            problems.append(
+                _host_problem(
+                    source,
+                    host,
+                    "kuberos_bridge_node_port",
+                    f"{describe(port)} is not valid; expected a NodePort from 30000 to 32767",
+                )
+            )
+            port = DEFAULT_BRIDGE_NODE_PORT
+        domain = _name(
+            hv.get("kuberos_cluster_domain", "cluster.local"), source, host, "kuberos_cluster_domain", problems, "DNS domain"
+        )
+        clusters[name] = ExternalCluster(name, latency, tuple(fleets), domain, str(endpoint), int(port))
+    return clusters

@@ -16,7 +16,16 @@ import yaml
 from . import labels as node_labels
 from . import naming
 from .quantities import format_cpu, format_memory
-from .scheduler import DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, DiscoveryServer, Instance, Placement
+from .scheduler import (
+    BRIDGE_CPU_MILLIS,
+    BRIDGE_MEMORY_BYTES,
+    DISCOVERY_CPU_MILLIS,
+    DISCOVERY_MEMORY_BYTES,
+    BridgeServer,
+    DiscoveryServer,
+    Instance,
+    Placement,
+)
 from .spec import RosDeployment, RosModule
 
 MANAGED_BY = "app.kubernetes.io/managed-by"
@@ -28,6 +37,11 @@ DISCOVERY_ID = "kuberos.io/discovery-id"
 ROBOTS_ANNOTATION = "kuberos.io/robots"
 REASON_ANNOTATION = "kuberos.io/placement-reason"
 TIER_ANNOTATION = "kuberos.io/tier"
+CLUSTER_ANNOTATION = "kuberos.io/cluster"
+BRIDGE_ENTRY = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge"
+BRIDGE_TLS_DIR = "/etc/kuberos-bridge/tls"
+BRIDGE_TOPICS_DIR = "/etc/kuberos-bridge/topics"
+BRIDGE_METRICS_PORT = 9090
 PARAMS_DIR = "/etc/kuberos"
 PARAMS_FILE = "params.yaml"
 RMW = "rmw_fastrtps_cpp"
@@ -38,6 +52,7 @@ class RenderOptions:
     cluster_domain: str = "cluster.local"
     discovery_image: str = "ros:jazzy-ros-base"
     image_pull_policy: str = "IfNotPresent"
+    bridge_image: str = "ghcr.io/kuberos/bridge:0.2.0"
 
 
 def discovery_server_list(servers: list[DiscoveryServer], cluster_domain: str) -> str:
@@ -214,6 +229,193 @@ def _module_deployment(
     }
 
 
+def bridge_topics(deployments: list[RosDeployment], placement: Placement, fleet: str, cluster: str) -> list[dict]:
+    """The topics one bridge carries, for every robot of every module of the fleet placed in ``cluster``.
+    ``{robot}`` in a topic name is the robot's name. Directions as the bridge sees them: to_client goes from this
+    cluster to the module's cluster, to_server comes back."""
+    modules = {(d.name, m.name): m for d in deployments for m in d.modules}
+    topics: dict[str, dict] = {}
+    for inst in placement.instances:
+        if inst.cluster != cluster or inst.fleet != fleet:
+            continue
+        for topic in modules[(inst.deployment, inst.module)].bridge_topics:
+            name = topic.name.replace("{robot}", inst.robots[0])
+            direction = "to_client" if topic.direction == "to_module" else "to_server"
+            topics.setdefault(name, {"name": name, "type": topic.type, "direction": direction})
+    return [topics[name] for name in sorted(topics)]
+
+
+def _bridge_topics_configmap(name: str, namespace: str, labels: dict, topics: list[dict]) -> dict:
+    return {
+        "apiVersion": "v1",
+        "kind": "ConfigMap",
+        "metadata": {"name": f"{name}-topics", "namespace": namespace, "labels": labels},
+        "data": {"topics.yaml": yaml.safe_dump({"topics": topics}, sort_keys=False)},
+    }
+
+
+def bridge_secret_name(name: str) -> str:
+    return f"{name}-tls"
+
+
+def _bridge_deployment(
+    name: str, namespace: str, labels: dict, pod_placement: dict, args: list[str], env: list[dict], options: RenderOptions
+) -> dict:
+    container = {
+        "name": "bridge",
+        "image": options.bridge_image,
+        "imagePullPolicy": options.image_pull_policy,
+        "args": ["python", "-m", BRIDGE_ENTRY, *args],
+        "env": env,
+        "ports": [{"name": "metrics", "containerPort": BRIDGE_METRICS_PORT, "protocol": "TCP"}],
+        "resources": {
+            "requests": {"cpu": format_cpu(BRIDGE_CPU_MILLIS), "memory": format_memory(BRIDGE_MEMORY_BYTES)},
+            "limits": {"memory": format_memory(BRIDGE_MEMORY_BYTES)},
+        },
+        "readinessProbe": {"httpGet": {"path": "/healthz", "port": BRIDGE_METRICS_PORT}},
+        "volumeMounts": [
+            {"name": "tls", "mountPath": BRIDGE_TLS_DIR, "readOnly": True},
+            {"name": "topics", "mountPath": BRIDGE_TOPICS_DIR, "readOnly": True},
+        ],
+    }
+    return {
+        "apiVersion": "apps/v1",
+        "kind": "Deployment",
+        "metadata": {"name": name, "namespace": namespace, "labels": labels},
+        "spec": {
+            "replicas": 1,
+            "strategy": {"type": "Recreate"},
+            "selector": {"matchLabels": {INSTANCE: labels[INSTANCE]}},
+            "template": {
+                "metadata": {"labels": dict(labels)},
+                "spec": {
+                    **pod_placement,
+                    "containers": [container],
+                    "volumes": [
+                        {"name": "tls", "secret": {"secretName": bridge_secret_name(name)}},
+                        {"name": "topics", "configMap": {"name": f"{name}-topics"}},
+                    ],
+                },
+            },
+        },
+    }
+
+
+def _tls_args(topics_file: str = f"{BRIDGE_TOPICS_DIR}/topics.yaml") -> list[str]:
+    return [
+        "--cert", f"{BRIDGE_TLS_DIR}/tls.crt", "--key", f"{BRIDGE_TLS_DIR}/tls.key", "--ca", f"{BRIDGE_TLS_DIR}/ca.crt",
+        "--topics", topics_file, "--metrics-port", str(BRIDGE_METRICS_PORT),
+    ]  # fmt: skip
+
+
+def _ros_env(discovery: str, domain_id: int, fleet: str) -> list[dict]:
+    return [
+        {"name": "ROS_DISCOVERY_SERVER", "value": discovery},
+        {"name": "RMW_IMPLEMENTATION", "value": RMW},
+        {"name": "ROS_DOMAIN_ID", "value": str(domain_id)},
+        {"name": "KUBEROS_FLEET", "value": fleet},
+    ]
+
+
+def _bridge_server_objects(
+    bridge: BridgeServer, topics: list[dict], discovery: str, domain_id: int, options: RenderOptions
+) -> list[dict]:
+    labels = {
+        MANAGED_BY: "kuberos", COMPONENT: "bridge-server", node_labels.FLEET: bridge.fleet, INSTANCE: bridge.name,
+    }  # fmt: skip
+    args = ["server", "--listen", f"0.0.0.0:{naming.BRIDGE_PORT}", *_tls_args()]
+    deployment = _bridge_deployment(
+        bridge.name, bridge.namespace, labels, _selector_and_tolerations(bridge.node, bridge.tier, None), args,
+        _ros_env(discovery, domain_id, bridge.fleet), options,
+    )  # fmt: skip
+    deployment["metadata"]["annotations"] = {
+        REASON_ANNOTATION: bridge.reason, TIER_ANNOTATION: bridge.tier, CLUSTER_ANNOTATION: bridge.cluster,
+    }  # fmt: skip
+    service = {
+        "apiVersion": "v1",
+        "kind": "Service",
+        "metadata": {"name": bridge.name, "namespace": bridge.namespace, "labels": labels},
+        "spec": {
+            "type": "NodePort",
+            "selector": {INSTANCE: bridge.name},
+            "ports": [
+                {"name": "grpc", "port": naming.BRIDGE_PORT, "targetPort": naming.BRIDGE_PORT, "nodePort": bridge.node_port}
+            ],
+        },
+    }
+    return [_bridge_topics_configmap(bridge.name, bridge.namespace, labels, topics), deployment, service]
+
+
+def _unpinned(obj: dict) -> dict:
+    """A Deployment for a cluster whose nodes KubeROS does not know: that cluster's scheduler picks the node."""
+    pod = obj["spec"]["template"]["spec"]
+    pod.pop("nodeSelector", None)
+    pod.pop("tolerations", None)
+    return obj
+
+
+def render_remote(
+    deployments: list[RosDeployment], placement: Placement, clusters: dict, options: RenderOptions | None = None
+) -> dict[str, list[dict]]:
+    """Per third-party cluster, the objects to apply there: the fleet's namespace, one discovery server, the
+    bridge client and every module placed in that cluster. ``clusters`` maps a name to its inventory entry
+    (``ExternalCluster``). Secrets (the bridge's TLS keys) are not rendered here."""
+    options = options or RenderOptions()
+    by_name = {d.name: d for d in deployments}
+    modules = {(d.name, m.name): m for d in deployments for m in d.modules}
+    out: dict[str, list[dict]] = {}
+    for fleet, bridges in sorted(placement.bridges.items()):
+        namespace = naming.fleet_namespace(fleet)
+        for bridge in bridges:
+            cluster = clusters[bridge.cluster]
+            remote_options = RenderOptions(
+                cluster.cluster_domain, options.discovery_image, options.image_pull_policy, options.bridge_image
+            )
+            instances = [i for i in placement.instances if i.cluster == bridge.cluster and i.fleet == fleet]
+            first = by_name[instances[0].deployment]
+            server = DiscoveryServer(fleet, namespace, 0, naming.discovery_server_name(0), "", "cloud", first.discovery_port,
+                                     f"the fleet's discovery server in cluster {bridge.cluster}")  # fmt: skip
+            discovery = discovery_server_list([server], cluster.cluster_domain)
+            objects = [_namespace(fleet, namespace)]
+            objects.extend(_unpinned(o) if o["kind"] == "Deployment" else o for o in _discovery_objects(server, remote_options))
+            labels = {MANAGED_BY: "kuberos", COMPONENT: "bridge-client", node_labels.FLEET: fleet, INSTANCE: naming.BRIDGE_CLIENT}
+            topics = bridge_topics(deployments, placement, fleet, bridge.cluster)
+            objects.append(_bridge_topics_configmap(naming.BRIDGE_CLIENT, namespace, labels, topics))
+            args = [
+                "client", "--connect", f"{cluster.bridge_endpoint}:{cluster.bridge_node_port}", "--server-name", bridge.name,
+                *_tls_args(),
+            ]  # fmt: skip
+            objects.append(
+                _bridge_deployment(
+                    naming.BRIDGE_CLIENT,
+                    namespace,
+                    labels,
+                    {},
+                    args,
+                    _ros_env(discovery, first.ros_domain_id, fleet),
+                    remote_options,
+                )
+            )
+            seen_params = set()
+            for inst in instances:
+                dep, module = by_name[inst.deployment], modules[(inst.deployment, inst.module)]
+                base_labels = {
+                    **dict(dep.labels),
+                    MANAGED_BY: "kuberos",
+                    COMPONENT: "ros-module",
+                    DEPLOYMENT: dep.name,
+                    node_labels.FLEET: fleet,
+                }
+                if module.ros_parameters and (dep.name, module.name) not in seen_params:
+                    seen_params.add((dep.name, module.name))
+                    objects.append(_params_configmap(dep, module, namespace, base_labels))
+                objects.append(_unpinned(_module_deployment(dep, module, inst, discovery, base_labels, remote_options)))
+            for obj in objects:
+                obj["metadata"].setdefault("annotations", {})[CLUSTER_ANNOTATION] = bridge.cluster
+            out[bridge.cluster] = sorted(out.get(bridge.cluster, []) + objects, key=object_order)
+    return out
+
+
 _KIND_ORDER = {"Namespace": 0, "ConfigMap": 1, "Service": 2, "Deployment": 3}
 
 
@@ -237,7 +439,14 @@ def render_deployment(deployments: list[RosDeployment], placement: Placement, op
     addresses = {f: discovery_server_list(placement.discovery[f], options.cluster_domain) for f in fleets}
     modules = {(d.name, m.name): m for d in deployments for m in d.modules}
     seen_params = set()
+    for fleet, bridges in sorted(placement.bridges.items()):
+        for bridge in bridges:
+            first = next(by_name[i.deployment] for i in placement.instances if i.cluster == bridge.cluster and i.fleet == fleet)
+            topics = bridge_topics(deployments, placement, fleet, bridge.cluster)
+            objects.extend(_bridge_server_objects(bridge, topics, addresses[fleet], first.ros_domain_id, options))
     for inst in placement.instances:
+        if inst.cluster:
+            continue  # rendered for its cluster by render_remote
         dep = by_name[inst.deployment]
         module = modules[(inst.deployment, inst.module)]
         base_labels = {

@@ -42,3 +42,13 @@ def discovery_server_name(server_id: int) -> str:
 
 def discovery_server_address(namespace: str, server_id: int, port: int, cluster_domain: str = "cluster.local") -> str:
     return f"{discovery_server_name(server_id)}.{namespace}.svc.{cluster_domain}:{port}"
+
+
+def bridge_server_name(cluster: str) -> str:
+    """The main cluster's bridge server to a third-party cluster (Deployment and Service, in the fleet namespace)."""
+    return dns_label("kuberos-bridge", cluster)
+
+
+BRIDGE_CLIENT = "kuberos-bridge-client"
+BRIDGE_PORT = 50051
+BRIDGE_NODE_PORT = 30711

@@ -142,6 +142,8 @@ def decide(record: Record, cluster: ClusterView, memory: Memory, settings: Setti
         if not due:
             wake.append(at)
     for inst in record.placement.instances:
+        if inst.cluster:
+            continue  # runs in a third-party cluster, whose own scheduler keeps it running
         if inst.node in bad_nodes:
             if bad_nodes[inst.node]:
                 due_any = True
@@ -197,11 +199,13 @@ def decide(record: Record, cluster: ClusterView, memory: Memory, settings: Setti
 
 
 # Phases shown per robot and module.
-RUNNING, PENDING, STRANDED, MISSING, MOVING = "Running", "Pending", "Stranded", "Missing", "Moving"
+RUNNING, PENDING, STRANDED, MISSING, MOVING, REMOTE = "Running", "Pending", "Stranded", "Missing", "Moving", "Remote"
 
 
 def instance_phase(inst: Instance, pods: list[PodView], stranded: bool) -> tuple[str, str]:
     """(phase, pod name) of one instance from its pods."""
+    if inst.cluster:
+        return REMOTE, ""  # its pods are in the third-party cluster
     live = [p for p in pods if not p.deleting]
     on_node = [p for p in live if p.node == inst.node]
     if stranded:

@@ -25,6 +25,8 @@ from .spec import RosDeployment, RosModule
 
 DISCOVERY_CPU_MILLIS = 100
 DISCOVERY_MEMORY_BYTES = 64 * 1024**2
+BRIDGE_CPU_MILLIS = 200
+BRIDGE_MEMORY_BYTES = 256 * 1024**2
 PLACEMENT_API_VERSION = "kuberos.io/v1alpha1"
 
 
@@ -54,6 +56,21 @@ class Instance:
     memory_bytes: int
     gpu: int
     shared: bool = False
+    cluster: str = ""  # a third-party cluster it runs in (then ``node`` is that cluster's name)
+
+
+@dataclass(frozen=True)
+class BridgeServer:
+    """The main cluster's end of the KubeROS-Bridge to one third-party cluster, for one fleet."""
+
+    fleet: str
+    namespace: str
+    cluster: str
+    name: str
+    node: str
+    tier: str
+    reason: str
+    node_port: int = naming.BRIDGE_NODE_PORT  # the NodePort the third-party cluster connects to
 
 
 @dataclass(frozen=True)
@@ -75,6 +92,7 @@ class Placement:
     deployments: list[dict] = field(default_factory=list)
     # Nodes the deployments could use, with capacity and what is left free after this placement.
     nodes: list[dict] = field(default_factory=list)
+    bridges: dict[str, list[BridgeServer]] = field(default_factory=dict)  # fleet -> its bridge servers
 
     def rows(self) -> list[dict]:
         """One row per (robot, module): the answer to 'where does this run for that robot?'."""
@@ -120,6 +138,7 @@ class Placement:
             ],
             "placements": self.rows(),
             "nodes": self.nodes,
+            "bridges": [asdict(b) for servers in self.bridges.values() for b in servers],
         }
 
     @classmethod
@@ -136,9 +155,12 @@ class Placement:
                 ]
                 for entry in data["discovery"]
             }
+            bridges: dict[str, list[BridgeServer]] = {}
+            for entry in data.get("bridges", []):
+                bridges.setdefault(entry["fleet"], []).append(BridgeServer(**entry))
         except (KeyError, TypeError) as exc:
             raise SpecError([Problem("placement", "", f"not a placement produced by place_modules ({exc!r})")]) from None
-        return cls(instances, discovery, list(data.get("deployments", [])), list(data.get("nodes", [])))
+        return cls(instances, discovery, list(data.get("deployments", [])), list(data.get("nodes", [])), bridges)
 
 
 def _initial_free(inventory: Inventory, allocated: dict | None) -> dict[str, _Free]:
@@ -297,6 +319,9 @@ class _Scheduler:
     def place_module(self, deployment: RosDeployment, module: RosModule, robots: tuple[str, ...], out: list[Instance]):
         namespace = naming.fleet_namespace(deployment.fleet)
         res = module.resources
+        if module.cluster:
+            self.place_in_cluster(deployment, module, robots, out)
+            return
         if module.strategy != "shared":
             for robot in robots:
                 node, tier, latency, detail = self.choose(deployment, module, (robot,))
@@ -361,6 +386,47 @@ class _Scheduler:
                     shared=True,
                 )
             )
+
+    def place_in_cluster(self, deployment: RosDeployment, module: RosModule, robots: tuple[str, ...], out: list[Instance]):
+        """A module of a third-party cluster: that cluster's scheduler picks its node; only max_latency is checked here."""
+        cluster = self.inventory.clusters[module.cluster]
+        limit = module.requirements.max_latency_ms
+        res = module.resources
+        for robot in robots:
+            if limit is not None and cluster.latency_ms > limit:
+                account = f"{cluster.name} (cluster): latency {cluster.latency_ms:g} ms to {robot} > max_latency {limit:g} ms"
+                self.fail(deployment, module, (robot,), [account])
+                continue
+            reason = f"third-party cluster {cluster.name}; topics over the KubeROS-Bridge"
+            if limit is not None:
+                reason += f"; {cluster.latency_ms:g} ms <= {limit:g} ms"
+            out.append(
+                Instance(
+                    naming.dedicated_instance_name(deployment.name, module.name, robot),
+                    deployment.name, deployment.fleet, naming.fleet_namespace(deployment.fleet), module.name,
+                    cluster.name, "cloud", (robot,), reason, cluster.latency_ms, res.cpu_millis, res.memory_bytes, res.gpu,
+                    cluster=cluster.name,
+                )
+            )  # fmt: skip
+
+    def place_bridge(self, fleet: str, cluster: str) -> BridgeServer | None:
+        """The bridge server of a fleet to a third-party cluster: on the fleet's edge node with most room, else cloud."""
+        for tier in ("edge", "cloud"):
+            options = []
+            for node in self.inventory.tier_nodes(tier, fleet):
+                if self.rejection(node, None, (), BRIDGE_CPU_MILLIS, BRIDGE_MEMORY_BYTES, 0) is None:
+                    options.append((-self.score(node, BRIDGE_CPU_MILLIS, BRIDGE_MEMORY_BYTES, 0), node.name, node))
+            if options:
+                _, _, node = min(options)
+                self.take(node.name, BRIDGE_CPU_MILLIS, BRIDGE_MEMORY_BYTES, 0)
+                return BridgeServer(
+                    fleet, naming.fleet_namespace(fleet), cluster, naming.bridge_server_name(cluster), node.name, tier,
+                    f"{tier} node with most room; bridge to cluster {cluster}", self.inventory.clusters[cluster].bridge_node_port,
+                )  # fmt: skip
+        self.failures.append(
+            f"the bridge server of fleet {fleet} to cluster {cluster} has no edge or cloud node with room for it"
+        )
+        return None
 
     # -- discovery servers -------------------------------------------------------------------
     def place_discovery(self, fleet: str, count: int, port: int, keep: dict | None = None) -> list[DiscoveryServer]:
@@ -440,6 +506,32 @@ def _check_against_inventory(deployments: list[RosDeployment], inventory: Invent
             )
             continue
         members = inventory.fleets[dep.fleet]
+        for module in dep.modules:
+            if not module.cluster:
+                continue
+            path = f"{module.path}.cluster"
+            cluster = inventory.clusters.get(module.cluster)
+            if cluster is None:
+                known = list(inventory.clusters)
+                problems.append(
+                    Problem(
+                        dep.source,
+                        path,
+                        f"'{module.cluster}' is not a cluster of the inventory's group clusters"
+                        f"{did_you_mean(module.cluster, known)} (clusters: {', '.join(known) or 'none'})",
+                        dep.line_of(path),
+                    )
+                )
+            elif not cluster.serves_fleet(dep.fleet):
+                problems.append(
+                    Problem(
+                        dep.source,
+                        path,
+                        f"cluster '{module.cluster}' does not serve fleet {dep.fleet} "
+                        f"(its kuberos_fleets: {', '.join(cluster.fleets)})",
+                        dep.line_of(path),
+                    )
+                )
         for index, robot in enumerate(dep.robots or ()):
             if robot in members:
                 continue
@@ -484,6 +576,11 @@ def place_modules(
     for fleet in sorted(fleets):
         count = max(d.discovery_servers for d in fleets[fleet])
         placement.discovery[fleet] = scheduler.place_discovery(fleet, count, fleets[fleet][0].discovery_port)
+    for fleet in sorted(fleets):
+        for cluster in sorted({m.cluster for d in fleets[fleet] for m in d.modules if m.cluster}):
+            bridge = scheduler.place_bridge(fleet, cluster)
+            if bridge is not None:
+                placement.bridges.setdefault(fleet, []).append(bridge)
     for dep in deployments:
         robots = tuple(sorted(dep.robots)) if dep.robots else inventory.fleets[dep.fleet]
         placement.deployments.append(
@@ -563,7 +660,7 @@ def replace_modules(
     avoid = avoid or {}
     scheduler = _Scheduler(inventory, allocated, unavailable)
     modules = {(d.name, m.name): (d, m) for d in deployments for m in d.modules}
-    result = Replacement(Placement(deployments=list(previous.deployments)))
+    result = Replacement(Placement(deployments=list(previous.deployments), bridges=dict(previous.bridges)))
 
     def ruled_out(name: str, node: str, module: RosModule | None, robots) -> str | None:
         if name in hold and node in inventory.nodes:
@@ -592,6 +689,9 @@ def replace_modules(
         found = modules.get((inst.deployment, inst.module))
         if found is None:
             continue  # the module is gone from the spec: deploying again prunes it, moving is not our job
+        if inst.cluster:
+            slots.append(inst)  # a third-party cluster places it on its own nodes
+            continue
         why = ruled_out(inst.name, inst.node, found[1], inst.robots)
         if why is None:
             slots.append(inst)

@@ -19,6 +19,9 @@ LABEL_VALUE = r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?$"
 LATENCY = r"^\s*[0-9]+(\.[0-9]+)?\s*(ms|s)?\s*$"
 CPU = r"^\s*[0-9]+(\.[0-9]+)?\s*m?\s*$"
 MEMORY = r"^\s*[0-9]+(\.[0-9]+)?\s*(Ki|Mi|Gi|Ti|k|K|M|G|T)?\s*$"
+ROS_TOPIC = r"^/[A-Za-z0-9_~{}]+(/[A-Za-z0-9_{}]+)*$"
+ROS_TYPE = r"^[A-Za-z][A-Za-z0-9_]*/msg/[A-Z][A-Za-z0-9]*$"
+DIRECTIONS = ("to_module", "from_module")
 
 _ONE_OR_MORE_STRINGS = {
     "anyOf": [
@@ -256,6 +259,56 @@ SCHEMA = {
                         "type": "object",
                         "description": "ROS parameters, written to a ConfigMap and mounted as a parameter file.",
                         "x-expected": "a mapping of parameter names to values",
+                    },
+                    "cluster": {
+                        "type": "string",
+                        "pattern": DNS_LABEL,
+                        "maxLength": 40,
+                        "description": (
+                            "Run the module in this third-party cluster (registered in the inventory's kuberos_clusters); "
+                            "its ROS 2 topics cross over the KubeROS-Bridge."
+                        ),
+                        "x-expected": "the name of a cluster registered in kuberos_clusters",
+                    },
+                    "bridge": {
+                        "type": "object",
+                        "x-expected": "a mapping with topics",
+                        "additionalProperties": False,
+                        "required": ["topics"],
+                        "properties": {
+                            "topics": {
+                                "type": "array",
+                                "minItems": 1,
+                                "x-expected": "a non-empty list of topics",
+                                "items": {
+                                    "type": "object",
+                                    "x-expected": "a mapping with name, type and direction",
+                                    "additionalProperties": False,
+                                    "required": ["name", "type", "direction"],
+                                    "properties": {
+                                        "name": {
+                                            "type": "string",
+                                            "pattern": ROS_TOPIC,
+                                            "description": "Fully qualified ROS 2 topic name.",
+                                            "x-expected": "a topic name such as '/planning/request'",
+                                        },
+                                        "type": {
+                                            "type": "string",
+                                            "pattern": ROS_TYPE,
+                                            "description": "Message type, e.g. std_msgs/msg/String.",
+                                            "x-expected": "a message type such as 'std_msgs/msg/String'",
+                                        },
+                                        "direction": {
+                                            "type": "string",
+                                            "enum": list(DIRECTIONS),
+                                            "description": "to_module: robots' side to the module; from_module: back.",
+                                            "x-expected": "to_module or from_module",
+                                        },
+                                    },
+                                },
+                            }
+                        },
+                        "description": "The topics the module exchanges with the robots' side, through the bridge.",
                     },
                 },
             },

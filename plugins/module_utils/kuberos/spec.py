@@ -48,6 +48,13 @@ class Requirements:
 
 
 @dataclass(frozen=True)
+class BridgeTopic:
+    name: str
+    type: str
+    direction: str  # to_module | from_module
+
+
+@dataclass(frozen=True)
 class RosModule:
     name: str
     image: str
@@ -60,6 +67,8 @@ class RosModule:
     env: tuple[tuple[str, str], ...] = ()
     ros_parameters: dict = field(default_factory=dict, compare=False)
     index: int = 0
+    cluster: str = ""  # a registered third-party cluster; its topics cross the bridge
+    bridge_topics: tuple[BridgeTopic, ...] = ()
 
     @property
     def path(self) -> str:
@@ -226,6 +235,25 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
         problem(("robotsPerInstance",), "only applies with strategy: shared; expected strategy: shared or no robotsPerInstance")
     per_instance = int(module.get("robotsPerInstance", DEFAULT_ROBOTS_PER_INSTANCE)) if strategy == "shared" else 1
 
+    cluster = module.get("cluster", "")
+    topics = (module.get("bridge") or {}).get("topics") or []
+    if cluster and not topics:
+        problem(("cluster",), "needs bridge.topics: the topics the module exchanges with the robots' side")
+    if topics and not cluster:
+        problem(("bridge",), "only applies with cluster (a third-party cluster); expected cluster or no bridge")
+    if cluster and requirements.get("onboard"):
+        problem(("cluster",), "contradicts requirements.onboard: true; a module runs onboard or in another cluster")
+    if cluster and strategy == "shared":
+        problem(("cluster",), "needs strategy dedicated: the bridge connects one instance per robot")
+    seen_topics: dict[str, int] = {}
+    for position, topic in enumerate(topics):
+        if topic["name"] in seen_topics:
+            problem(
+                ("bridge", "topics", position, "name"),
+                f"'{topic['name']}' is already bridged by bridge.topics[{seen_topics[topic['name']]}]; expected each topic once",
+            )
+        seen_topics.setdefault(topic["name"], position)
+
     env = module.get("env") or {}
     for name in env:
         if not isinstance(name, str):
@@ -252,6 +280,8 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
         env=tuple((str(k), _env_value(v)) for k, v in env.items()),
         ros_parameters=dict(module.get("rosParameters") or {}),
         index=index,
+        cluster=cluster,
+        bridge_topics=tuple(BridgeTopic(t["name"], t["type"], t["direction"]) for t in topics),
     )
 
 
