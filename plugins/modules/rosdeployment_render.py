@@ -16,6 +16,11 @@ description:
   - Per fleet a namespace and redundant Fast DDS discovery servers; per module instance a Deployment
     pinned to its node, with ROS_DISCOVERY_SERVER, RMW_IMPLEMENTATION and ROS_DOMAIN_ID set.
   - Files are written only when their content changes; manifests no longer rendered are removed.
+  - Modules placed in a third-party cluster (C(cluster) in the spec) are rendered for that cluster into
+    O(dest)/clusters/<cluster>/ (namespace, a discovery server, the bridge client, the modules); the bridge server
+    is one of this cluster's objects. The bridge's certificates (a CA, server and client keys) are generated once
+    into O(dest)/tls/ (mode 0600) and turned into Secret manifests there; the result names those files only and
+    never holds a key.
 options:
   src:
     description: Path of the RosDeployment file the placement was made from.
@@ -50,6 +55,10 @@ options:
     description: The server-side apply field manager the objects are applied with; the controller applies with it too.
     type: str
     default: kuberos
+  bridge_image:
+    description: Container image of the KubeROS-Bridge (for modules in third-party clusters).
+    type: str
+    default: ghcr.io/kuberos/bridge:0.2.0
 attributes:
   check_mode:
     support: full
@@ -88,6 +97,15 @@ object_refs:
   returned: success
   type: list
   elements: dict
+remote:
+  description: Per third-party cluster, C(namespaces) and C(apply_objects) to apply there.
+  returned: success
+  type: dict
+secret_files:
+  description: Secret manifests of the bridges' TLS keys, as C({cluster, path}); C(cluster) is empty for this cluster.
+  returned: success
+  type: list
+  elements: dict
 table:
   description: Where every module of every robot runs, as a fixed-width table.
   returned: success
@@ -102,10 +120,12 @@ files:
 from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     RenderOptions,
     object_order,
     render_deployment,
+    render_remote,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records
@@ -125,15 +145,72 @@ ARGUMENT_SPEC = dict(
     discovery_image=dict(type="str", default="ros:jazzy-ros-base"),
     inventory=dict(type="dict"),
     field_manager=dict(type="str", default="kuberos"),
+    bridge_image=dict(type="str", default="ghcr.io/kuberos/bridge:0.2.0"),
 )
+
+
+def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[dict]:
+    """Certificates of every bridge, made once and kept in dest/tls; Secret manifests for both ends beside them."""
+    import base64
+    import os
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import bridge_secret_name
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import dump_object
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
+
+    files = []
+    for fleet, bridges in sorted(placement.bridges.items()):
+        for bridge in bridges:
+            folder = os.path.join(dest, "tls", fleet, bridge.cluster)
+            files.append({"cluster": "", "path": os.path.join(folder, "secret-server.yaml")})
+            files.append({"cluster": bridge.cluster, "path": os.path.join(folder, "secret-client.yaml")})
+            if check_mode:
+                continue
+            names = ("ca.crt", "server.crt", "server.key", "client.crt", "client.key")
+            if not all(os.path.exists(os.path.join(folder, n)) for n in names):
+                os.makedirs(folder, mode=0o700, exist_ok=True)
+                generate_certificates(folder, bridge.name)
+
+            def read(name, folder=folder):
+                with open(os.path.join(folder, name), "rb") as handle:
+                    return base64.b64encode(handle.read()).decode()
+
+            for side, secret_name, cert, key in (
+                ("server", bridge_secret_name(bridge.name), "server.crt", "server.key"),
+                ("client", bridge_secret_name(BRIDGE_CLIENT), "client.crt", "client.key"),
+            ):
+                secret = {
+                    "apiVersion": "v1",
+                    "kind": "Secret",
+                    "type": "kubernetes.io/tls",
+                    "metadata": {
+                        "name": secret_name,
+                        "namespace": bridge.namespace,
+                        "labels": {"app.kubernetes.io/managed-by": "kuberos"},
+                    },
+                    "data": {"tls.crt": read(cert), "tls.key": read(key), "ca.crt": read("ca.crt")},
+                }
+                path = os.path.join(folder, f"secret-{side}.yaml")
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                with os.fdopen(fd, "w", encoding="utf-8") as handle:
+                    handle.write(dump_object(secret))
+    return files
 
 
 def run(module: AnsibleModule) -> dict:
     params = module.params
     deployments = load_specs(params["src"])
     placement = Placement.from_dict(params["placement"])
-    options = RenderOptions(cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"])
+    options = RenderOptions(
+        cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"], bridge_image=params["bridge_image"]
+    )
     objects = render_deployment(deployments, placement, options)
+    remote = {}
+    if placement.bridges:
+        if params["inventory"] is None:
+            module.fail_json(msg="modules in third-party clusters need the inventory (the inventory option) to render")
+        remote = render_remote(deployments, placement, load_inventory(params["inventory"]).clusters, options)
     if params["inventory"] is not None:
         with open(params["src"], encoding="utf-8") as handle:
             spec_text = handle.read()
@@ -142,9 +219,10 @@ def run(module: AnsibleModule) -> dict:
         )
         objects = sorted(objects + records, key=object_order)
     table = placement_table(placement)
-    plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement))
+    plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement), remote)
     if plan.changed and not module.check_mode:
         apply_plan(plan)
+    secret_files = bridge_secrets(plan.root, placement, module.check_mode) if placement.bridges else []
     others = [o for o in objects if o["kind"] != "Namespace"]
     result = {
         "changed": plan.changed,
@@ -155,6 +233,14 @@ def run(module: AnsibleModule) -> dict:
             {"apiVersion": o["apiVersion"], "kind": o["kind"], "metadata": {k: o["metadata"][k] for k in ("name", "namespace")}}
             for o in others
         ],
+        "remote": {
+            cluster: {
+                "namespaces": [o for o in cluster_objects if o["kind"] == "Namespace"],
+                "apply_objects": [o for o in cluster_objects if o["kind"] != "Namespace"],
+            }
+            for cluster, cluster_objects in remote.items()
+        },
+        "secret_files": secret_files,
         "table": table,
         "dest": plan.root,
         "files": {"created": plan.created, "updated": plan.updated, "removed": plan.removed},

@@ -16,6 +16,8 @@ import yaml
 
 MARKER = ".kuberos-render"
 MANIFEST_DIR = "manifests"
+CLUSTERS_DIR = "clusters"  # manifests for third-party clusters, one folder each
+PRUNED_DIRS = (MANIFEST_DIR, CLUSTERS_DIR)
 
 
 def object_path(obj: dict) -> str:
@@ -81,7 +83,11 @@ def _read(path: str) -> str | None:
         return None
 
 
-def plan_render_dir(root: str, objects: list[dict], placement: dict, table: str, picture: str = "") -> RenderPlan:
+def plan_render_dir(
+    root: str, objects: list[dict], placement: dict, table: str, picture: str = "", remote: dict[str, list[dict]] | None = None
+) -> RenderPlan:
+    """What to write under ``root``: one file per object in manifests/, one per object of each third-party cluster
+    in clusters/<cluster>/, the placement in three forms; files no longer rendered in those folders go."""
     root = os.path.abspath(root)
     if os.path.isdir(root) and os.listdir(root) and not os.path.exists(os.path.join(root, MARKER)):
         raise RenderDirError(
@@ -94,6 +100,9 @@ def plan_render_dir(root: str, objects: list[dict], placement: dict, table: str,
         if rel in plan.files:
             raise RenderDirError(f"two objects render to the same file {rel}")
         plan.files[rel] = dump_object(obj)
+    for cluster, cluster_objects in sorted((remote or {}).items()):
+        for obj in cluster_objects:
+            plan.files[os.path.join(CLUSTERS_DIR, cluster, object_path(obj))] = dump_object(obj)
     plan.files["placement.json"] = json.dumps(placement, indent=2, sort_keys=True) + "\n"
     plan.files["placement.txt"] = table + "\n"
     if picture:
@@ -106,13 +115,13 @@ def plan_render_dir(root: str, objects: list[dict], placement: dict, table: str,
         elif current != text:
             plan.updated.append(rel)
             plan.before[rel] = current
-    manifest_root = os.path.join(root, MANIFEST_DIR)
-    for dirpath, _dirs, names in os.walk(manifest_root):
-        for name in names:
-            rel = os.path.relpath(os.path.join(dirpath, name), root)
-            if rel not in plan.files:
-                plan.removed.append(rel)
-                plan.before[rel] = _read(os.path.join(root, rel)) or ""
+    for folder in PRUNED_DIRS:
+        for dirpath, _dirs, names in os.walk(os.path.join(root, folder)):
+            for name in names:
+                rel = os.path.relpath(os.path.join(dirpath, name), root)
+                if rel not in plan.files:
+                    plan.removed.append(rel)
+                    plan.before[rel] = _read(os.path.join(root, rel)) or ""
     plan.removed.sort()
     return plan
 
@@ -127,7 +136,8 @@ def apply_plan(plan: RenderPlan) -> None:
         os.replace(tmp, path)
     for rel in plan.removed:
         os.remove(os.path.join(plan.root, rel))
-    manifest_root = os.path.join(plan.root, MANIFEST_DIR)
-    for dirpath, dirs, names in sorted(os.walk(manifest_root), reverse=True):
-        if not dirs and not names and dirpath != manifest_root:
-            os.rmdir(dirpath)
+    for folder in PRUNED_DIRS:
+        top = os.path.join(plan.root, folder)
+        for dirpath, _dirs, _names in sorted(os.walk(top), reverse=True):
+            if not os.listdir(dirpath) and dirpath != top:
+                os.rmdir(dirpath)
