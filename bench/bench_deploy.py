@@ -5,11 +5,13 @@ On a dedicated local control plane (its own ports and state directory, 130 kwok 
 it deploys a pick-and-place app to a fleet of N robots (4 dedicated modules per robot, so 4·N module
 pods, plus the fleet's discovery servers) twice per repeat, from the same starting state:
 
-(a) ``ansible-playbook playbooks/deploy.yml``: validate, place, render, namespace, server-side dry
-    run, one server-side apply of every object, prune, and wait (rosdeployment_info) until every pod
-    is Ready on its placed node. Timed from the start of the process to its exit. A watcher thread
-    also notes when every pod was first seen Ready from outside, and the profile_tasks callback
-    gives the time of every task.
+(a) ``ansible-playbook playbooks/deploy.yml``: validate, place, render, new namespaces, then the
+    objects dealt into ``kuberos_apply_workers`` batches (default 4, ``--apply-workers``) that are
+    server-side dry-run side by side and, once every batch passed, server-side applied side by side
+    (one ``kubernetes.core.k8s`` call per batch), then prune beside the wait (rosdeployment_info)
+    until every pod is Ready on its placed node. Timed from the start of the process to its exit. A
+    watcher thread also notes when every pod was first seen Ready from outside, and the
+    profile_tasks callback gives the time of every task.
 (b) ``kubectl apply --server-side --field-manager=bench -R -f <render dir>/manifests`` of the
     manifests (a) rendered, then polling the pods until every one is Running and Ready. Timed from
     the start of kubectl until the poll sees every pod Ready.
@@ -70,7 +72,7 @@ POLL_SECONDS = 0.5
 TARGET_SECONDS = 60.0
 TARGET_RATIO = 1.5
 PROFILE_LINE = re.compile(r"^(?P<name>\S.*?) -+ ?(?P<seconds>\d+\.\d+)s$")
-RECAP = re.compile(r"localhost\s+: ok=\d+\s+changed=\d+\s+unreachable=\d+\s+failed=(\d+)")
+RECAP = re.compile(r"^(\S+)\s+: ok=\d+\s+changed=\d+\s+unreachable=(\d+)\s+failed=(\d+)", re.M)
 
 
 # -- inputs --------------------------------------------------------------------------------
@@ -248,7 +250,7 @@ def teardown(cluster: Cluster, spec: Path, timeout: float) -> float:
     return time.monotonic() - start
 
 
-def run_ansible(cluster: Cluster, spec: Path, render_dir: Path, expected: int, timeout: float) -> dict:
+def run_ansible(cluster: Cluster, spec: Path, render_dir: Path, expected: int, timeout: float, workers: int | None) -> dict:
     """(a): the deploy playbook; wall time of the process, and when all pods were first seen Ready."""
     watcher_core = cluster.core()
     seen: dict[str, float | None] = {"ready": None}
@@ -262,6 +264,7 @@ def run_ansible(cluster: Cluster, spec: Path, render_dir: Path, expected: int, t
         "deploy.yml", cluster.inventory,
         "-e", f"rosdeployment_file={spec}", "-e", f"kuberos_render_dir={render_dir}",
         "-e", f"kuberos_kubeconfig={cluster.kubeconfig}", "-e", f"rosdeployment_wait_timeout={int(timeout)}",
+        *(["-e", f"kuberos_apply_workers={workers}"] if workers else []),
         timeout=timeout + 120, profile=True,
     )  # fmt: skip
     wall = time.monotonic() - start
@@ -270,8 +273,8 @@ def run_ansible(cluster: Cluster, spec: Path, render_dir: Path, expected: int, t
     if result.returncode != 0:
         print(not_ready_report(cluster.core()), file=sys.stderr)
     check(result, "deploy.yml")
-    failed = RECAP.search(result.stdout)
-    if not failed or failed.group(1) != "0":
+    recap = {host: (unreachable, failed) for host, unreachable, failed in RECAP.findall(result.stdout)}
+    if "localhost" not in recap or set(recap.values()) != {("0", "0")}:
         raise SystemExit("bench: deploy.yml recap missing or failed:\n" + result.stdout[-3000:])
     live, ready, _pods = pod_state(cluster.core())
     if (live, ready) != (expected, expected):
@@ -279,7 +282,13 @@ def run_ansible(cluster: Cluster, spec: Path, render_dir: Path, expected: int, t
             f"bench: after deploy.yml {ready} of {live} pods Ready, expected {expected}\n{not_ready_report(cluster.core())}"
         )
     profile = parse_profile(result.stdout)
-    return {"wall_s": wall, "ready_seen_s": seen["ready"], "profile": profile, "tasks_s": sum(s for _n, s in profile)}
+    return {
+        "wall_s": wall,
+        "ready_seen_s": seen["ready"],
+        "profile": profile,
+        "tasks_s": sum(s for _n, s in profile),
+        "batch_hosts": sorted(h for h in recap if h != "localhost"),
+    }
 
 
 def run_kubectl(cluster: Cluster, manifests: Path, expected: int, timeout: float, cache_dir: Path) -> dict:
@@ -311,6 +320,7 @@ def machine() -> dict:
         "memory": sh('free -h | awk \'/^Mem:/ {print $2 " total, " $7 " available"}\''),
         "python": sys.version.split()[0],
         "kernel": sh("uname -r"),
+        "load": sh("cat /proc/loadavg | cut -d' ' -f1-3"),
         "commit": sh(f"git -C {REPO} rev-parse --short HEAD")
         + (" (+ uncommitted changes)" if sh(f"git -C {REPO} status --porcelain") else ""),
     }
@@ -324,11 +334,14 @@ def markdown(data: dict) -> str:
         f"Date: {info['date']}. Machine: nproc {info['nproc']}, {info['cpu']}, memory {info['memory']}; "
         f"Python {info['python']}, Linux {info['kernel']}; code at {info['commit']}.",
         "",
+        f"Load average (1, 5, 15 min) at the start: {info['load']}; at the end: {data.get('load_end', '-')}.",
+        "",
         f"Command: `{data['command']}`",
         "",
         f"Cluster: {data['nodes']} kwok nodes ({args['robots']} robots, {EDGE_NODES} edge, {CLOUD_NODES} cloud), "
         f"started in {data['cluster_start_s']:.1f} s; {data['objects']} objects rendered "
-        f"({data['expected_pods']} Deployments of 1 replica, so {data['expected_pods']} pods).",
+        f"({data['expected_pods']} Deployments of 1 replica, so {data['expected_pods']} pods). "
+        f"Batch hosts of (a): {len(runs[0]['a']['batch_hosts']) if runs else '-'}.",
         "",
         "| run | (a) deploy.yml s | (a) all Ready seen s | (b) kubectl apply s | (b) until all Ready s "
         "| ratio (a)/(b) | undeploy+empty s |",
@@ -350,7 +363,9 @@ def markdown(data: dict) -> str:
         f"Target: (a) under {TARGET_SECONDS:.0f} s: **{'met' if med_a < TARGET_SECONDS else 'missed'}** ({med_a:.1f} s); "
         f"ratio under {TARGET_RATIO}: **{'met' if med_ratio < TARGET_RATIO else 'missed'}** ({med_ratio:.2f}).",
         "",
-        "Per-task profile of (a) (`ansible.posix.profile_tasks`, execution order, seconds):",
+        "Per-task profile of (a) (`ansible.posix.profile_tasks`, execution order, seconds). A task's time runs until "
+        "the next task starts, so for a task of the batch hosts it is that of the slowest batch; in the last play "
+        "(strategy free) the prune and the wait overlap, so their times do not add up:",
         "",
         "| task | " + " | ".join(f"run {i}" for i in range(1, len(runs) + 1)) + " |",
         "|---|" + "---:|" * len(runs),
@@ -382,6 +397,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--robots", type=int, default=100, help="robots in the fleet (4 module pods each); default 100")
     parser.add_argument("--repeat", type=int, default=3, help="pairs of runs (a), (b), 1 to 5; default 3")
     parser.add_argument("--timeout", type=int, default=300, help="bound of every deploy and wait, seconds; default 300")
+    parser.add_argument(
+        "--apply-workers", type=int, help="kuberos_apply_workers for (a), 1 to 10 (ansible.cfg forks); default: the role's, 4"
+    )
     parser.add_argument("--keep-cluster", action="store_true", help="leave the cluster (and its work dir) running at the end")
     parser.add_argument(
         "--workdir", type=Path, help="where inventory, spec, renders and cluster state go (default: a new temp dir)"
@@ -392,6 +410,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         parser.error(f"--robots must be 1 to {MAX_ROBOTS}")
     if not 1 <= args.repeat <= 5:
         parser.error("--repeat must be 1 to 5")
+    if args.apply_workers is not None and not 1 <= args.apply_workers <= 10:
+        parser.error("--apply-workers must be 1 to 10")
     if args.timeout < 10:
         parser.error("--timeout must be at least 10 s")
     return args
@@ -413,7 +433,7 @@ def main(argv: list[str] | None = None) -> int:
     cluster = Cluster(inventory, work / "cluster", args.timeout)
     expected = args.robots * MODULES_PER_ROBOT + DISCOVERY_SERVERS
     data = {
-        "args": {"robots": args.robots, "repeat": args.repeat, "timeout": args.timeout},
+        "args": {"robots": args.robots, "repeat": args.repeat, "timeout": args.timeout, "apply_workers": args.apply_workers},
         "command": " ".join(
             ["cd", str(REPO), "&&", ".venv/bin/python", "bench/bench_deploy.py", *(argv if argv is not None else sys.argv[1:])]
         ),
@@ -429,7 +449,7 @@ def main(argv: list[str] | None = None) -> int:
         log(f"cluster up with {data['nodes']} nodes in {data['cluster_start_s']:.1f} s")
         for index in range(args.repeat):
             log(f"run {index + 1}: (a) deploy.yml")
-            a = run_ansible(cluster, spec, render_dir, expected, args.timeout)
+            a = run_ansible(cluster, spec, render_dir, expected, args.timeout, args.apply_workers)
             log(f"run {index + 1}: (a) {a['wall_s']:.1f} s (all Ready seen at {a['ready_seen_s']}); undeploying")
             teardown_a = teardown(cluster, spec, args.timeout)
             manifests = render_dir / "manifests"
@@ -458,6 +478,7 @@ def main(argv: list[str] | None = None) -> int:
                 shutil.rmtree(work, ignore_errors=True)
             else:
                 log(f"work dir kept: {work}")
+        data["load_end"] = machine()["load"]
         if args.json:
             args.json.write_text(json.dumps(data, indent=2, default=str) + "\n")
     print(markdown(data))

@@ -15,6 +15,8 @@ description:
     (what is about to be placed again).
   - The result is the C(allocated) input of the P(kuberos.platform.place_modules#filter) filter, so that a new
     placement accounts for what already runs.
+  - Also returns the names of the namespaces that exist, so that a deployment knows which of its fleets'
+    namespaces it has to create without another module call.
 options:
   exclude_deployments:
     description: RosDeployments whose pods are not counted.
@@ -48,6 +50,11 @@ allocated:
   description: Per node, C(cpu) (millicores, as C(1500m)), C(memory) (bytes), C(gpu) and C(pods).
   returned: always
   type: dict
+namespaces:
+  description: Names of the namespaces that exist in the cluster, sorted.
+  returned: always
+  type: list
+  elements: str
 """
 
 from ansible.module_utils.basic import AnsibleModule
@@ -56,6 +63,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     KUBECONFIG_ARG,
     api_clients,
     explain,
+    namespace_names,
     node_allocations,
 )
 
@@ -70,14 +78,12 @@ def main():
         supports_check_mode=True,
     )
     try:
-        allocated = node_allocations(
-            api_clients(module.params["kubeconfig"]),
-            module.params["exclude_deployments"],
-            module.params["exclude_discovery_of_fleets"],
-        )
+        clients = api_clients(module.params["kubeconfig"])
+        allocated = node_allocations(clients, module.params["exclude_deployments"], module.params["exclude_discovery_of_fleets"])
+        namespaces = namespace_names(clients)
     except Exception as exc:  # connection and configuration problems: one clear line, no traceback
         module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
-    module.exit_json(changed=False, allocated=allocated)
+    module.exit_json(changed=False, allocated=allocated, namespaces=namespaces)
 
 
 if __name__ == "__main__":

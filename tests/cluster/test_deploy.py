@@ -3,19 +3,29 @@
 Proves: every pod is bound by the real kube-scheduler to the node KubeROS placed it on; the discovery
 Services exist with endpoints; the environment carries the server list; re-running changes nothing;
 editing the spec changes only what differs; removing a module prunes its objects; undeploy removes one
-deployment and nothing else; a rejected object in the server-side dry run means nothing is applied.
+deployment and nothing else; a rejected object in the server-side dry run of any batch means nothing is
+applied; the role's main.yml, in a single play, deploys the same way in one batch.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import subprocess
 
 import pytest
-from helpers import ROOT
+from helpers import ROOT, venv_tool
 
 pytestmark = pytest.mark.cluster
+
+RECAP = re.compile(r"^(\S+)\s+: ok=\d+\s+changed=(\d+)\s+unreachable=\d+\s+failed=(\d+)", re.M)
+
+
+def changed_by_host(result) -> dict[str, int]:
+    """Changed tasks per host of the recap: deploy.yml applies on in-memory batch hosts besides localhost."""
+    return {host: int(changed) for host, changed, _failed in RECAP.findall(result.stdout)}
 
 
 def pods_by_instance(core, namespace):
@@ -47,6 +57,9 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
     first = cluster.deploy(spec, out)
     assert first.returncode == 0, first.stdout[-6000:] + first.stderr[-2000:]
     assert first.changed >= 1
+    batches = [h for h in changed_by_host(first) if h.startswith("rosdeployment-batch-")]
+    assert len(batches) == 4, changed_by_host(first)  # kuberos_apply_workers defaults to 4
+    assert all(changed_by_host(first)[h] >= 1 for h in batches)
     placement = json.loads((out / "placement.json").read_text())
     namespace = "kuberos-test-fleet"
     pods = pods_by_instance(core, namespace)
@@ -75,6 +88,7 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
     before = resource_versions(apps, core, namespace)
     again = cluster.deploy(spec, out)
     assert again.returncode == 0 and again.changed == 0, again.stdout[-6000:]
+    assert set(changed_by_host(again).values()) == {0}, changed_by_host(again)
     assert resource_versions(apps, core, namespace) == before
 
     # Edit one parameter: only its ConfigMap changes.
@@ -83,7 +97,8 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
     assert edited.returncode == 0 and edited.changed >= 1, edited.stdout[-6000:]
     after = resource_versions(apps, core, namespace)
     changed = sorted(k for k in before if before[k] != after.get(k))
-    assert changed == [("ConfigMap", "pick-and-place-motion-planner-params")]
+    # The deployment record (the spec, inventory and placement the controller reads) holds the spec too.
+    assert changed == [("ConfigMap", "kuberos-record-pick-and-place"), ("ConfigMap", "pick-and-place-motion-planner-params")]
 
     # Remove the perception module: its Deployments and ConfigMap are pruned, nothing else.
     text = spec.read_text()
@@ -98,7 +113,7 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
         ("Deployment", "pick-and-place-perception-fetch-1"),
         ("Deployment", "pick-and-place-perception-fetch-2"),
     ]
-    assert all(remaining[k] == after[k] for k in remaining)
+    assert all(remaining[k] == after[k] for k in remaining if k != ("ConfigMap", "kuberos-record-pick-and-place"))
 
 
 def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
@@ -123,6 +138,7 @@ def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
     assert gone.returncode == 0, gone.stdout[-6000:]
     after = resource_versions(apps, core, "kuberos-test-fleet")
     assert sorted(set(before) - set(after)) == [
+        ("ConfigMap", "kuberos-record-picking"),
         ("Deployment", "picking-controller-fetch-1"),
         ("Deployment", "picking-controller-fetch-2"),
         ("Deployment", "picking-planner-fetch-1"),
@@ -192,6 +208,11 @@ def test_a_rejected_object_means_nothing_is_applied(cluster, tmp_path):
         assert result.returncode != 0, result.stdout[-4000:]
         assert "nothing was applied" in result.stdout, result.stdout[-4000:]
         assert "module zz-forbidden is not allowed in this cluster" in result.stdout
+        # The objects were dealt into several batches; those without the forbidden module passed their dry
+        # run, and still none of them was written.
+        dry_runs = re.findall(r"^(ok|fatal): \[(rosdeployment-batch-\d+)\]", result.stdout, re.M)
+        assert {status for status, _host in dry_runs} == {"ok", "fatal"}, result.stdout[-4000:]
+        assert "TASK [kuberos.platform.rosdeployment : Apply every object of the batch" not in result.stdout
         assert resource_versions(apps, core, "kuberos-warehouse-fleet") == {}
     finally:
         admission.delete_validating_admission_policy_binding("no-forbidden-modules")
@@ -209,3 +230,36 @@ def test_check_mode_applies_nothing(cluster, tmp_path):
     assert result.returncode == 0, result.stdout[-6000:]
     assert result.changed >= 1
     assert apps.list_namespaced_deployment("kuberos-warehouse-fleet", label_selector="kuberos.io/deployment=checked").items == []
+
+
+def test_the_role_alone_in_one_play_deploys_in_one_batch(cluster, tmp_path):
+    """roles/rosdeployment/tasks/main.yml from a user's single-play playbook: same result, idempotent, undeployable."""
+    core, _apps, _discovery = cluster.clients()
+    spec = tmp_path / "solo.yml"
+    spec.write_text(
+        "metadata: {name: solo, targetFleet: warehouse-fleet}\n"
+        "rosModules:\n- {name: driver, image: ghcr.io/x/driver:1, launch: run, requirements: {onboard: true}}\n"
+    )
+    play = tmp_path / "site.yml"
+    play.write_text(
+        "- name: Deploy with the role alone\n  hosts: localhost\n  gather_facts: false\n"
+        "  roles:\n    - role: kuberos.platform.rosdeployment\n"
+    )
+    env = {**os.environ, "ANSIBLE_CONFIG": os.path.join(ROOT, "ansible.cfg"), "ANSIBLE_NOCOLOR": "1", "ANSIBLE_FORCE_COLOR": "0"}
+    command = [
+        venv_tool("ansible-playbook"), str(play), "-i", "inventories/local",
+        "-e", f"rosdeployment_file={spec}", "-e", f"kuberos_render_dir={tmp_path / 'render'}",
+        "-e", f"kuberos_kubeconfig={cluster.kubeconfig}",
+    ]  # fmt: skip
+    try:
+        first = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+        assert first.returncode == 0, first.stdout[-6000:] + first.stderr[-2000:]
+        assert list(changed_by_host(first)) == ["localhost"] and changed_by_host(first)["localhost"] >= 2
+        pods = pods_by_instance(core, "kuberos-warehouse-fleet")
+        placement = json.loads((tmp_path / "render" / "placement.json").read_text())
+        for inst in placement["instances"]:
+            assert pods[inst["name"]].spec.node_name == inst["node"], inst["name"]
+        again = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+        assert again.returncode == 0 and changed_by_host(again) == {"localhost": 0}, again.stdout[-6000:]
+    finally:
+        assert cluster.undeploy(spec).returncode == 0

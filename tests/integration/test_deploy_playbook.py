@@ -62,7 +62,8 @@ def test_listing_1_renders_then_changes_nothing(tmp_path):
     assert all(p["reason"] for p in placement["placements"])
     # The table is printed at the end of the run.
     assert re.search(r"kubeross-demo-picking\s+fetch-1\s+fetch-motion-planner\s+cloud\s+cloud-1", first.stdout)
-    assert len(manifests(out)) == 9
+    # Namespace, 2 discovery Services and Deployments, 4 module Deployments, the deployment record ConfigMap.
+    assert len(manifests(out)) == 10
     second = deploy("examples/listing1.yml", out)
     assert second.returncode == 0 and second.changed == 0, second.stdout
 
