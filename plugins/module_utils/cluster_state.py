@@ -171,3 +171,23 @@ def node_allocations(clients, exclude_deployments: list[str], exclude_discovery_
 def namespace_names(clients) -> list[str]:
     """Names of the namespaces that exist in the cluster, sorted."""
     return sorted(ns.metadata.name for ns in clients["core"].list_namespace().items)
+
+
+def unavailable_nodes(clients, wanted: list[str]) -> dict[str, str]:
+    """Of the ``wanted`` nodes (inventory names), those that are not Ready or not in the cluster, with why.
+    A node's inventory name is its ``device.kuberos.io/hostname`` label, else its name."""
+    found = {}
+    for node in clients["core"].list_node().items:
+        name = (node.metadata.labels or {}).get(node_labels.HOSTNAME, node.metadata.name)
+        ready = next((c for c in (node.status.conditions or []) if c.type == "Ready"), None)
+        found[name] = None if ready is not None and ready.status == "True" else (
+            f"node {name} is NotReady (Ready={ready.status if ready else 'missing'}"
+            f"{' (' + ready.reason + ')' if ready is not None and ready.reason else ''})"
+        )  # fmt: skip
+    out = {}
+    for name in wanted:
+        if name not in found:
+            out[name] = f"node {name} is not in the cluster"
+        elif found[name]:
+            out[name] = found[name]
+    return out

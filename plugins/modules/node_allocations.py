@@ -16,7 +16,7 @@ description:
   - The result is the C(allocated) input of the P(kuberos.platform.place_modules#filter) filter, so that a new
     placement accounts for what already runs.
   - Also returns the names of the namespaces that exist, so that a deployment knows which of its fleets'
-    namespaces it has to create without another module call.
+    namespaces it has to create without another module call, and the inventory's nodes that cannot take modules.
 options:
   exclude_deployments:
     description: RosDeployments whose pods are not counted.
@@ -28,6 +28,12 @@ options:
     type: list
     elements: str
     default: []
+  inventory:
+    description:
+      - The fleet resource model (P(kuberos.platform.fleet_inventory#filter)). When given, the result's C(unavailable)
+        names each of its nodes that is NotReady or not in the cluster, with why, for the
+        P(kuberos.platform.place_modules#filter) filter to leave out.
+    type: dict
 attributes:
   check_mode:
     support: full
@@ -55,6 +61,10 @@ namespaces:
   returned: always
   type: list
   elements: str
+unavailable:
+  description: Nodes of O(inventory) that are NotReady or not in the cluster, as C({node: why}).
+  returned: always
+  type: dict
 """
 
 from ansible.module_utils.basic import AnsibleModule
@@ -65,7 +75,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     explain,
     namespace_names,
     node_allocations,
+    unavailable_nodes,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 
 
 def main():
@@ -74,6 +86,7 @@ def main():
             **KUBECONFIG_ARG,
             exclude_deployments=dict(type="list", elements="str", default=[]),
             exclude_discovery_of_fleets=dict(type="list", elements="str", default=[]),
+            inventory=dict(type="dict"),
         ),
         supports_check_mode=True,
     )
@@ -81,9 +94,11 @@ def main():
         clients = api_clients(module.params["kubeconfig"])
         allocated = node_allocations(clients, module.params["exclude_deployments"], module.params["exclude_discovery_of_fleets"])
         namespaces = namespace_names(clients)
+        wanted = list(load_inventory(module.params["inventory"]).nodes) if module.params["inventory"] else []
+        unavailable = unavailable_nodes(clients, wanted)
     except Exception as exc:  # connection and configuration problems: one clear line, no traceback
         module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
-    module.exit_json(changed=False, allocated=allocated, namespaces=namespaces)
+    module.exit_json(changed=False, allocated=allocated, namespaces=namespaces, unavailable=unavailable)
 
 
 if __name__ == "__main__":

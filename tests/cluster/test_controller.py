@@ -462,3 +462,18 @@ def test_the_in_cluster_rights_are_enough_for_a_move_and_no_more(fleet, tmp_path
     assert "403" not in text and "Forbidden" not in text, text[-3000:]
     assert "moved from" in text
     assert removed.returncode == 0, removed.stdout[-3000:]
+
+
+def test_deploying_again_while_a_node_is_down_places_nothing_there(fleet, tmp_path):
+    """A deploy with an unchanged spec while a node is down: the deploy leaves that node out."""
+    assert fleet.controller("stopped").returncode == 0
+    node, _ = fleet.busiest_edge()
+    fleet.node_down(node)
+    try:
+        deployed = fleet.cluster.deploy(SPEC, tmp_path / "render")
+        assert deployed.returncode == 0, deployed.stdout[-4000:]
+        assert node not in fleet.placed().values()
+        fleet.converge()
+    finally:
+        fleet.node_up(node)
+        assert fleet.controller().returncode == 0
