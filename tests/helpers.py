@@ -56,15 +56,24 @@ TEST_PORTS = {
     "scheduler": 26259,
     "kwok": 26247,
 }
+# A second control plane, standing for a third-party cluster.
+PARTNER_PORTS = {
+    "apiserver": 27443,
+    "etcd_client": 23379,
+    "etcd_peer": 23380,
+    "controller_manager": 27257,
+    "scheduler": 27259,
+    "kwok": 27247,
+}
 
 
 class Cluster:
     """The local control plane on test ports, driven through the playbooks as a user would."""
 
-    def __init__(self, state_dir):
+    def __init__(self, state_dir, ports=None):
         self.state_dir = str(state_dir)
         self.kubeconfig = os.path.join(self.state_dir, "kubeconfig")
-        self.vars = ["-e", json.dumps({"local_cluster_state_dir": self.state_dir, "local_cluster_ports": TEST_PORTS})]
+        self.vars = ["-e", json.dumps({"local_cluster_state_dir": self.state_dir, "local_cluster_ports": ports or TEST_PORTS})]
 
     def start(self):
         return playbook("local_cluster.yml", *self.vars)

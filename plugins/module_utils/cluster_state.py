@@ -23,7 +23,10 @@ MANAGED_KINDS = (
     ("apps/v1", "Deployment", "list_namespaced_deployment", "delete_namespaced_deployment", "apps"),
     ("v1", "Service", "list_namespaced_service", "delete_namespaced_service", "core"),
     ("v1", "ConfigMap", "list_namespaced_config_map", "delete_namespaced_config_map", "core"),
+    ("v1", "Secret", "list_namespaced_secret", "delete_namespaced_secret", "core"),
 )
+# What a fleet shares between its deployments: removed with the fleet's last deployment, like its discovery servers.
+FLEET_COMPONENTS = ("discovery-server", "bridge-server")
 
 
 START_HINT = "start the local cluster with `make cluster`, or set kuberos_kubeconfig to your cluster's kubeconfig"
@@ -93,7 +96,7 @@ def stale_objects(live: list[dict], keep: list[dict], deployments: list[str], re
     for obj in live:
         obj_labels = obj["metadata"]["labels"]
         ours = obj_labels.get(DEPLOYMENT) in deployments
-        discovery = obj_labels.get(COMPONENT) == "discovery-server" and remove_discovery
+        discovery = obj_labels.get(COMPONENT) in FLEET_COMPONENTS and remove_discovery
         if (ours or discovery) and _key(obj) not in wanted:
             stale.append(obj)
     return stale
@@ -123,7 +126,7 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
         pods = clients["core"].list_namespaced_pod(fleet_namespace(fleet), label_selector=f"{MANAGED_BY}=kuberos").items
         for pod in pods:
             pod_labels = pod.metadata.labels or {}
-            discovery = pod_labels.get(COMPONENT) == "discovery-server"
+            discovery = pod_labels.get(COMPONENT) in FLEET_COMPONENTS
             if not (discovery or pod_labels.get(DEPLOYMENT) in deployments) or pod.metadata.deletion_timestamp:
                 continue
             ready = any(c.type == "Ready" and c.status == "True" for c in (pod.status.conditions or []))
@@ -154,7 +157,7 @@ def node_allocations(clients, exclude_deployments: list[str], exclude_discovery_
         node = pod.spec.node_name
         pod_labels = pod.metadata.labels or {}
         replaced = pod_labels.get(DEPLOYMENT) in exclude_deployments or (
-            pod_labels.get(COMPONENT) == "discovery-server" and pod_labels.get(node_labels.FLEET) in exclude_discovery_of_fleets
+            pod_labels.get(COMPONENT) in FLEET_COMPONENTS and pod_labels.get(node_labels.FLEET) in exclude_discovery_of_fleets
         )
         if not node or replaced:
             continue

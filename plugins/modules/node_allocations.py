@@ -62,7 +62,7 @@ namespaces:
   type: list
   elements: str
 unavailable:
-  description: Nodes of O(inventory) that are NotReady or not in the cluster, as C({node: why}).
+  description: "Nodes of O(inventory) that are NotReady or not in the cluster, as C({node: why})."
   returned: always
   type: dict
 """

@@ -79,7 +79,19 @@ def compare(placement: dict, pods: list[dict]) -> list[dict]:
                 {"deployment": f"(fleet {entry['fleet']})", "fleet": entry["fleet"], "robot": "-", "module": server["name"],
                  "tier": server["tier"], "node": server["node"], "instance": server["name"]}
             )  # fmt: skip
+    for entry in placement.get("bridges", []):
+        wanted.append(
+            {"deployment": f"(fleet {entry['fleet']})", "fleet": entry["fleet"], "robot": "-", "module": entry["name"],
+             "tier": entry["tier"], "node": entry["node"], "instance": entry["name"]}
+        )  # fmt: skip
     for row in wanted:
+        if row.get("cluster"):
+            # Runs in a third-party cluster: applied and watched there, not here.
+            rows.append(
+                {"deployment": row["deployment"], "robot": row["robot"], "module": row["module"], "tier": row["tier"],
+                 "placed_node": row["node"], "node": row["node"], "phase": "Remote", "ready": True, "pod": None}
+            )  # fmt: skip
+            continue
         live = by_instance.get((row["fleet"], row["instance"]), [])
         pod = next((p for p in live if p["ready"]), live[0] if live else None)
         rows.append(

@@ -47,7 +47,7 @@ options:
   inventory:
     description:
       - The fleet resource model (P(kuberos.platform.fleet_inventory#filter)). When given, one record
-        ConfigMap per RosDeployment (C(kuberos-record-<name>) in the fleet namespace) is rendered too: the spec,
+        ConfigMap per RosDeployment (C(kuberos-record-<name>) in the fleet namespace) is rendered too, with the spec,
         the inventory, the render options and the placement, which the KubeROS controller reads to move modules
         when nodes fail or links degrade.
     type: dict
@@ -123,6 +123,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     RenderOptions,
+    bridge_secret_name,
     object_order,
     render_deployment,
     render_remote,
@@ -154,7 +155,8 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
     import base64
     import os
 
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import bridge_secret_name
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FLEET
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT, MANAGED_BY
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import dump_object
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
@@ -163,8 +165,10 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
     for fleet, bridges in sorted(placement.bridges.items()):
         for bridge in bridges:
             folder = os.path.join(dest, "tls", fleet, bridge.cluster)
-            files.append({"cluster": "", "path": os.path.join(folder, "secret-server.yaml")})
-            files.append({"cluster": bridge.cluster, "path": os.path.join(folder, "secret-client.yaml")})
+            files.append({"cluster": "", "bridge": bridge.cluster, "path": os.path.join(folder, "secret-server.yaml")})
+            files.append(
+                {"cluster": bridge.cluster, "bridge": bridge.cluster, "path": os.path.join(folder, "secret-client.yaml")}
+            )
             if check_mode:
                 continue
             names = ("ca.crt", "server.crt", "server.key", "client.crt", "client.key")
@@ -187,7 +191,7 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
                     "metadata": {
                         "name": secret_name,
                         "namespace": bridge.namespace,
-                        "labels": {"app.kubernetes.io/managed-by": "kuberos"},
+                        "labels": {MANAGED_BY: "kuberos", COMPONENT: f"bridge-{side}", FLEET: bridge.fleet},
                     },
                     "data": {"tls.crt": read(cert), "tls.key": read(key), "ca.crt": read("ca.crt")},
                 }
@@ -232,6 +236,11 @@ def run(module: AnsibleModule) -> dict:
         "object_refs": [
             {"apiVersion": o["apiVersion"], "kind": o["kind"], "metadata": {k: o["metadata"][k] for k in ("name", "namespace")}}
             for o in others
+        ]
+        + [  # the bridge servers' TLS Secrets, applied from their files
+            {"apiVersion": "v1", "kind": "Secret", "metadata": {"name": bridge_secret_name(b.name), "namespace": b.namespace}}
+            for bridges in placement.bridges.values()
+            for b in bridges
         ],
         "remote": {
             cluster: {

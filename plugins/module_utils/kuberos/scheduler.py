@@ -111,6 +111,7 @@ class Placement:
                         "robots": list(inst.robots),
                         "shared": inst.shared,
                         "reason": inst.reason,
+                        "cluster": inst.cluster,
                     }
                 )
         rows.sort(key=lambda r: (r["deployment"], r["robot"], r["module"]))
