@@ -60,3 +60,13 @@ def test_pure_core_has_no_ansible_or_kubernetes_imports():
             with open(os.path.join(core, name), encoding="utf-8") as handle:
                 text = handle.read()
             assert not re.search(r"^\s*(from|import)\s+(ansible|kubernetes)\b", text, re.M), name
+
+
+def test_test_files_have_unique_names():
+    """pytest imports test modules by basename here (no packages): two files of one name break collection."""
+    names = {}
+    for folder, _dirs, files in os.walk(os.path.join(ROOT, "tests")):
+        for name in files:
+            if name.startswith("test_") and name.endswith(".py"):
+                names.setdefault(name, []).append(os.path.relpath(os.path.join(folder, name), ROOT))
+    assert {n: p for n, p in names.items() if len(p) > 1} == {}
