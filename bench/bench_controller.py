@@ -46,6 +46,7 @@ import time
 from pathlib import Path
 
 from bench_deploy import REPO, Cluster, check, log, machine, playbook  # bench/ is on sys.path when a benchmark runs
+from bench_deploy import write_inventory as write_deploy_inventory
 from workload import pick_and_place
 
 FLEET = "bench-fleet"
@@ -70,48 +71,8 @@ SMP = "application/strategic-merge-patch+json"
 
 # -- inputs --------------------------------------------------------------------------------
 def write_inventory(directory: Path, robots: int, edge: int, cloud: int) -> Path:
-    """An Ansible YAML inventory like bench_deploy's: robots in one fleet, edge and cloud nodes, all local."""
-    group_vars = directory / "group_vars"
-    group_vars.mkdir(parents=True)
-    files = {
-        "hosts.yml": {
-            "all": {
-                "children": {
-                    "robots": {"hosts": {f"robot-{i:03d}": None for i in range(robots)}},
-                    "edge": {"hosts": {f"edge-{i:02d}": None for i in range(edge)}},
-                    "cloud": {"hosts": {f"cloud-{i:02d}": None for i in range(cloud)}},
-                }
-            }
-        },
-        "group_vars/all.yml": {
-            "kuberos_default_latency_ms": {"onboard": 0, "edge": 5, "cloud": 40},
-            "ansible_connection": "local",
-            "ansible_python_interpreter": "{{ ansible_playbook_python }}",
-        },
-        "group_vars/robots.yml": {
-            "kuberos_fleet": FLEET,
-            "kuberos_cpu": 4,
-            "kuberos_memory": "8Gi",
-            "kuberos_gpu": 0,
-            "kuberos_arch": "amd64",
-            "kuberos_devices": ["camera", "gripper"],
-        },
-        "group_vars/edge.yml": {
-            "kuberos_cpu": 32,
-            "kuberos_memory": "64Gi",
-            "kuberos_pods": 110,
-            "kuberos_resource_group": "bench-site",
-        },
-        "group_vars/cloud.yml": {
-            "kuberos_cpu": 64,
-            "kuberos_memory": "128Gi",
-            "kuberos_pods": 110,
-            "kuberos_resource_group": "bench-cloud",
-        },
-    }
-    for name, data in files.items():
-        (directory / name).write_text("---\n" + json.dumps(data, indent=2) + "\n")  # JSON is YAML
-    return directory
+    """bench_deploy's inventory with this benchmark's node counts and no GPUs."""
+    return write_deploy_inventory(directory, robots, edge, cloud, gpus=False)
 
 
 # -- the cluster and the controller ---------------------------------------------------------

@@ -76,16 +76,17 @@ RECAP = re.compile(r"^(\S+)\s+: ok=\d+\s+changed=\d+\s+unreachable=(\d+)\s+faile
 
 
 # -- inputs --------------------------------------------------------------------------------
-def write_inventory(directory: Path, robots: int) -> Path:
-    """An Ansible YAML inventory: N robots in one fleet, 20 edge and 10 cloud nodes, all local."""
+def write_inventory(directory: Path, robots: int, edge: int = EDGE_NODES, cloud: int = CLOUD_NODES, gpus: bool = True) -> Path:
+    """An Ansible YAML inventory: N robots in one fleet, edge (every 4th with 2 GPUs) and cloud nodes (the first 4
+    with 8 GPUs; no GPUs with ``gpus=False``), all local."""
     group_vars = directory / "group_vars"
     group_vars.mkdir(parents=True)
     hosts = {
         "all": {
             "children": {
                 "robots": {"hosts": {f"robot-{i:03d}": None for i in range(robots)}},
-                "edge": {"hosts": {f"edge-{i:02d}": ({"kuberos_gpu": 2} if i % 4 == 0 else None) for i in range(EDGE_NODES)}},
-                "cloud": {"hosts": {f"cloud-{i:02d}": ({"kuberos_gpu": 8} if i < 4 else None) for i in range(CLOUD_NODES)}},
+                "edge": {"hosts": {f"edge-{i:02d}": ({"kuberos_gpu": 2} if gpus and i % 4 == 0 else None) for i in range(edge)}},
+                "cloud": {"hosts": {f"cloud-{i:02d}": ({"kuberos_gpu": 8} if gpus and i < 4 else None) for i in range(cloud)}},
             }
         }
     }
