@@ -23,7 +23,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.bu
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.envelope import (
     METHOD,
     PROTOCOL,
-    RELIABLE,
     FrameError,
     Qos,
     batch_frame,
@@ -44,10 +43,11 @@ LINGER = 0.001  # seconds a frame waits for more messages when frames follow eac
 LINGER_WHEN_WITHIN = 0.002  # "closely": the previous frame was written less than this many seconds ago
 LINGER_BELOW = 64  # a batch of this many messages already is sent at once
 LOG_EVERY = 10.0  # seconds between repeated log lines of one kind
-MATCH_WAIT = 2.0  # seconds a new publisher waits for the topic's subscribers to match it
-MATCH_GRACE = 1.0  # and then for them to have matched it in turn
-BACKLOG_NS = 500_000_000  # a message that waited longer than this in the sender's buffer is backlog of an outage
-ACK_WAIT = 0.2  # seconds a burst waits, every depth messages of a reliable topic, for the subscribers' acknowledgements
+MATCH_WAIT = 3.0  # seconds a new publisher waits for the topic's subscribers to match it
+MATCH_GRACE = 2.0  # and then for them to have matched it in turn (discovery through a server takes a while)
+BACKLOG_NS = 500_000_000  # a message taken from ROS by the peer longer ago than this is backlog
+REPLAY_SPEEDUP = 2.0  # a backlog is published at twice the pace the peer took it from ROS
+MAX_REPLAY_GAP = 1.0  # seconds between two backlog messages at most
 GRAPH_SETTLE = 3.0  # seconds after the node started during which the graph may not know every subscriber yet
 PROBE_WORDS = ("socket closed", "connection reset", "end of file", "eof")  # a TLS 1.3 refusal, seen by gRPC
 TLS_WORDS = ("ssl", "tls", "handshake", "certificate", "x509", "alert", "peer did not return a certificate")
@@ -75,6 +75,7 @@ def grpc_options(settings: Settings) -> list[tuple[str, int]]:
         ("grpc.http2.max_pings_without_data", 0),
         ("grpc.http2.min_recv_ping_interval_without_data_ms", 5000),
         ("grpc.http2.max_ping_strikes", 0),  # the peer is authenticated; never answer its keepalive with GOAWAY
+        ("grpc.http2.lookahead_bytes", 8 << 20),  # receive window: a 1 MB message should not wait for window updates
     ]
 
 
@@ -140,7 +141,7 @@ class Bridge:
         self._wake: asyncio.Event | None = None
         self._sequences = {name: 0 for name in self.topics}
         self._peer_sequences: dict[str, int] = {}
-        self._burst: dict[str, int] = {}  # topic -> messages published since the last acknowledgement wait
+        self._replays: dict[str, tuple[float, int]] = {}  # topic -> (local time, peer's take time) of a backlog's start
         self._limited = RateLimitedLog()
         self._outage_logged = False
         self.metrics.set("kuberos_bridge_connected", 0)
@@ -331,7 +332,6 @@ class Bridge:
                     logging.ERROR, "hello again", "unexpected Hello from %s in the middle of a session ignored", self.peer
                 )
                 continue
-            self._burst.clear()
             for envelope in frame.batch.envelopes:
                 await self.deliver(envelope)
 
@@ -368,18 +368,27 @@ class Bridge:
                 return
             await asyncio.sleep(0.01)
 
-    async def _pace(self, topic: Topic, qos: Qos, publisher) -> None:
-        """While the peer flushes its backlog after an outage (messages that waited in its buffer for more than
-        BACKLOG_NS), let reliable subscribers acknowledge every ``depth`` messages (at most ACK_WAIT s): the
-        burst would otherwise overrun the KEEP_LAST history of ``depth`` before a subscriber received it."""
-        count = self._burst.get(topic.name, 0) + 1
-        if count < qos.depth:
-            self._burst[topic.name] = count
+    async def _replay(self, topic: Topic, taken_ns: int) -> None:
+        """Publish a backlog at REPLAY_SPEEDUP times the pace the peer took it from ROS, not all at once.
+
+        A backlog: messages the peer took from ROS more than BACKLOG_NS ago (its buffer after an outage, what queued
+        while a new publisher waited for its subscribers). Published in one burst, it would overrun a subscriber's
+        KEEP_LAST history before the subscriber took the messages; replayed at twice the original pace it cannot
+        overrun a subscriber that kept up with the original publisher, and the backlog still shrinks. Compares the
+        peer's clock with this one (Kubernetes nodes keep theirs synchronized); a skew only changes what counts
+        as backlog, never what is delivered.
+        """
+        now = time.monotonic()
+        anchor = self._replays.get(topic.name)
+        if anchor is None:
+            self._replays[topic.name] = (now, taken_ns)
             return
-        self._burst[topic.name] = 0
-        wait = getattr(self.ros, "wait_acked", None)
-        if wait is not None:
-            await asyncio.to_thread(wait, publisher, ACK_WAIT)
+        local_start, taken_start = anchor
+        due = local_start + (taken_ns - taken_start) / 1e9 / REPLAY_SPEEDUP
+        if due > now:
+            await asyncio.sleep(min(due - now, MAX_REPLAY_GAP))
+        elif now - due > MAX_REPLAY_GAP:  # far behind (this side was slow): restart the replay from here
+            self._replays[topic.name] = (now, taken_ns)
 
     async def deliver(self, envelope) -> bool:
         """Check one Envelope from the peer and publish it in ROS; False (counted, logged) if it was rejected."""
@@ -438,9 +447,11 @@ class Bridge:
             if publisher is None:
                 publisher = await asyncio.wrap_future(self.ros.create_publisher(topic, qos, size))
                 await self._let_subscribers_match(topic, publisher)
+            if time.time_ns() - envelope.received_timestamp_ns > BACKLOG_NS:
+                await self._replay(topic, envelope.received_timestamp_ns)
+            else:
+                self._replays.pop(topic.name, None)
             publisher.publish(envelope.cdr)
-            if qos.reliability == RELIABLE and envelope.sent_timestamp_ns - envelope.received_timestamp_ns > BACKLOG_NS:
-                await self._pace(topic, qos, publisher)
         except Exception as error:
             self._reject(envelope, topic.name, topic.direction, "publish_failed", describe(error))
             return False

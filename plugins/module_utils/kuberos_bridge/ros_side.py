@@ -142,12 +142,6 @@ class RosSide:
         """(subscriptions matched with publisher, subscriptions of the topic the graph knows of)."""
         return publisher.get_subscription_count(), self.node.count_subscribers(topic.name)
 
-    def wait_acked(self, publisher, seconds: float) -> bool:
-        """Block until every subscriber acknowledged what publisher sent (True), or seconds passed (False)."""
-        from rclpy.duration import Duration
-
-        return publisher.wait_for_all_acked(Duration(nanoseconds=int(seconds * 1e9)))
-
     def alive(self) -> bool:
         return self.thread is not None and self.thread.is_alive()
 
@@ -237,15 +231,21 @@ class RosSide:
             )  # fmt: skip
 
     def _callback(self, topic: Topic, qos: Qos):
+        """The subscription's callback. rclpy passes message info (the publisher's source timestamp) to a callback
+        of two arguments, but Jazzy's EventsExecutor fails on those: with it the source timestamp stays 0."""
         on_message = self.on_message
+        if self.executor_name == "EventsExecutor":
 
-        def callback(cdr, info=None):
-            source = 0
-            if isinstance(info, dict):
-                source = int(info.get("source_timestamp") or 0)
+            def take(cdr):
+                on_message(topic, qos, cdr, 0)
+
+            return take
+
+        def take_with_info(cdr, info):
+            source = int(info.get("source_timestamp") or 0) if isinstance(info, dict) else 0
             on_message(topic, qos, cdr, source)
 
-        return callback
+        return take_with_info
 
     # -- publishing (any thread) -----------------------------------------------------------------
     def publisher(self, topic: Topic, qos: Qos):
