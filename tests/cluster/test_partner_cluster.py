@@ -94,7 +94,7 @@ def test_deploy_places_the_module_in_the_partner_cluster_with_the_bridge_on_both
         service = core.read_namespaced_service(BRIDGE, NAMESPACE)
         assert service.spec.type == "NodePort" and service.spec.ports[0].node_port == 30711
         names = {d.metadata.name for d in apps.list_namespaced_deployment(NAMESPACE).items}
-        assert not any("motion-planner" in n for n in names)
+        assert not any(n.startswith("partner-planning-motion-planner") for n in names), "the planners run in the partner cluster"
         # The partner cluster: the planners (scheduled by its own kube-scheduler), a discovery server, the client.
         remote = {d.metadata.name: d for d in papps.list_namespaced_deployment(NAMESPACE).items}
         assert {"partner-planning-motion-planner-fetch-1", "partner-planning-motion-planner-fetch-2",
