@@ -156,7 +156,7 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
     import os
 
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FLEET
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT, MANAGED_BY
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT, DEPLOYMENT, MANAGED_BY
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import dump_object
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
@@ -165,6 +165,7 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
     for fleet, bridges in sorted(placement.bridges.items()):
         for bridge in bridges:
             folder = os.path.join(dest, "tls", fleet, bridge.cluster)
+            first = next(i.deployment for i in placement.instances if i.cluster == bridge.cluster and i.fleet == fleet)
             files.append({"cluster": "", "bridge": bridge.cluster, "path": os.path.join(folder, "secret-server.yaml")})
             files.append(
                 {"cluster": bridge.cluster, "bridge": bridge.cluster, "path": os.path.join(folder, "secret-client.yaml")}
@@ -191,7 +192,12 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
                     "metadata": {
                         "name": secret_name,
                         "namespace": bridge.namespace,
-                        "labels": {MANAGED_BY: "kuberos", COMPONENT: f"bridge-{side}", FLEET: bridge.fleet},
+                        "labels": {
+                            MANAGED_BY: "kuberos",
+                            COMPONENT: f"bridge-{side}",
+                            FLEET: bridge.fleet,
+                            DEPLOYMENT: first,
+                        },
                     },
                     "data": {"tls.crt": read(cert), "tls.key": read(key), "ca.crt": read("ca.crt")},
                 }

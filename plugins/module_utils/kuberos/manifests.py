@@ -318,15 +318,17 @@ def _ros_env(discovery: str, domain_id: int, fleet: str) -> list[dict]:
 
 
 def _bridge_server_objects(
-    bridge: BridgeServer, topics: list[dict], discovery: str, domain_id: int, options: RenderOptions
+    bridge: BridgeServer, topics: list[dict], discovery: str, first: RosDeployment, options: RenderOptions
 ) -> list[dict]:
+    # Labelled with the first deployment that uses it: undeploying that spec removes the bridge too.
     labels = {
         MANAGED_BY: "kuberos", COMPONENT: "bridge-server", node_labels.FLEET: bridge.fleet, INSTANCE: bridge.name,
+        DEPLOYMENT: first.name,
     }  # fmt: skip
     args = ["server", "--listen", f"0.0.0.0:{naming.BRIDGE_PORT}", *_tls_args()]
     deployment = _bridge_deployment(
         bridge.name, bridge.namespace, labels, _selector_and_tolerations(bridge.node, bridge.tier, None), args,
-        _ros_env(discovery, domain_id, bridge.fleet), options,
+        _ros_env(discovery, first.ros_domain_id, bridge.fleet), options,
     )  # fmt: skip
     deployment["metadata"]["annotations"] = {
         REASON_ANNOTATION: bridge.reason, TIER_ANNOTATION: bridge.tier, CLUSTER_ANNOTATION: bridge.cluster,
@@ -443,7 +445,7 @@ def render_deployment(deployments: list[RosDeployment], placement: Placement, op
         for bridge in bridges:
             first = next(by_name[i.deployment] for i in placement.instances if i.cluster == bridge.cluster and i.fleet == fleet)
             topics = bridge_topics(deployments, placement, fleet, bridge.cluster)
-            objects.extend(_bridge_server_objects(bridge, topics, addresses[fleet], first.ros_domain_id, options))
+            objects.extend(_bridge_server_objects(bridge, topics, addresses[fleet], first, options))
     for inst in placement.instances:
         if inst.cluster:
             continue  # rendered for its cluster by render_remote
