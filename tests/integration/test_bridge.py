@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -24,7 +23,7 @@ import time
 
 import pytest
 from helpers import ROOT
-from test_discovery_netns import Lab, Process, Processes, require_ros, run
+from test_discovery_netns import Lab, Process, Processes, open_lab, require_ros
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge import generate_certificates
 
@@ -50,17 +49,7 @@ topics:
 
 @pytest.fixture(scope="module")
 def lab(request) -> Lab:
-    if os.geteuid() != 0:
-        pytest.skip("network namespaces need root")
-    if not shutil.which("ip") or not shutil.which("bridge") or run("ip", "netns", "list", check=False).returncode != 0:
-        pytest.skip("`ip netns` (iproute2) is not available")
-    lab = Lab()
-    request.addfinalizer(lab.close)
-    try:
-        lab.create_bridge()
-        lab.add("a")
-    except RuntimeError as error:
-        pytest.skip(f"`ip netns` is not usable here: {error}")
+    lab = open_lab(request, "a")
     lab.add("b")
     return lab
 

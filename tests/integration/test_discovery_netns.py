@@ -236,8 +236,8 @@ class Lab:
                 pass  # something else put a namespace's files there meanwhile
 
 
-@pytest.fixture(scope="module")
-def lab(request, rendered) -> Lab:
+def open_lab(request, first: str) -> Lab:
+    """A Lab with its bridge and a first namespace, closed at the end; skips where namespaces cannot be made."""
     if os.geteuid() != 0:
         pytest.skip("network namespaces need root")
     if not shutil.which("ip") or not shutil.which("bridge") or run("ip", "netns", "list", check=False).returncode != 0:
@@ -246,9 +246,15 @@ def lab(request, rendered) -> Lab:
     request.addfinalizer(lab.close)
     try:
         lab.create_bridge()
-        lab.add("ds0")
+        lab.add(first)
     except RuntimeError as error:
         pytest.skip(f"`ip netns` is not usable here: {error}")
+    return lab
+
+
+@pytest.fixture(scope="module")
+def lab(request, rendered) -> Lab:
+    lab = open_lab(request, "ds0")
     for role in ("ds1", "talk", "listen", "late"):
         lab.add(role)
     # ROS_DISCOVERY_SERVER's names resolve to the namespaces running the Deployments they name.
