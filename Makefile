@@ -16,7 +16,7 @@ setup:
 
 ## Build the control plane from the Go module proxy, once (cached by version outside the repo).
 binaries: setup
-	@$(BUILD_ENV) SKIP_KUBECTL=$(if $(WITH_KUBECTL),0,1) roles/local_cluster/files/build-binaries.sh
+	@$(BUILD_ENV) SKIP_KUBECTL=$(if $(WITH_KUBECTL),0,1) SKIP_KUBEADM=$(if $(WITH_KUBEADM),0,1) roles/local_cluster/files/build-binaries.sh
 
 ## Start the local cluster (a real control plane, kwok nodes from inventories/local).
 cluster: binaries
@@ -41,8 +41,9 @@ controller-stop: setup
 status: setup
 	$(VENV)/ansible-playbook playbooks/status.yml -i inventories/local
 
-## Lint and every test (the cluster tests start their own control plane).
-test: binaries
+## Lint and every test (the cluster tests start their own control plane; the cluster setup roles' tests need kubeadm).
+test: setup
+	$(MAKE) binaries WITH_KUBEADM=1
 	$(VENV)/python -m pytest
 
 unit: setup

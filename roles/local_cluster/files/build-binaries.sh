@@ -15,8 +15,8 @@ usage() {
   cat <<EOF
 Usage: $SCRIPT_NAME [--print-paths] [--help]
 
-Build kube-apiserver, kube-controller-manager, kube-scheduler, kubectl, etcd and
-kwok from the Go module proxy into a version-keyed cache. Programs already in the
+Build kube-apiserver, kube-controller-manager, kube-scheduler, kubectl, kubeadm,
+etcd and kwok from the Go module proxy into a version-keyed cache. Programs already in the
 cache (and answering --version with the expected version) are not rebuilt.
 
 Options:
@@ -30,6 +30,8 @@ Environment (defaults in brackets):
   ETCD_VERSION         go.etcd.io/etcd/server/v3 release      [v3.5.35]
   KWOK_VERSION         sigs.k8s.io/kwok release               [v0.8.0]
   SKIP_KUBECTL=1       do not build (or require) kubectl      [0]
+  SKIP_KUBEADM=1       do not build (or require) kubeadm      [0]
+                       (kubeadm: the cluster setup roles' config checks and tests)
   KUBEROS_CACHE_DIR    cache root                  [\$HOME/.cache/kuberos]
   KUBEROS_BUILD_JOBS   go build -p value                      [2]
   GO                   go command                 [go on PATH, else /usr/local/go/bin/go]
@@ -46,6 +48,7 @@ KUBERNETES_VERSION=${KUBERNETES_VERSION:-v1.34.4}
 ETCD_VERSION=${ETCD_VERSION:-v3.5.35}
 KWOK_VERSION=${KWOK_VERSION:-v0.8.0}
 SKIP_KUBECTL=${SKIP_KUBECTL:-0}
+SKIP_KUBEADM=${SKIP_KUBEADM:-0}
 BUILD_JOBS=${KUBEROS_BUILD_JOBS:-2}
 PRINT_PATHS=${KUBEROS_PRINT_PATHS:-0}
 
@@ -79,6 +82,7 @@ STAGING_VERSION="v0.${KUBERNETES_VERSION#v1.}"   # v1.34.4 -> v0.34.4
 
 K8S_PROGRAMS=(kube-apiserver kube-controller-manager kube-scheduler)
 [[ $SKIP_KUBECTL == 1 ]] || K8S_PROGRAMS+=(kubectl)
+[[ $SKIP_KUBEADM == 1 ]] || K8S_PROGRAMS+=(kubeadm)
 PROGRAMS=("${K8S_PROGRAMS[@]}" etcd kwok)
 
 version_of() {
@@ -97,6 +101,8 @@ binary_ok() {
   case $name in
     kubectl) out=$(timeout 60 "$file" version --client 2>&1) || return 1
              want="Client Version: $KUBERNETES_VERSION" ;;
+    kubeadm) out=$(timeout 60 "$file" version -o short 2>&1) || return 1
+             want="$KUBERNETES_VERSION" ;;
     etcd) out=$(timeout 60 "$file" --version 2>&1) || return 1
           want="etcd Version: ${ETCD_VERSION#v}" ;;
     kwok) out=$(timeout 60 "$file" --version 2>&1) || return 1
