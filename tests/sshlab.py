@@ -62,6 +62,9 @@ for node in null zero full random urandom tty; do
   touch "$dev/$node"
   mount --bind "/dev/$node" "$dev/$node"
 done
+if [ -c /dev/net/tun ]; then  # TUN devices: wireguard-go
+  mkdir "$dev/net"; touch "$dev/net/tun"; mount --bind /dev/net/tun "$dev/net/tun"
+fi
 mkdir "$dev/pts" "$dev/shm"
 mount -t devpts -o newinstance,ptmxmode=0666,mode=0620 devpts "$dev/pts"
 ln -s pts/ptmx "$dev/ptmx"
@@ -352,6 +355,29 @@ class SSHLab:
         host = self.hosts[name]
         options = ["-o", f"UserKnownHostsFile={self.known_hosts}", "-o", "StrictHostKeyChecking=yes", "-o", "BatchMode=yes"]
         return run("ssh", *options, "-i", self.admin_key, f"root@{host.address}", *command, check=check, timeout=timeout)
+
+    def replace_host_key(self, name: str, timeout: float = 15) -> str:
+        """Give a host a new ed25519 host key (as a reinstall, or an impostor, would), reload its sshd, wait until
+        it presents the new key; the lab's own known_hosts follows. Returns the new ``ssh-ed25519 AAAA...``."""
+        host = self.hosts[name]
+        key = os.path.join(host.home, "etc", "ssh", "ssh_host_ed25519_key")
+        for old in (key, key + ".pub"):
+            os.remove(old)
+        run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", f"root@{host.name}", "-f", key)
+        with open(key + ".pub", encoding="utf-8") as handle:
+            host.host_key = " ".join(handle.read().split()[:2])
+        os.kill(sshd_pid(host.pid), signal.SIGHUP)  # sshd re-executes itself and reads its host keys again
+        deadline = time.monotonic() + timeout
+        while True:
+            scan = run("ssh-keyscan", "-T", "2", "-t", "ed25519", host.address, check=False).stdout
+            if host.host_key in scan:
+                break
+            if time.monotonic() > deadline:
+                raise LabError(f"sshd of {name} did not present its new host key within {timeout:.0f} s")
+            time.sleep(0.2)
+        self.write_known_hosts()
+        self.save()
+        return host.host_key
 
     def path(self, name: str, inside: str) -> str:
         """Where a path of a host's private /etc or /root/.ssh is, seen from this machine."""
