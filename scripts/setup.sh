@@ -34,6 +34,10 @@ command -v ping >/dev/null 2>&1 || missing+=(iputils-ping)
 command -v ssh >/dev/null 2>&1 || missing+=(openssh-client)
 command -v wg >/dev/null 2>&1 || missing+=(wireguard-tools)
 command -v wireguard-go >/dev/null 2>&1 || missing+=(wireguard-go)
+# node_prereqs' packages: the role's test hosts have no route to package mirrors, so they are installed here.
+for package in containerd runc conntrack socat iptables ethtool gpg; do
+  dpkg-query -W -f '${Status}' "$package" 2>/dev/null | grep -q 'install ok installed' || missing+=("$package")
+done
 if [ ${#missing[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "setup: installing ${missing[*]} (network namespace and latency probe tests)"

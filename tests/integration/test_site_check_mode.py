@@ -1,0 +1,169 @@
+"""playbooks/site.yml --check --diff over a whole site of SSH hosts: nothing changes, every config is validated.
+
+The site: two edge servers running the control plane (HA; edge-1 also the VPN gateway), a robot and a cloud
+VM, each a network namespace with a real sshd and its own /etc (tests/sshlab.py). The play runs every role
+of the cluster setup in check mode over SSH, as an infrastructure engineer would before the first real run:
+node_prereqs, wireguard, kubeadm_init (the first control plane and a joining one), kubeadm_join (the robot and
+the cloud VM), then stops before Calico and the labels because no cluster exists yet. The real kubeadm (built
+from the Go module proxy, the same program the kubeadm tests use) validates every host's rendered
+configuration on the host. Checked: no failure, each host's configuration validated by kubeadm, nothing
+written on any host (every file of every host's /etc hashed before and after), no secret on the output.
+kubeadm init and join themselves cannot run here (no kubelet, no container runtime): see the kubeadm roles'
+READMEs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+
+import pytest
+import yaml
+from helpers import ROOT, venv_tool
+from sshlab import HostSpec, open_ssh_lab
+
+BUILD = os.path.join(ROOT, "roles", "local_cluster", "files", "build-binaries.sh")
+SITE = [
+    HostSpec("edge-1", "edge"),
+    HostSpec("edge-2", "edge"),
+    HostSpec("fetch-1", "robot", ["video0"]),
+    HostSpec("cloud-1", "cloud"),
+]
+MACHINE = {"kuberos_cpu": 4, "kuberos_memory": "8Gi"}
+
+
+def built_kubeadm() -> str:
+    result = subprocess.run(
+        [BUILD, "--print-paths"], env={**os.environ, "SKIP_KUBECTL": "1"}, capture_output=True, text=True, timeout=60
+    )
+    paths = dict(line.split("=", 1) for line in result.stdout.splitlines() if "=" in line)
+    path = paths.get("kubeadm", "")
+    if not path or not os.access(path, os.X_OK):
+        message = f"kubeadm is not built ({path or 'no path printed'}): run {BUILD} (make test does)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
+@pytest.fixture(scope="module")
+def site(request, tmp_path_factory):
+    kubeadm = built_kubeadm()
+    lab = open_ssh_lab(request, tmp_path_factory, SITE)
+    address = {name: host.address for name, host in lab.hosts.items()}
+
+    def host(name, **extra):
+        return {"ansible_host": address[name], "kuberos_address": address[name], **MACHINE, **extra}
+
+    inventory = {
+        "all": {
+            "vars": {
+                **lab.connection_vars(),
+                "kuberos_kubeconfig": str(tmp_path_factory.mktemp("admin") / "admin.conf"),
+                "kubeadm_init_kubeadm_path": kubeadm,
+                "kubeadm_join_kubeadm_path": kubeadm,
+                # The lab hosts share this machine's kernel and have no route to package mirrors.
+                "node_prereqs_load_modules": False,
+                "node_prereqs_apt_update_cache": False,
+                "node_prereqs_kubernetes_repo_url": "",
+                "wireguard_hub_routed_networks": [f"{lab.subnet}.0/24"],
+            },
+            "children": {
+                "robots": {"hosts": {"fetch-1": host("fetch-1", kuberos_fleet="test-fleet", kuberos_devices=["camera"])}},
+                "edge": {"hosts": {"edge-1": host("edge-1", kuberos_vpn_address="10.100.0.1"), "edge-2": host("edge-2")}},
+                "cloud": {"hosts": {"cloud-1": host("cloud-1", kuberos_vpn_address="10.100.0.11", kuberos_gpu=1)}},
+                "control_plane": {"hosts": {"edge-1": {}, "edge-2": {}}},
+                "vpn_gateway": {"hosts": {"edge-1": {}}},
+            },
+        }
+    }
+    path = tmp_path_factory.mktemp("site") / "hosts.yml"
+    path.write_text(yaml.safe_dump(inventory, sort_keys=False))
+    return lab, str(path)
+
+
+def etc_digest(lab, name) -> dict[str, str]:
+    """Every file of a host's private /etc (and /root/.ssh) by path -> sha256."""
+    digests = {}
+    home = lab.hosts[name].home
+    for top in ("etc", "root-ssh"):
+        for directory, _dirs, files in os.walk(os.path.join(home, top)):
+            for file in files:
+                full = os.path.join(directory, file)
+                if os.path.islink(full) or not os.path.isfile(full):
+                    continue
+                with open(full, "rb") as handle:
+                    digests[os.path.relpath(full, home)] = hashlib.sha256(handle.read()).hexdigest()
+    return digests
+
+
+def run_site(inventory: str, *extra: str) -> tuple[subprocess.CompletedProcess, dict]:
+    env = {
+        **os.environ, "ANSIBLE_CONFIG": os.path.join(ROOT, "ansible.cfg"), "ANSIBLE_STDOUT_CALLBACK": "ansible.posix.json",
+        "ANSIBLE_NOCOLOR": "1",
+    }  # fmt: skip
+    command = [venv_tool("ansible-playbook"), "playbooks/site.yml", "-i", inventory, *extra]
+    done = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
+    try:
+        report = json.loads(done.stdout)
+    except json.JSONDecodeError:
+        pytest.fail(f"site.yml printed no JSON report (exit {done.returncode}):\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    return done, report
+
+
+def task_hosts(report: dict, role: str, name: str) -> dict[str, dict]:
+    """host -> result of the task ``<role> : <name>`` (as the JSON callback names role tasks)."""
+    found = {}
+    for play in report["plays"]:
+        for task in play["tasks"]:
+            if task["task"]["name"] in (name, f"{role} : {name}", f"kuberos.platform.{role} : {name}"):
+                found.update(task["hosts"])
+    return found
+
+
+def failures(report: dict) -> list[str]:
+    """Each failed or unreachable task result: play, task, host and message."""
+    found = []
+    for play in report["plays"]:
+        for task in play["tasks"]:
+            for host, result in task["hosts"].items():
+                if result.get("failed") or result.get("unreachable"):
+                    message = result.get("msg") or result.get("stderr") or ""
+                    found.append(f"{play['play']['name']} / {task['task']['name']} / {host}: {str(message)[:500]}")
+    return found
+
+
+def test_site_check_mode_changes_nothing_and_validates_every_config(site):
+    lab, inventory = site
+    before = {name: etc_digest(lab, name) for name in lab.hosts}
+    done, report = run_site(inventory, "--check", "--diff")
+    stats = report["stats"]
+    assert done.returncode == 0, "\n".join(failures(report)) or done.stderr[-3000:]
+    for name in lab.hosts:
+        assert stats[name]["failures"] == 0 and stats[name]["unreachable"] == 0, (name, stats[name])
+
+    # kubeadm validated each control plane's and each worker's configuration on the host itself.
+    init = task_hosts(report, "kubeadm_init", "Validate the configuration with kubeadm")
+    join = task_hosts(report, "kubeadm_join", "Validate the configuration with kubeadm")
+    for name, results in (("edge-1", init), ("edge-2", init), ("fetch-1", join), ("cloud-1", join)):
+        result = results.get(name)
+        assert result and not result.get("skipped") and result.get("rc") == 0, (name, result)
+
+    # What the control planes would write: edge-1 initialises, edge-2 joins as a control plane (secrets not made).
+    plans = task_hosts(report, "kubeadm_init", "Render this control plane's kubeadm configuration (join secrets as placeholders)")
+    assert plans["edge-1"]["ansible_facts"]["kubeadm_init__plan"]["action"] == "init"
+    assert plans["edge-2"]["ansible_facts"]["kubeadm_init__plan"]["action"] != "init"
+    worker = task_hosts(report, "kubeadm_join", "Render this worker's kubeadm configuration (join secrets as placeholders)")
+    cloud = worker["cloud-1"]["ansible_facts"]["kubeadm_join__plan"]["content"]
+    assert "node-ip" in cloud and "10.100.0.11" in cloud, cloud  # the cloud VM registers with its tunnel address
+    robot = worker["fetch-1"]["ansible_facts"]["kubeadm_join__plan"]["content"]
+    assert "kuberos.io/robot" in robot and "NoSchedule" in robot, robot  # robots accept only placed modules
+
+    # Nothing was written on any host, and the play stopped before Calico (no cluster yet).
+    after = {name: etc_digest(lab, name) for name in lab.hosts}
+    for name in lab.hosts:
+        changed = sorted(set(before[name].items()) ^ set(after[name].items()))
+        assert not changed, f"check mode changed files on {name}: {changed[:10]}"
+    assert not task_hosts(report, "calico", "Render the manifests")

@@ -1,0 +1,73 @@
+"""Every molecule scenario under molecule/, run as a role developer runs it: ``molecule test -s NAME``.
+
+Each scenario makes its hosts as network namespaces running a real sshd (tests/sshlab.py, through
+molecule/shared/create.yml), converges its role, converges again and requires no change (idempotence),
+asserts real outcomes in its verify.yml, and removes the hosts. The hosts are kept until this test has also
+read the secrets the role made on them (private keys), to check none of them appears in the output.
+Needs root and Debian's openssh-server (skipped locally without them, a failure in CI).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import subprocess
+
+import pytest
+from helpers import ROOT, VENV_BIN
+from sshlab import missing_requirements
+
+pytestmark = pytest.mark.molecule
+
+SCENARIOS = sorted(
+    name
+    for name in os.listdir(os.path.join(ROOT, "molecule"))
+    if os.path.isfile(os.path.join(ROOT, "molecule", name, "molecule.yml"))
+)
+
+
+def molecule(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
+    env = {
+        **os.environ,
+        "PATH": f"{VENV_BIN}:{os.environ.get('PATH', '')}",
+        "ANSIBLE_NOCOLOR": "1",
+        "NO_COLOR": "1",
+        "PY_COLORS": "0",
+    }
+    env.pop("ANSIBLE_CONFIG", None)  # molecule writes its own
+    return subprocess.run(
+        [os.path.join(VENV_BIN, "molecule"), *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def lab_secrets(scenario: str) -> list[str]:
+    """The private keys the scenario's roles generated on its hosts (WireGuard keys)."""
+    found = []
+    pattern = os.path.expanduser(f"~/.ansible/tmp/molecule.*.{scenario}/lab/hosts/*/etc/wireguard/*.key")
+    for path in glob.glob(pattern):
+        with open(path, encoding="utf-8") as handle:
+            found.append(handle.read().strip())
+    return found
+
+
+def test_there_are_scenarios():
+    assert {"wireguard"} <= set(SCENARIOS), SCENARIOS
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_scenario(scenario):
+    problems = missing_requirements()
+    if problems:
+        if os.environ.get("CI"):
+            pytest.fail("molecule scenarios need SSH lab hosts in CI; missing: " + ", ".join(problems))
+        pytest.skip("molecule scenarios need: " + ", ".join(problems))
+    try:
+        done = molecule("test", "-s", scenario, "--destroy", "never")
+        output = done.stdout + done.stderr
+        assert done.returncode == 0, f"molecule test -s {scenario} exited {done.returncode}:\n{output[-6000:]}"
+        assert f"{scenario} ➜ idempotence: Executed: Successful" in output, output[-3000:]
+        assert f"{scenario} ➜ verify: Executed: Successful" in output, output[-3000:]
+        for secret in lab_secrets(scenario):
+            assert secret not in output, f"a private key made by scenario {scenario} appears in molecule's output"
+    finally:
+        molecule("destroy", "-s", scenario, timeout=300)
