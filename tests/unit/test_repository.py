@@ -42,7 +42,8 @@ def test_role_readme_lists_every_default(role):
 def test_inventory_variables_are_documented():
     with open(os.path.join(ROOT, "docs", "inventory.md"), encoding="utf-8") as handle:
         doc = handle.read()
-    source = open(os.path.join(ROOT, "plugins", "module_utils", "kuberos", "inventory.py"), encoding="utf-8").read()
+    core = os.path.join(ROOT, "plugins", "module_utils", "kuberos")
+    source = "".join(open(os.path.join(core, name), encoding="utf-8").read() for name in ("inventory.py", "kubeadm_config.py"))
     import re
 
     variables = sorted(set(re.findall(r'"(kuberos_[a-z_]+)"', source)))
