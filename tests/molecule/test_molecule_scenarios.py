@@ -51,7 +51,7 @@ def lab_secrets(scenario: str) -> list[str]:
 
 
 def test_there_are_scenarios():
-    assert {"wireguard"} <= set(SCENARIOS), SCENARIOS
+    assert {"wireguard", "node_prereqs", "robot_register"} <= set(SCENARIOS), SCENARIOS
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS)
