@@ -48,6 +48,23 @@ def playbook(name, *extra, inventory="inventories/local", timeout=1800):
     return result
 
 
+def built_kubeadm() -> str:
+    """The kubeadm program of the cache; CI builds it (make test), so there a missing one fails the test."""
+    import pytest
+
+    build = os.path.join(ROOT, "roles", "local_cluster", "files", "build-binaries.sh")
+    env = {**os.environ, "SKIP_KUBECTL": "1"}
+    result = subprocess.run([build, "--print-paths"], env=env, capture_output=True, text=True, timeout=60)
+    paths = dict(line.split("=", 1) for line in result.stdout.splitlines() if "=" in line)
+    path = paths.get("kubeadm", "")
+    if not path or not os.access(path, os.X_OK):
+        message = f"kubeadm is not built ({path or 'no path printed'}): run {build} (make test does)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
 TEST_PORTS = {
     "apiserver": 26443,
     "etcd_client": 22379,

@@ -46,20 +46,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory
     TIER_GROUPS,
     load_inventory,
 )
-
-
-def _plain(value):
-    """Builtin types only, so the result serialises anywhere."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, bool) or value is None:
-        return value
-    for kind in (int, float, str):
-        if isinstance(value, kind):
-            return kind(value)
-    return str(value)
+from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import plain
 
 
 @reports_kuberos_errors
@@ -71,7 +58,7 @@ def fleet_inventory(groups, hostvars):
     defaults = {}
     for host in sorted({h for names in members.values() for h in names}):
         host_vars = hostvars[host]
-        hosts[host] = {key: _plain(host_vars[key]) for key in HOST_VARS if key in host_vars}
+        hosts[host] = {key: plain(host_vars[key]) for key in HOST_VARS if key in host_vars}
         defaults = hosts[host].pop("kuberos_default_latency_ms", defaults) or defaults
     raw = {"hosts": hosts, "groups": members, "default_latency_ms": defaults}
     load_inventory(raw)  # validates: every problem named by host and variable

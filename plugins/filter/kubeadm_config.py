@@ -142,22 +142,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors imp
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import kubeadm_config as core
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import plain
 
 _SETTINGS = ("kubernetes_version", "pod_cidr", "service_cidr", "control_plane_endpoint", "cri_socket", "bind_port")
-
-
-def _plain(value):
-    """Builtin types only (Ansible hands over tagged subclasses, which YAML cannot represent)."""
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, bool) or value is None:
-        return value
-    for kind in (int, float, str):
-        if isinstance(value, kind):
-            return kind(value)
-    return str(value)
 
 
 def _address(variables) -> str | None:
@@ -177,8 +164,8 @@ def kubeadm_config(raw, hostvars, host, control_planes, extra_labels=None, join_
     addresses = {}
     for name in node_names:
         variables = hostvars[name]
-        addresses[name] = {"address": _address(variables) or name, "vpn_address": _plain(variables.get("kuberos_vpn_address"))}
-    settings = _plain(settings)
+        addresses[name] = {"address": _address(variables) or name, "vpn_address": plain(variables.get("kuberos_vpn_address"))}
+    settings = plain(settings)
     if isinstance(settings.get("bind_port"), str) and settings["bind_port"].isdigit():
         settings["bind_port"] = int(settings["bind_port"])
     return core.kubeadm_config(
@@ -188,7 +175,7 @@ def kubeadm_config(raw, hostvars, host, control_planes, extra_labels=None, join_
         addresses,
         [str(h) for h in control_planes or []],
         settings={k: v for k, v in settings.items() if v not in (None, "")},
-        extra_labels=_plain(extra_labels or {}),
+        extra_labels=plain(extra_labels or {}),
         join_command=None if join_command in (None, "") else str(join_command),
         certificate_key=None if certificate_key in (None, "") else str(certificate_key),
     )

@@ -20,12 +20,11 @@ import sys
 import pytest
 import yaml
 from cryptography import x509
-from helpers import ROOT, venv_tool
+from helpers import ROOT, built_kubeadm, venv_tool
 
 from ansible_collections.kuberos.platform.plugins.filter.kubeadm_config import kubeadm_config
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.kubeadm_config import to_yaml
 
-BUILD = os.path.join(ROOT, "roles", "local_cluster", "files", "build-binaries.sh")
 ENDPOINT = "k8s.site.example:6443"
 HARDWARE = {"kuberos_cpu": 4, "kuberos_memory": "8Gi"}
 HOSTS = {
@@ -47,18 +46,7 @@ UPLOAD_CERTS = "[upload-certs] Using certificate key:\n" + "cd" * 32 + "\n"
 
 @pytest.fixture(scope="module")
 def kubeadm():
-    """The kubeadm program of the cache; CI builds it (make setup), so there a missing one is a failure."""
-    result = subprocess.run(
-        [BUILD, "--print-paths"], env={**os.environ, "SKIP_KUBECTL": "1"}, capture_output=True, text=True, timeout=60
-    )
-    paths = dict(line.split("=", 1) for line in result.stdout.splitlines() if "=" in line)
-    path = paths.get("kubeadm", "")
-    if not path or not os.access(path, os.X_OK):
-        message = f"kubeadm is not built ({path or 'no path printed'}): run {BUILD} (make setup does)"
-        if os.environ.get("CI") == "true":
-            pytest.fail(message)
-        pytest.skip(message)
-    return path
+    return built_kubeadm()
 
 
 def render(host, layout, **secrets):

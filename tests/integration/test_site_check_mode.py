@@ -21,10 +21,9 @@ import subprocess
 
 import pytest
 import yaml
-from helpers import ROOT, venv_tool
+from helpers import ROOT, built_kubeadm, venv_tool
 from sshlab import HostSpec, open_ssh_lab
 
-BUILD = os.path.join(ROOT, "roles", "local_cluster", "files", "build-binaries.sh")
 SITE = [
     HostSpec("edge-1", "edge"),
     HostSpec("edge-2", "edge"),
@@ -32,20 +31,6 @@ SITE = [
     HostSpec("cloud-1", "cloud"),
 ]
 MACHINE = {"kuberos_cpu": 4, "kuberos_memory": "8Gi"}
-
-
-def built_kubeadm() -> str:
-    result = subprocess.run(
-        [BUILD, "--print-paths"], env={**os.environ, "SKIP_KUBECTL": "1"}, capture_output=True, text=True, timeout=60
-    )
-    paths = dict(line.split("=", 1) for line in result.stdout.splitlines() if "=" in line)
-    path = paths.get("kubeadm", "")
-    if not path or not os.access(path, os.X_OK):
-        message = f"kubeadm is not built ({path or 'no path printed'}): run {BUILD} (make test does)"
-        if os.environ.get("CI"):
-            pytest.fail(message)
-        pytest.skip(message)
-    return path
 
 
 @pytest.fixture(scope="module")
