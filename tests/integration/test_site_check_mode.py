@@ -33,14 +33,15 @@ SITE = [
 MACHINE = {"kuberos_cpu": 4, "kuberos_memory": "8Gi"}
 
 
-@pytest.fixture(scope="module")
-def site(request, tmp_path_factory):
-    kubeadm = built_kubeadm()
-    lab = open_ssh_lab(request, tmp_path_factory, SITE)
+def site_inventory(lab, tmp_path_factory, kubeadm, **changes) -> str:
+    """The lab site's inventory file; ``changes`` maps a host to variables to set (None: remove)."""
     address = {name: host.address for name, host in lab.hosts.items()}
 
     def host(name, **extra):
-        return {"ansible_host": address[name], "kuberos_address": address[name], **MACHINE, **extra}
+        values = {"ansible_host": address[name], "kuberos_address": address[name], **MACHINE, **extra}
+        for key, value in changes.get(name, {}).items():
+            values.pop(key, None) if value is None else values.__setitem__(key, value)
+        return values
 
     inventory = {
         "all": {
@@ -54,6 +55,7 @@ def site(request, tmp_path_factory):
                 "node_prereqs_apt_update_cache": False,
                 "node_prereqs_kubernetes_repo_url": "",
                 "wireguard_hub_routed_networks": [f"{lab.subnet}.0/24"],
+                **changes.get("all", {}),
             },
             "children": {
                 "robots": {"hosts": {"fetch-1": host("fetch-1", kuberos_fleet="test-fleet", kuberos_devices=["camera"])}},
@@ -66,7 +68,14 @@ def site(request, tmp_path_factory):
     }
     path = tmp_path_factory.mktemp("site") / "hosts.yml"
     path.write_text(yaml.safe_dump(inventory, sort_keys=False))
-    return lab, str(path)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def site(request, tmp_path_factory):
+    kubeadm = built_kubeadm()
+    lab = open_ssh_lab(request, tmp_path_factory, SITE)
+    return lab, site_inventory(lab, tmp_path_factory, kubeadm), kubeadm
 
 
 def etc_digest(lab, name) -> dict[str, str]:
@@ -115,13 +124,17 @@ def failures(report: dict) -> list[str]:
         for task in play["tasks"]:
             for host, result in task["hosts"].items():
                 if result.get("failed") or result.get("unreachable"):
-                    message = result.get("msg") or result.get("stderr") or ""
-                    found.append(f"{play['play']['name']} / {task['task']['name']} / {host}: {str(message)[:500]}")
+                    where = f"{play['play']['name']} / {task['task']['name']} / {host}"
+                    items = [r for r in result.get("results", []) if r.get("failed")]
+                    for item in items or [result]:
+                        message = item.get("msg") or item.get("stderr") or ""
+                        label = f" [{item.get('item')}]" if items else ""
+                        found.append(f"{where}{label}: {str(message)[:700]}")
     return found
 
 
 def test_site_check_mode_changes_nothing_and_validates_every_config(site):
-    lab, inventory = site
+    lab, inventory, _kubeadm = site
     before = {name: etc_digest(lab, name) for name in lab.hosts}
     done, report = run_site(inventory, "--check", "--diff")
     stats = report["stats"]
@@ -152,3 +165,22 @@ def test_site_check_mode_changes_nothing_and_validates_every_config(site):
         changed = sorted(set(before[name].items()) ^ set(after[name].items()))
         assert not changed, f"check mode changed files on {name}: {changed[:10]}"
     assert not task_hosts(report, "calico", "Render the manifests")
+
+
+def test_a_bad_inventory_is_refused_before_any_machine_is_touched(site, tmp_path_factory):
+    """A cloud VM without its tunnel address and a malformed pod network: a real run (no --check) stops in the
+    first play, on this machine, naming each host and variable; no task ran on any machine."""
+    lab, _inventory, kubeadm = site
+    inventory = site_inventory(
+        lab, tmp_path_factory, kubeadm, **{"cloud-1": {"kuberos_vpn_address": None}, "all": {"kuberos_pod_cidr": "10.244.0.0/33"}}
+    )
+    before = {name: etc_digest(lab, name) for name in lab.hosts}
+    done, report = run_site(inventory)
+    problems = "\n".join(failures(report))
+    assert done.returncode != 0
+    assert "cloud-1" in problems and "kuberos_vpn_address" in problems, problems
+    assert "10.244.0.0/33" in problems, problems
+    assert "Traceback" not in problems and "Traceback" not in done.stderr
+    assert all(line.startswith("Check the inventory before any machine is touched") for line in failures(report)), problems
+    assert set(report["stats"]) == {"localhost"}, report["stats"]  # no machine was contacted
+    assert {name: etc_digest(lab, name) for name in lab.hosts} == before
