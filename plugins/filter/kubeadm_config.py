@@ -142,16 +142,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors imp
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import kubeadm_config as core
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import plain
+from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import host_address, plain
 
 _SETTINGS = ("kubernetes_version", "pod_cidr", "service_cidr", "control_plane_endpoint", "cri_socket", "bind_port")
-
-
-def _address(variables) -> str | None:
-    for key in ("kuberos_address", "ansible_host"):
-        if variables.get(key) not in (None, ""):
-            return str(variables[key])
-    return None
 
 
 @reports_kuberos_errors
@@ -164,7 +157,7 @@ def kubeadm_config(raw, hostvars, host, control_planes, extra_labels=None, join_
     addresses = {}
     for name in node_names:
         variables = hostvars[name]
-        addresses[name] = {"address": _address(variables) or name, "vpn_address": plain(variables.get("kuberos_vpn_address"))}
+        addresses[name] = {"address": host_address(variables, name), "vpn_address": plain(variables.get("kuberos_vpn_address"))}
     settings = plain(settings)
     if isinstance(settings.get("bind_port"), str) and settings["bind_port"].isdigit():
         settings["bind_port"] = int(settings["bind_port"])

@@ -68,18 +68,11 @@ from ansible.errors import AnsibleFilterError
 from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import did_you_mean
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import host_address
 
 
 def _node_name(raw: dict, host: str) -> str:
     return str(raw["hosts"][host].get("kuberos_node_name", host))
-
-
-def _address(hostvars, host: str) -> str:
-    variables = hostvars[host]
-    for key in ("kuberos_address", "ansible_host"):
-        if key in variables and variables[key] not in (None, ""):
-            return str(variables[key])
-    return host
 
 
 @reports_kuberos_errors
@@ -100,7 +93,7 @@ def rtt_targets(raw, hostvars, robot_host, targets=None):
         node = inventory.nodes[_node_name(raw, host)]
         if not wanted and not node.serves_fleet(own.fleet):
             continue
-        chosen.append({"name": node.name, "host": host, "tier": node.tier, "address": _address(hostvars, host)})
+        chosen.append({"name": node.name, "host": host, "tier": node.tier, "address": host_address(hostvars[host], host)})
     return {"robot": own.robot, "fleet": own.fleet, "node": own.name, "targets": sorted(chosen, key=lambda t: t["name"])}
 
 

@@ -1,4 +1,4 @@
-"""Ansible's values as builtin types: filters return these, so the result serialises anywhere."""
+"""Host variables as the filters read them: builtin types only, and a host's address."""
 
 from __future__ import annotations
 
@@ -15,3 +15,11 @@ def plain(value):
         if isinstance(value, kind):
             return kind(value)
     return str(value)
+
+
+def host_address(variables, host: str) -> str:
+    """How the site reaches a host: its ``kuberos_address``, else ``ansible_host``, else its inventory name."""
+    for key in ("kuberos_address", "ansible_host"):
+        if variables.get(key) not in (None, ""):
+            return str(variables[key])
+    return str(host)
