@@ -30,6 +30,7 @@ import yaml
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import read_text
 
 try:
     import paramiko
@@ -294,14 +295,6 @@ def registered_text(existing: str | None, robot: str, path: str) -> str:
 
 
 # --- files ------------------------------------------------------------------------------------------------------
-
-
-def read_text(path: str) -> str | None:
-    try:
-        with open(path, encoding="utf-8") as handle:
-            return handle.read()
-    except FileNotFoundError:
-        return None
 
 
 def write_atomically(path: str, text: str, mode: int = 0o644) -> None:

@@ -75,7 +75,8 @@ class RenderDirError(Exception):
     pass
 
 
-def _read(path: str) -> str | None:
+def read_text(path: str) -> str | None:
+    """A text file's content, or None when there is no such file."""
     try:
         with open(path, encoding="utf-8") as handle:
             return handle.read()
@@ -109,7 +110,7 @@ def plan_render_dir(
         plan.files["placement.svg"] = picture
     plan.files[MARKER] = "Rendered by the kuberos.platform collection; files here are replaced on every render.\n"
     for rel, text in sorted(plan.files.items()):
-        current = _read(os.path.join(root, rel))
+        current = read_text(os.path.join(root, rel))
         if current is None:
             plan.created.append(rel)
         elif current != text:
@@ -121,7 +122,7 @@ def plan_render_dir(
                 rel = os.path.relpath(os.path.join(dirpath, name), root)
                 if rel not in plan.files:
                     plan.removed.append(rel)
-                    plan.before[rel] = _read(os.path.join(root, rel)) or ""
+                    plan.before[rel] = read_text(os.path.join(root, rel)) or ""
     plan.removed.sort()
     return plan
 
