@@ -14,11 +14,11 @@ import json
 import os
 import secrets
 import shutil
-import subprocess
 
 import pytest
 import yaml
 from helpers import playbook
+from sshlab import run
 
 pytestmark = pytest.mark.cluster
 
@@ -26,13 +26,6 @@ SUBNET = "10.213.8"  # exists only inside the two namespaces this module creates
 ROBOT_ADDRESS, EDGE_ADDRESS, NOBODY_ADDRESS = f"{SUBNET}.1", f"{SUBNET}.2", f"{SUBNET}.3"
 ANNOTATION = "kuberos.io/rtt-ms"
 ROBOT = "fetch-2"  # a robot node of the test cluster (inventories/local)
-
-
-def run(*command: str, check: bool = True) -> subprocess.CompletedProcess:
-    done = subprocess.run(command, capture_output=True, text=True, timeout=30)
-    if check and done.returncode != 0:
-        raise RuntimeError(f"{' '.join(command)} exited {done.returncode}: {done.stderr.strip()}")
-    return done
 
 
 @pytest.fixture

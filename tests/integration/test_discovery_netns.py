@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import pytest
 from helpers import ROOT
+from sshlab import run
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, scheduler, spec
 
@@ -166,13 +167,6 @@ def module_env(rendered: Rendered, module: str, robot: str) -> dict[str, str]:
 
 
 # --- network namespaces -----------------------------------------------------------------------------------
-
-
-def run(*command: str, check: bool = True) -> subprocess.CompletedProcess:
-    done = subprocess.run(command, capture_output=True, text=True, timeout=30)
-    if check and done.returncode != 0:
-        raise RuntimeError(f"{' '.join(command)} exited {done.returncode}: {done.stderr.strip()}")
-    return done
 
 
 @dataclass
