@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One-time set-up of a checkout: a Python 3.11 virtualenv with every pinned dependency (requirements.txt,
-# and requirements-ros.txt: ROS 2 from PyPI for the discovery tests), and the
+# requirements-ros.txt: ROS 2 from PyPI for the discovery tests, requirements-sim.txt: the simulator), and the
 # link that lets Ansible find this checkout as the kuberos.platform collection. Idempotent.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -13,7 +13,7 @@ command -v "$PYTHON" >/dev/null 2>&1 || PYTHON=python3
 }
 
 stamp=.venv/.requirements.sha256
-want=$(cat requirements.txt requirements-ros.txt | sha256sum | cut -d' ' -f1)
+want=$(cat requirements.txt requirements-ros.txt requirements-sim.txt | sha256sum | cut -d' ' -f1)
 if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "setup: installing Python dependencies into .venv (first time: a few minutes)"
   "$PYTHON" -m venv .venv
@@ -21,6 +21,8 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; th
   .venv/bin/python -m pip install --quiet --progress-bar off -r requirements.txt
   echo "setup: installing ROS 2 (rclpy, Fast DDS) wheels for the discovery tests"
   .venv/bin/python -m pip install --quiet --progress-bar off -r requirements-ros.txt
+  echo "setup: installing the simulator's wheels (PyBullet, OMPL, toppra, matplotlib)"
+  .venv/bin/python -m pip install --quiet --progress-bar off -r requirements-sim.txt
   echo "$want" > "$stamp"
 fi
 

@@ -141,7 +141,7 @@ def test_gpu_parameters_and_multi_command_launch(local_inventory, root):
     _deployments, _placement, objects = render_example(root, local_inventory, "pick-and-place")
     params = next(o for o in objects if o["kind"] == "ConfigMap" and o["metadata"]["name"] == "pick-and-place-perception-params")
     document = yaml.safe_load(params["data"]["params.yaml"])
-    assert document == {"/**": {"ros__parameters": {"camera_topic": "/head_camera/depth", "voxel_size": 0.01}}}
+    assert document == {"/**": {"ros__parameters": {"max_rate_hz": 2.0, "voxel_size": 0.01}}}
 
 
 @pytest.mark.parametrize(

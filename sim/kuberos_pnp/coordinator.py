@@ -1,0 +1,258 @@
+"""Task coordinator: generates the pick-and-place workload and records every request's latency and outcome.
+
+For each robot it serves, tasks arrive at `tasks_per_minute` (a fixed interval; a task waits while the robot
+is busy with the previous one). A task is one pick cycle: take a target from the robot's planning scene (as
+perception sees it), then, step by step (kuberos_pnp.tasks): solve the step's goal pose to a joint goal,
+send a planning request (`plan/request`) and wait for the path (`plan/result`), have the onboard controller
+execute it (`execute`, `execute/result`), open or close the gripper. After the release it waits for a camera
+frame taken after the release and checks that the object lies on the platform.
+
+Every planning request and every cycle is logged as a result record (kuberos_pnp.common.log_result):
+`plan` (robot, latency_ms seen here, planner, planning_ms and node reported by the planner, ok) and `cycle`
+(robot, queue_s, duration_s, plans, outcome, reason).
+
+Parameters: `tasks_per_minute`, `max_cycles` (per robot; 0 = until no target is left), `plan_timeout`,
+`execute_timeout`, `scene_timeout` (s).
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+
+import numpy as np
+
+from kuberos_pnp import common, planning, tasks
+from kuberos_pnp.perception import boxes_from_markers
+
+
+class Waiter:
+    """Results by request id: the subscriber callback sets them, the robot's task thread waits for them."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.events: dict[str, threading.Event] = {}
+        self.values: dict[str, object] = {}
+
+    def expect(self, request_id: str) -> threading.Event:
+        with self.lock:
+            event = self.events[request_id] = threading.Event()
+        return event
+
+    def deliver(self, request_id: str, value) -> None:
+        with self.lock:
+            event = self.events.pop(request_id, None)
+            if event is not None:
+                self.values[request_id] = value
+                event.set()
+
+    def take(self, request_id: str, event: threading.Event, timeout: float):
+        if not event.wait(timeout):
+            with self.lock:
+                self.events.pop(request_id, None)
+            return None
+        with self.lock:
+            return self.values.pop(request_id)
+
+
+class CycleFailed(Exception):
+    pass
+
+
+def main(argv: list[str] | None = None) -> None:
+    import rclpy
+    from rclpy.node import Node
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Header
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+    from visualization_msgs.msg import MarkerArray
+
+    robots = common.robots_from_env()
+    rclpy.init(args=common.init_args(argv))
+
+    class RobotView:
+        def __init__(self):
+            self.scene: list = []
+            self.scene_stamp = 0.0  # camera time of the scene (wall clock of the robot's node)
+            self.q: np.ndarray | None = None
+            self.names: list[str] = []
+
+    class CoordinatorNode(Node):
+        def __init__(self):
+            super().__init__("task_coordinator")
+            self.rate = float(self.declare_parameter("tasks_per_minute", 6.0).value)
+            self.max_cycles = int(self.declare_parameter("max_cycles", 0).value)
+            self.plan_timeout = float(self.declare_parameter("plan_timeout", 30.0).value)
+            self.execute_timeout = float(self.declare_parameter("execute_timeout", 30.0).value)
+            self.scene_timeout = float(self.declare_parameter("scene_timeout", 20.0).value)
+            self.arm = planning.ArmModel()
+            self.views = {r: RobotView() for r in robots}
+            self.waiter = Waiter()
+            self.ids = itertools.count(1)
+            self.stop = threading.Event()
+            self.pub_plan = {r: self.create_publisher(JointTrajectory, common.topic(r, common.PLAN_REQUEST), common.reliable_qos()) for r in robots}
+            self.pub_exec = {r: self.create_publisher(JointTrajectory, common.topic(r, common.EXECUTE), common.reliable_qos()) for r in robots}
+            for r in robots:
+                self.create_subscription(MarkerArray, common.topic(r, common.SCENE_OBJECTS), lambda m, r=r: self.on_scene(r, m), common.latched_qos())
+                self.create_subscription(JointState, common.topic(r, common.JOINT_STATES), lambda m, r=r: self.on_joints(r, m), common.sensor_qos())
+                self.create_subscription(JointTrajectory, common.topic(r, common.PLAN_RESULT), self.on_plan_result, common.reliable_qos(50))
+                self.create_subscription(Header, common.topic(r, common.EXECUTE_RESULT), self.on_execute_result, common.reliable_qos())
+            self.threads = [threading.Thread(target=self.run_robot, args=(r,), name=f"tasks-{r}", daemon=True) for r in robots]
+            for t in self.threads:
+                t.start()
+            self.get_logger().info(f"coordinator for {', '.join(robots)} on {common.node_name()}: {self.rate} tasks/min each")
+
+        # --- inputs
+        def on_scene(self, robot, msg) -> None:
+            view = self.views[robot]
+            view.scene = boxes_from_markers(msg)
+            view.scene_stamp = max(common.stamp_seconds(m.header.stamp) for m in msg.markers) if msg.markers else time.time()
+
+        def on_joints(self, robot, msg) -> None:
+            view = self.views[robot]
+            view.names, view.q = list(msg.name), np.asarray(msg.position, float)
+
+        def on_plan_result(self, msg) -> None:
+            request_id, _ = common.decode_tag(msg.header.frame_id)
+            self.waiter.deliver(request_id, msg)
+
+        def on_execute_result(self, msg) -> None:
+            request_id, _ = common.decode_tag(msg.frame_id)
+            self.waiter.deliver(request_id, msg)
+
+        # --- helpers for one robot's thread
+        def arm_q(self, robot) -> np.ndarray:
+            view = self.views[robot]
+            return np.asarray([view.q[view.names.index(n)] for n in self.arm.joint_names], float)
+
+        def wait_for(self, what, condition, timeout) -> None:
+            deadline = time.monotonic() + timeout
+            while not condition():
+                if self.stop.is_set() or time.monotonic() > deadline:
+                    raise CycleFailed(f"no {what} within {timeout:.0f} s")
+                time.sleep(0.05)
+
+        def request_id(self, robot) -> str:
+            return f"{robot}/{next(self.ids)}"
+
+        def plan(self, robot, goal_q, attached, cycle, step) -> list:
+            request_id = self.request_id(robot)
+            msg = JointTrajectory()
+            msg.header.stamp = self.get_clock().now().to_msg()
+            msg.header.frame_id = common.encode_tag(request_id, attached=attached)
+            msg.joint_names = list(self.arm.joint_names)
+            msg.points = [JointTrajectoryPoint(positions=[float(x) for x in self.arm_q(robot)]),
+                          JointTrajectoryPoint(positions=[float(x) for x in goal_q])]
+            event = self.waiter.expect(request_id)
+            sent = time.monotonic()
+            self.pub_plan[robot].publish(msg)
+            reply = self.waiter.take(request_id, event, self.plan_timeout)
+            latency = (time.monotonic() - sent) * 1000
+            values = common.decode_tag(reply.header.frame_id)[1] if reply is not None else {}
+            ok = reply is not None and values.get("status") == "ok" and len(reply.points) > 0
+            common.log_result("plan", robot=robot, request=request_id, cycle=cycle, step=step, ok=ok,
+                              latency_ms=round(latency, 1), planner=values.get("planner"),
+                              planning_ms=float(values["planning_ms"]) if "planning_ms" in values else None,
+                              queue_ms=float(values["queue_ms"]) if "queue_ms" in values else None,
+                              planner_node=values.get("node"), node=common.node_name(),
+                              reason=values.get("reason") or (None if reply is not None else "timeout"))
+            if not ok:
+                raise CycleFailed(f"planning {step}: {values.get('reason') or 'no answer within the timeout'}")
+            return reply
+
+        def execute(self, robot, msg, step) -> None:
+            request_id = self.request_id(robot)
+            msg.header.frame_id = common.encode_tag(request_id)
+            event = self.waiter.expect(request_id)
+            self.pub_exec[robot].publish(msg)
+            reply = self.waiter.take(request_id, event, self.execute_timeout)
+            if reply is None:
+                raise CycleFailed(f"executing {step}: no answer from the controller")
+            values = common.decode_tag(reply.frame_id)[1]
+            if values.get("status") != "ok":
+                raise CycleFailed(f"executing {step}: {values.get('reason')}")
+
+        def grip(self, robot, close: bool, step) -> None:
+            msg = JointTrajectory()
+            msg.joint_names = [common.GRIPPER_JOINT]
+            msg.points = [JointTrajectoryPoint(positions=[1.0 if close else 0.0])]
+            self.execute(robot, msg, step)
+
+        def fresh_scene(self, robot, after: float) -> list:
+            view = self.views[robot]
+            self.wait_for("camera frame after the last motion", lambda: view.scene_stamp > after and view.q is not None, self.scene_timeout)
+            return list(view.scene)
+
+        # --- the workload
+        def run_robot(self, robot) -> None:
+            interval = 60.0 / self.rate if self.rate > 0 else 0.0
+            next_arrival = time.monotonic()
+            settled_after = 0.0
+            for cycle in itertools.count(1):
+                if self.stop.is_set() or (self.max_cycles and cycle > self.max_cycles):
+                    break
+                while time.monotonic() < next_arrival and not self.stop.is_set():
+                    time.sleep(0.05)
+                arrival, next_arrival = next_arrival, next_arrival + interval
+                started = time.monotonic()
+                record = {"robot": robot, "cycle": cycle, "node": common.node_name(), "queue_s": round(started - arrival, 3)}
+                try:
+                    scene = self.fresh_scene(robot, settled_after)
+                    targets = tasks.remaining_targets(scene)
+                    if not targets:
+                        common.log_result("idle", robot=robot, cycle=cycle, reason="no target left on the table")
+                        break
+                    record["object"] = targets[0].name
+                    before = tasks.count_on_platform(scene)
+                    plans = self.pick(robot, targets[0], scene, cycle)
+                    record["plans"] = plans
+                    settled_after = time.time()
+                    after = tasks.count_on_platform(self.fresh_scene(robot, settled_after))
+                    record["outcome"] = "success" if after > before else "failed"
+                    if after <= before:
+                        record["reason"] = "object not on the platform after release"
+                except CycleFailed as failure:
+                    record.update(outcome="failed", reason=str(failure))
+                    settled_after = time.time()
+                    self.recover(robot)
+                record["duration_s"] = round(time.monotonic() - started, 3)
+                common.log_result("cycle", **record)
+
+        def pick(self, robot, target, scene, cycle) -> int:
+            platform = tasks.platform_box(scene)
+            if platform is None:
+                raise CycleFailed("perception sees no platform")
+            plans = 0
+            for step in tasks.pick_cycle(target, platform, self.arm.home_q):
+                if step.kind == "grip":
+                    self.grip(robot, step.close, step.name)
+                    continue
+                obstacles = [b for b in scene if b.name != step.attached]
+                goal = step.joint_goal
+                if goal is None:
+                    goal = self.arm.ik(step.position, step.quat_xyzw, self.arm_q(robot), obstacles)
+                    if goal is None:
+                        raise CycleFailed(f"no collision-free inverse kinematics for {step.name}")
+                reply = self.plan(robot, goal, step.attached, cycle, step.name)
+                plans += 1
+                self.execute(robot, reply, step.name)
+            return plans
+
+        def recover(self, robot) -> None:
+            """After a failed cycle: open the gripper (best effort); the next cycle plans from wherever the arm is."""
+            try:
+                self.grip(robot, False, "recover")
+            except CycleFailed:
+                pass
+
+        def on_shutdown(self) -> None:
+            self.stop.set()
+            for t in self.threads:
+                t.join(timeout=2)
+
+    common.spin(CoordinatorNode())
+
+
+if __name__ == "__main__":
+    main()
