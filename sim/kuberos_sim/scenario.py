@@ -1,0 +1,118 @@
+"""One evaluation scenario: the site, the RosDeployment for a strategy, and rendering it the way deploy does.
+
+- The site (`site_inventory`): `robots` simulated mobile manipulators of fleet `sim-fleet` (4 CPUs each), two
+  edge servers (16 CPUs; 5 ms round trip from the robots) and one cloud VM (32 CPUs; 40 ms), the proportions
+  of the paper's testbed. The runtime scales CPUs to cgroup quotas for this machine (cpu_scale).
+- The RosDeployment (`strategy_spec`): examples/pick-and-place.yml, with perception and the motion planner
+  placed by the strategy:
+  - `onboard`: both on each robot's own computer (requirements.onboard);
+  - `edge-dedicated`: both on the edge, one instance per robot;
+  - `edge-shared`: both on the edge, one instance per 4 robots (strategy shared);
+  - `cloud`: both on the cloud VM, one instance per robot.
+  The coordinator (shared, edge) and the controller (onboard) stay as the example has them; the workload
+  rate and the number of pick cycles per robot go into the coordinator's launch command.
+- Rendering (`render`): `ansible-playbook playbooks/deploy.yml -e kuberos_apply=false`, the deploy path itself
+  (validate, place with the scheduler filter, render with the rosdeployment_render module) without applying.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import subprocess
+import sys
+
+import yaml
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+EXAMPLE = os.path.join(ROOT, "examples", "pick-and-place.yml")
+FLEET = "sim-fleet"
+STRATEGIES = ("onboard", "edge-dedicated", "edge-shared", "cloud")
+OFFLOADED = ("perception", "motion-planner")
+EDGE_RTT_MS = 5
+CLOUD_RTT_MS = 40
+
+
+def robot_names(robots: int) -> list[str]:
+    return [f"robot-{i}" for i in range(1, robots + 1)]
+
+
+def site_inventory(robots: int) -> dict:
+    """An Ansible YAML inventory (as data) of the simulated site."""
+    return {
+        "all": {
+            "vars": {
+                "ansible_connection": "local",
+                "kuberos_default_latency_ms": {"onboard": 0, "edge": EDGE_RTT_MS, "cloud": CLOUD_RTT_MS},
+            },
+            "children": {
+                "robots": {
+                    "vars": {"kuberos_cpu": 4, "kuberos_memory": "8Gi", "kuberos_arch": "amd64"},
+                    "hosts": {name: {"kuberos_fleet": FLEET, "kuberos_devices": ["camera", "gripper"]} for name in robot_names(robots)},
+                },
+                "edge": {"vars": {"kuberos_cpu": 16, "kuberos_memory": "32Gi"}, "hosts": {"edge-1": {}, "edge-2": {}}},
+                "cloud": {"vars": {"kuberos_cpu": 32, "kuberos_memory": "64Gi"}, "hosts": {"cloud-1": {}}},
+            },
+        }
+    }
+
+
+def strategy_spec(strategy: str, tasks_per_minute: float, cycles: int, example: str = EXAMPLE) -> dict:
+    if strategy not in STRATEGIES:
+        raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
+    with open(example, encoding="utf-8") as handle:
+        spec = copy.deepcopy(yaml.safe_load(handle))
+    spec["metadata"]["targetFleet"] = FLEET
+    for module in spec["rosModules"]:
+        name = module["name"]
+        if name in OFFLOADED:
+            requirements = {k: v for k, v in module.get("requirements", {}).items() if k != "onboard"}
+            module.pop("strategy", None)
+            module.pop("robotsPerInstance", None)
+            if strategy == "onboard":
+                module["preference"] = "onboard"
+                requirements = {"onboard": True}
+            elif strategy.startswith("edge"):
+                module["preference"] = "edge"
+                requirements["max_latency"] = "20 ms"
+                if strategy == "edge-shared":
+                    module["strategy"], module["robotsPerInstance"] = "shared", 4
+            else:
+                module["preference"] = "cloud"
+                requirements["max_latency"] = "200 ms"
+            module["requirements"] = requirements
+        if name == "task-coordinator":
+            module["launch"] = [
+                f"python3 -m kuberos_pnp.coordinator --ros-args -p tasks_per_minute:={tasks_per_minute:g} -p max_cycles:={cycles}"
+            ]
+    return spec
+
+
+def write_yaml(path: str, data: dict) -> str:
+    with open(path, "w", encoding="utf-8") as handle:
+        yaml.safe_dump(data, handle, sort_keys=False)
+    return path
+
+
+def render(spec_file: str, inventory_file: str, render_dir: str, log_file: str) -> None:
+    """Render with the deploy playbook (no cluster: kuberos_apply=false); raises with the log's tail on failure."""
+    env = {
+        **os.environ,
+        "ANSIBLE_CONFIG": os.path.join(ROOT, "ansible.cfg"),
+        "PATH": os.pathsep.join([os.path.dirname(sys.executable), os.environ.get("PATH", "")]),
+        "ANSIBLE_NOCOLOR": "1",
+    }
+    command = [
+        os.path.join(os.path.dirname(sys.executable), "ansible-playbook"),
+        os.path.join(ROOT, "playbooks", "deploy.yml"),
+        "-i", inventory_file,
+        "-e", f"rosdeployment_file={spec_file}",
+        "-e", "kuberos_apply=false",
+        "-e", f"kuberos_render_dir={render_dir}",
+    ]
+    with open(log_file, "w", encoding="utf-8") as log:
+        done = subprocess.run(command, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=300)
+    if done.returncode != 0:
+        with open(log_file, encoding="utf-8") as log:
+            tail = "".join(log.readlines()[-25:])
+        raise RuntimeError(f"rendering {spec_file} failed (exit {done.returncode}); {log_file}:\n{tail}")
