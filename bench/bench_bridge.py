@@ -161,8 +161,8 @@ def subscriber_main(args) -> None:
 
 class Runner:
     def __init__(self, lab, directory: str):
-        sys.path[:0] = [os.path.join(ROOT, "tests", "integration"), os.path.join(ROOT, "tests")]
-        from test_discovery_netns import PRIVATE_SHM, ros_environment
+        sys.path[:0] = [os.path.join(ROOT, ".collections")]
+        from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import PRIVATE_SHM, ros_environment
 
         self.lab, self.directory, self.shm = lab, directory, PRIVATE_SHM
         self.env = ros_environment(log_dir=os.path.join(directory, "ros-log"))

@@ -1,0 +1,369 @@
+"""The simulation runtime (sim/kuberos_sim/runtime): a rendered deployment run for real on this machine.
+
+A probe RosDeployment is rendered with the project's own code (two discovery servers on the edge, a probe
+module on each robot and one per robot on the edge, printing its node name, params file and where
+kuberos_sim imports from) and run by ``Runtime`` unchanged. Measured here: ping RTTs through the fabric
+against the inventory, multicast blocked between hosts while the rendered discovery servers connect
+participants, a CPU quota enforced by cgroups, and teardown leaving nothing behind.
+
+The pure parts (the delay rule, the fabric's queueing, reading a rendered directory) run anywhere; the rest
+needs root, `ip netns`, TUN and cgroup v1 cpu/cpuacct (skipped otherwise), and the ROS 2 wheels for the
+discovery test (fails otherwise, as test_discovery_netns does). Every wait is bounded; traffic stays
+between the run's namespaces.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import subprocess
+import sys
+import time
+
+import pytest
+from helpers import ROOT
+from sshlab import run
+
+sys.path[:0] = [os.path.join(ROOT, "sim"), os.path.join(ROOT, "tests", "integration")]
+
+from kuberos_sim.runtime import LAN_RTT_MS, ProcessExitedError, Runtime, environment_problem, rtt_ms  # noqa: E402
+from kuberos_sim.runtime import fabric as fabric_module  # noqa: E402
+from kuberos_sim.runtime.delays import one_way_delays_ms  # noqa: E402
+from kuberos_sim.runtime.rendered import load_rendered  # noqa: E402
+from test_discovery_netns import LISTENER, TALKER, TOPIC, require_ros  # noqa: E402
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, render_files, service  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import placement_table  # noqa: E402
+
+pytestmark = pytest.mark.sim
+
+RTT_TOLERANCE = 0.10
+STARTUP_TIMEOUT = 30.0  # rclpy on a robot's half core
+DISCOVERY_TIMEOUT = 30.0
+NEGATIVE_WINDOW = 8.0
+PROBE = (
+    "python3 -c \"import os, sys, time, kuberos_sim; print('NODE=' + os.environ['KUBEROS_NODE_NAME']); "
+    "params = os.environ['KUBEROS_PARAMS_FILE']; print('PARAMS=' + params + ' ' + open(params).read().replace(chr(10), ' ')); "
+    "print('PYTHON=' + sys.executable); print('SIM=' + kuberos_sim.__file__, flush=True); time.sleep(600)\""
+)
+MODULE = {"image": "probe", "launch": [PROBE], "resources": {"cpu": "100m", "memory": "64Mi"}}
+PROBE_SPEC = {
+    "metadata": {"name": "sim-probe", "targetFleet": "test-fleet"},
+    "discovery": {"servers": 2},
+    "rosModules": [
+        {**MODULE, "name": "onboard-probe", "requirements": {"onboard": True}, "rosParameters": {"greeting": "onboard-hello"}},
+        {**MODULE, "name": "edge-probe", "preference": "edge", "rosParameters": {"greeting": "edge-hello"}},
+    ],
+}
+FAILING_SPEC = {
+    "metadata": {"name": "sim-failing", "targetFleet": "test-fleet"},
+    "rosModules": [
+        {
+            **MODULE,
+            "name": "crash",
+            "launch": ["python3 -c \"print('boom before exit'); raise SystemExit(3)\""],
+            "preference": "edge",
+        }
+    ],
+}
+
+
+def render(spec: dict, inventory_raw: dict, directory: str) -> str:
+    """Render a spec as the render module does: manifests/ and placement.json under directory."""
+    deployments, placement = service.load_and_place(spec, inventory_raw)
+    objects = manifests.render_deployment(deployments, placement, manifests.RenderOptions())
+    render_files.apply_plan(render_files.plan_render_dir(directory, objects, placement.to_dict(), placement_table(placement)))
+    return directory
+
+
+def require_environment() -> None:
+    problem = environment_problem()
+    if problem:
+        pytest.skip(f"the simulator cannot run here: {problem}")
+
+
+def wait_until(condition, timeout: float, what: str, runtime: Runtime) -> float:
+    start = time.monotonic()
+    while time.monotonic() - start < timeout:
+        if condition():
+            return time.monotonic() - start
+        time.sleep(0.2)
+    tails = "\n".join(p.tail(10) for p in runtime.processes.values())
+    pytest.fail(f"{what}: not within {timeout:.0f} s\n{tails}", pytrace=False)
+
+
+def ping_rtt_ms(runtime: Runtime, source: str, target: str, count: int = 20) -> float:
+    done = run(
+        "ip", "netns", "exec", runtime.hosts[source].netns,
+        "ping", "-n", "-q", "-c", str(count), "-i", "0.05", "-W", "2", runtime.host_address(target),
+        timeout=count * 0.05 + 10,
+    )  # fmt: skip
+    match = re.search(r"= [\d.]+/([\d.]+)/", done.stdout)
+    assert match, done.stdout
+    return float(match.group(1))
+
+
+def received(process) -> list[int]:
+    return [int(n) for n in re.findall(r"^received kuberos (\d+)$", process.output(), re.MULTILINE)]
+
+
+def published(process) -> list[int]:
+    return [int(n) for n in re.findall(r"^published kuberos (\d+) subscribers=\d+$", process.output(), re.MULTILINE)]
+
+
+@pytest.fixture(scope="module")
+def rendered_dirs(tmp_path_factory, local_raw) -> dict[str, str]:
+    base = tmp_path_factory.mktemp("rendered")
+    return {
+        "probe": render(PROBE_SPEC, local_raw, str(base / "probe")),
+        "failing": render(FAILING_SPEC, local_raw, str(base / "failing")),
+    }
+
+
+@pytest.fixture(scope="module")
+def runtime(rendered_dirs, local_inventory, tmp_path_factory):
+    """The probe deployment running, with both cloud VMs as extra hosts."""
+    require_environment()
+    with Runtime(
+        rendered_dirs["probe"], local_inventory, str(tmp_path_factory.mktemp("run")), extra_hosts=("cloud-1", "cloud-2")
+    ) as started:
+        started.start()
+        yield started
+    assert not started.leftovers() and not started.close_problems, (started.leftovers(), started.close_problems)
+
+
+# --- the delay rule (pure) --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "a, b, expected",
+    [
+        ("fetch-1", "edge-1", 5.0),  # the edge tier default of inventories/local
+        ("fetch-1", "edge-3", 3.0),  # edge-3's kuberos_latency_ms
+        ("fetch-1", "cloud-1", 40.0),  # the cloud tier default
+        ("fetch-2", "cloud-2", 60.0),  # cloud-2's kuberos_latency_ms
+        ("fetch-1", "cloud-2", 180.0),  # fetch-1's kuberos_link_latency_ms override
+        ("fetch-1", "fetch-2", LAN_RTT_MS),  # two robots: the LAN
+        ("edge-1", "edge-2", LAN_RTT_MS),  # one site (resource group site-a)
+        ("cloud-1", "cloud-2", LAN_RTT_MS),  # one region (cloud-eu)
+        ("edge-1", "cloud-1", 40.0),  # edge-cloud: the cloud node's latency
+        ("edge-3", "cloud-2", 60.0),
+        ("edge-2", "edge-2", 0.0),
+    ],
+)
+def test_delay_rule(local_inventory, a, b, expected):
+    assert rtt_ms(local_inventory, a, b) == expected
+    assert rtt_ms(local_inventory, b, a) == expected
+
+
+def test_delay_rule_is_symmetric_finite_and_halved_per_direction(local_inventory):
+    nodes = list(local_inventory.nodes)
+    delays = one_way_delays_ms(local_inventory, nodes)
+    for a in nodes:
+        assert a not in delays[a]
+        for b in nodes:
+            if a != b:
+                assert math.isfinite(delays[a][b]) and delays[a][b] == delays[b][a] == rtt_ms(local_inventory, a, b) / 2
+
+
+def test_delay_rule_names_an_unknown_node(local_inventory):
+    with pytest.raises(ValueError, match="'edge-9' is not a node"):
+        rtt_ms(local_inventory, "fetch-1", "edge-9")
+
+
+# --- the fabric's queueing (pure: pipes stand in for TUN devices) -----------------------------------------
+
+
+def ipv4(destination: str, size: int = 64) -> bytes:
+    header = bytes([0x45, 0]) + size.to_bytes(2, "big") + bytes(12) + bytes(int(x) for x in destination.split("."))
+    return header + bytes(size - len(header))
+
+
+def test_fabric_delays_forwards_in_order_drops_multicast_unknown_and_overflow():
+    read_a, write_a = os.pipe()
+    fabric = fabric_module.Fabric({"hosts": [], "delay_ms": {"b": {"a": 50.0}}, "queue_packets": 3})
+    fabric.by_address[bytes([10, 0, 0, 1])] = (write_a, "a")
+    try:
+        for n in range(4):
+            fabric.receive("b", ipv4("10.0.0.1", 64 + n), now=100.0)
+        fabric.receive("b", ipv4("239.255.0.1"), now=100.0)
+        fabric.receive("b", ipv4("10.0.0.9"), now=100.0)
+        fabric.receive("b", b"\x60" + bytes(60), now=100.0)  # IPv6
+        fabric.deliver_due(100.049)
+        assert fabric.stats.packets == 0
+        fabric.deliver_due(100.050)
+        assert len(os.read(read_a, 65536)) == 64 + 65 + 66  # a pipe merges them: the first three, the fourth dropped
+        stats = fabric.stats.to_dict(fabric.delay_ms)
+        assert stats["packets"] == 3 and stats["pairs"]["b->a"]["delay_ms"] == 50.0
+        assert stats["drops"] == {"multicast": 1, "unknown_destination": 1, "not_ipv4": 1, "queue_full": 1, "write_error": 0}
+    finally:
+        os.close(read_a)
+        os.close(write_a)
+
+
+# --- reading a rendered directory (pure) ------------------------------------------------------------------
+
+
+def test_a_bad_rendered_directory_is_reported_by_file_field_and_reason(rendered_dirs, tmp_path):
+    with pytest.raises(SpecError, match="does not exist"):
+        load_rendered(str(tmp_path / "missing"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SpecError, match="manifests: is missing"):
+        load_rendered(str(tmp_path / "empty"))
+    broken = tmp_path / "broken" / "manifests" / "ns"
+    broken.mkdir(parents=True)
+    (broken / "deployment-a.yaml").write_text(
+        "kind: Deployment\nmetadata: {name: a, namespace: ns}\nspec: {template: {spec: {}}}\n"
+    )
+    (broken / "service-b.yaml").write_text("kind: [unclosed\n")
+    with pytest.raises(SpecError) as error:
+        load_rendered(str(tmp_path / "broken"))
+    text = str(error.value)
+    assert "manifests/ns/deployment-a.yaml: spec.template.spec.nodeSelector.device.kuberos.io/hostname: is missing" in text
+    assert "manifests/ns/deployment-a.yaml: spec.template.spec.containers: is missing" in text
+    assert "manifests/ns/service-b.yaml: cannot be read as YAML" in text
+    rendered = load_rendered(rendered_dirs["probe"])
+    assert list(rendered.deployments)[:2] == ["kuberos-discovery-0", "kuberos-discovery-1"]  # servers start first
+
+
+def test_cli_reports_bad_input_without_a_traceback(tmp_path):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.path.join(ROOT, "sim"), os.path.join(ROOT, ".collections")])}
+    inventory = os.path.join(ROOT, "inventories", "local")
+    done = subprocess.run(
+        [sys.executable, "-m", "kuberos_sim.runtime", "--rendered", str(tmp_path), "-i", inventory],
+        capture_output=True, text=True, timeout=120, env=env, cwd=ROOT,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    assert "manifests: is missing" in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+# --- the runtime, for real --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("target", ["edge-1", "cloud-1", "cloud-2", "fetch-2"])
+def test_ping_rtt_matches_the_inventory(runtime, local_inventory, target):
+    expected = rtt_ms(local_inventory, "fetch-1", target)
+    measured = ping_rtt_ms(runtime, "fetch-1", target)
+    print(f"fetch-1 -> {target}: RTT {measured:.3f} ms emulated, {expected:.1f} ms in the inventory")
+    tolerance = max(expected * RTT_TOLERANCE, 0.5)  # the LAN's 1 ms: half a millisecond of fabric overhead
+    assert abs(measured - expected) <= tolerance, f"fetch-1 -> {target}: {measured:.3f} ms measured, {expected} ms expected"
+
+
+def test_modules_see_their_node_params_and_the_sim_packages(runtime):
+    modules = [p for p in runtime.processes.values() if p.deployment and "probe" in p.deployment]
+    assert len(modules) == 4
+    for process in modules:
+        wait_until(lambda p=process: "SIM=" in p.output(), STARTUP_TIMEOUT, f"{process.name} printed nothing", runtime)
+        out = process.output()
+        greeting = "onboard-hello" if "onboard" in process.name else "edge-hello"
+        assert f"NODE={process.host}\n" in out, process.tail()
+        assert re.search(rf"^PARAMS=/etc/kuberos/params.yaml .*greeting: {greeting}", out, re.MULTILINE), process.tail()
+        assert f"PYTHON={runtime.prefix}/bin/python3" in out, process.tail()
+        assert f"SIM={ROOT}/sim/kuberos_sim/__init__.py" in out, process.tail()
+    assert not os.path.exists("/etc/kuberos"), "the params mount leaked out of the process's mount namespace"
+
+
+def test_multicast_does_not_cross_but_the_rendered_discovery_servers_connect(runtime):
+    require_ros()
+    env = runtime.container_env("sim-probe-onboard-probe-fetch-1")
+    simple = {k: v for k, v in env.items() if k != "ROS_DISCOVERY_SERVER"}
+    drops_before = runtime.fabric_stats().get("drops", {}).get("multicast", 0)
+    talker = runtime.start_on("fetch-1", "talker-simple", [sys.executable, TALKER, TOPIC], simple)
+    listener = runtime.start_on("cloud-1", "listener-simple", [sys.executable, LISTENER, TOPIC], simple)
+    wait_until(lambda: len(published(talker)) >= 2, STARTUP_TIMEOUT, "the talker did not publish", runtime)
+    wait_until(lambda: "ready" in listener.output().split(), STARTUP_TIMEOUT, "the listener did not subscribe", runtime)
+    deadline = time.monotonic() + NEGATIVE_WINDOW
+    while time.monotonic() < deadline:
+        assert not received(listener), "found each other without a discovery server"
+        time.sleep(0.2)
+    assert talker.running and listener.running
+    time.sleep(1.2)  # the fabric writes its statistics every second
+    multicast = runtime.fabric_stats()["drops"]["multicast"] - drops_before
+    assert multicast > 0, "no multicast reached the fabric: the negative control proves nothing"
+
+    talker = runtime.start_on("fetch-1", "talker", [sys.executable, TALKER, TOPIC], env)
+    listener = runtime.start_on(
+        "cloud-1", "listener", [sys.executable, LISTENER, TOPIC], runtime.container_env("sim-probe-edge-probe-fetch-1")
+    )
+    seconds = wait_until(lambda: len(received(listener)) >= 3, DISCOVERY_TIMEOUT, "the listener got no messages", runtime)
+    print(f"{multicast} multicast packets dropped in {NEGATIVE_WINDOW:.0f} s without discovery servers; "
+          f"through them the listener on cloud-1 had 3 messages from fetch-1 after {seconds:.1f} s")  # fmt: skip
+
+
+def test_64kb_datagrams_cross_unfragmented(runtime):
+    """Fast DDS's largest datagrams: sent from fetch-1 to edge-1, counted on arrival; throughput reported."""
+    receiver = runtime.start_on(
+        "edge-1", "udp-sink",
+        [sys.executable, "-c", "import socket, time\n"
+         "s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)\n"
+         "s.bind(('0.0.0.0', 7400)); print('bound', flush=True); s.settimeout(3); n = 0; first = None\n"
+         "try:\n while True:\n  d = s.recv(70000); first = first or time.monotonic(); n += len(d)\n"
+         "except socket.timeout: pass\n"
+         "print('got', n, time.monotonic() - 3 - (first or time.monotonic()), flush=True)"],
+    )  # fmt: skip
+    wait_until(lambda: "bound" in receiver.output(), STARTUP_TIMEOUT, "the sink did not bind", runtime)
+    count = 2000
+    sender = runtime.start_on(
+        "fetch-1", "udp-source",
+        [sys.executable, "-c", f"import socket, time\ns = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)\n"
+         f"for _ in range({count}):\n s.sendto(bytes(64000), ('{runtime.host_address('edge-1')}', 7400)); time.sleep(0.0002)\n"],
+        cgroup="hardware",
+    )  # fmt: skip
+    wait_until(lambda: "got" in receiver.output(), 60, "the sink did not finish", runtime)
+    assert sender.returncode == 0, sender.tail()
+    got, seconds = receiver.output().split("got")[1].split()
+    got_bytes, seconds = int(got), max(float(seconds), 1e-3)
+    print(f"{got_bytes // 64000}/{count} datagrams of 64000 bytes, {got_bytes / seconds / 1e6:.0f} MB/s through the fabric")
+    assert got_bytes % 64000 == 0 and got_bytes >= 64000 * count * 0.9, receiver.tail()
+
+
+def test_cpu_quota_is_enforced_and_hardware_is_accounted_apart(rendered_dirs, local_inventory, tmp_path):
+    """cpu_scale 1/16: a 4-CPU robot gets a quarter core; a busy loop there uses that much, one beside it in
+    the hardware cgroup as much as it can, and both are counted apart."""
+    require_environment()
+    busy = [sys.executable, "-c", "while True: pass"]
+    with Runtime(rendered_dirs["probe"], local_inventory, str(tmp_path), cpu_scale=0.0625) as runtime:
+        runtime.start(modules=False)
+        assert runtime.hosts["fetch-1"].cpu_cores == 0.25
+        runtime.start_on("fetch-1", "busy-node", busy)
+        runtime.start_on("fetch-1", "busy-hardware", busy, cgroup="hardware")
+        time.sleep(1.0)
+        before, start = runtime.cpu_seconds(), time.monotonic()
+        time.sleep(4.0)
+        after, elapsed = runtime.cpu_seconds(), time.monotonic() - start
+    node = (after[("fetch-1", "node")] - before[("fetch-1", "node")]) / elapsed
+    hardware = (after[("fetch-1", "hardware")] - before[("fetch-1", "hardware")]) / elapsed
+    print(f"quota 0.25 core: the node cgroup used {node:.3f} cores, the hardware cgroup {hardware:.3f}")
+    assert abs(node - 0.25) <= 0.04, f"node cgroup used {node:.3f} cores with a 0.25 quota"
+    assert hardware > 0.6, f"the unlimited hardware cgroup used only {hardware:.3f} cores"
+    assert runtime.cpu_seconds() and runtime.cpu_seconds_by_tier()["onboard"] >= after[("fetch-1", "node")]  # kept after close
+
+
+def test_an_early_exit_is_reported_with_its_log_and_everything_is_removed(rendered_dirs, local_inventory, tmp_path):
+    require_environment()
+    runtime = Runtime(rendered_dirs["failing"], local_inventory, str(tmp_path))
+    with pytest.raises(ProcessExitedError) as error:
+        runtime.start()
+    assert "exited 3" in str(error.value) and "boom before exit" in str(error.value), error.value
+    assert runtime.leftovers() == []
+
+
+def test_teardown_leaves_no_namespaces_cgroups_etc_netns_or_processes(rendered_dirs, local_inventory, tmp_path):
+    require_environment()
+    with pytest.raises(KeyError), Runtime(rendered_dirs["probe"], local_inventory, str(tmp_path)) as runtime:
+        runtime.start()
+        extra = runtime.start_on("fetch-2", "sleeper", ["sh", "-c", "sleep 600 & sleep 600"], cgroup="hardware")
+        hosts = list(runtime.hosts.values())
+        assert all(os.path.exists(f"/etc/netns/{h.netns}/hosts") for h in hosts)
+        assert os.path.isdir(f"/sys/fs/cgroup/cpu/{runtime.cgroup_parent}/fetch-2.hardware")
+        raise KeyError("an exception inside the run")
+    assert runtime.leftovers() == [] and not runtime.close_problems, (runtime.leftovers(), runtime.close_problems)
+    listed = run("ip", "netns", "list").stdout
+    assert all(h.netns not in listed for h in hosts), listed
+    for root in ("/sys/fs/cgroup/cpu", "/sys/fs/cgroup/cpuacct"):
+        assert not os.path.exists(os.path.join(root, runtime.cgroup_parent))
+    assert not any(os.path.exists(f"/etc/netns/{h.netns}") for h in hosts)
+    assert not extra.running
+    assert run("pgrep", "-f", f"krs-{runtime.suffix}", check=False).returncode == 1
