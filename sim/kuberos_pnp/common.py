@@ -70,6 +70,15 @@ def init_args(argv: list[str] | None = None, environ=os.environ) -> list[str]:
     return args
 
 
+def declare(node, name: str, default):
+    """A parameter's value; any type given on the command line or in the params file is accepted (`-p rate:=12`
+    for a float parameter), and converted to the default's type."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    value = node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True)).value
+    return type(default)(value) if value is not None else default
+
+
 def node_name() -> str:
     return os.environ.get("KUBEROS_NODE_NAME", "") or os.uname().nodename
 
@@ -87,6 +96,48 @@ def decode_tag(tag: str) -> tuple[str, dict[str, str]]:
         key, _, value = part.partition("=")
         values[key] = value
     return request_id, values
+
+
+def wait_for_subscriber(publisher, timeout: float) -> bool:
+    """Wait until the publisher has matched a subscriber (a reliable message sent before the match is lost:
+    discovery through the discovery servers takes a moment after a module starts)."""
+    deadline = time.monotonic() + timeout
+    while publisher.get_subscription_count() == 0:
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def scene_key(stamp) -> str:
+    """A planning scene's key: its camera frame's stamp, `sec.nanosec`."""
+    return f"{stamp.sec}.{stamp.nanosec:09d}"
+
+
+def encode_names(names) -> str:
+    return "+".join(names)
+
+
+def decode_names(text: str | None) -> tuple[str, ...]:
+    return tuple(n for n in (text or "").split("+") if n)
+
+
+def encode_carry(carry) -> str | None:
+    """A carried object (kuberos_pnp.planning.Attached) as `<box>|x,y,z|qx,qy,qz,qw|<ignored+boxes>`; the box
+    itself is the planning scene's box of that name."""
+    if carry is None:
+        return None
+    position = ",".join(f"{v:.6f}" for v in carry.ee_position)
+    quat = ",".join(f"{v:.6f}" for v in carry.ee_quat_xyzw)
+    return f"{carry.box.name}|{position}|{quat}|{encode_names(carry.ignore)}"
+
+
+def decode_carry(text: str | None):
+    """(box name, position, quaternion, ignored names) of `encode_carry`, or None."""
+    if not text:
+        return None
+    name, position, quat, ignore = text.split("|")
+    return name, tuple(float(v) for v in position.split(",")), tuple(float(v) for v in quat.split(",")), decode_names(ignore)
 
 
 def log_result(kind: str, **fields) -> None:

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from kuberos_pnp import common, trajectory
+from kuberos_pnp import common, trajectory, world
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -43,11 +43,12 @@ def main(argv: list[str] | None = None) -> None:
     class ControlNode(Node):
         def __init__(self):
             super().__init__("controller")
-            self.v_scale = float(self.declare_parameter("velocity_scale", 1.0).value)
-            self.a_scale = float(self.declare_parameter("acceleration_scale", 1.0).value)
-            self.tolerance = float(self.declare_parameter("goal_tolerance", 0.02).value)
-            self.settle_timeout = float(self.declare_parameter("settle_timeout", 3.0).value)
-            self.gripper_settle = float(self.declare_parameter("gripper_settle", 0.3).value)
+            self.v_scale = float(common.declare(self, "velocity_scale", 1.0))
+            self.a_scale = float(common.declare(self, "acceleration_scale", 1.0))
+            self.tolerance = float(common.declare(self, "goal_tolerance", 0.02))
+            self.settle_timeout = float(common.declare(self, "settle_timeout", 3.0))
+            self.gripper_settle = float(common.declare(self, "gripper_settle", 0.3))
+            _names, self.limits = world.arm_model()
             self.state = {r: RobotState() for r in robots}
             self.pub_traj = {r: self.create_publisher(JointTrajectory, common.topic(r, common.ARM_TRAJECTORY), common.reliable_qos()) for r in robots}
             self.pub_grip = {r: self.create_publisher(Bool, common.topic(r, common.GRIPPER_COMMAND), common.reliable_qos()) for r in robots}
@@ -80,10 +81,13 @@ def main(argv: list[str] | None = None) -> None:
             done.stamp = msg.header.stamp
             clean = (reason or "").replace(";", ",").replace("=", ":")
             done.frame_id = common.encode_tag(request_id, status=status, duration_ms=round((time.monotonic() - started) * 1000), reason=clean)
+            common.wait_for_subscriber(self.pub_done[robot], self.settle_timeout)
             self.pub_done[robot].publish(done)
 
         def gripper(self, robot: str, msg):
             close = bool(msg.points and msg.points[0].positions and msg.points[0].positions[0] > 0.5)
+            if not common.wait_for_subscriber(self.pub_grip[robot], self.settle_timeout):
+                return "failed", "the robot does not subscribe to its gripper topic"
             self.pub_grip[robot].publish(Bool(data=close))
             time.sleep(self.gripper_settle)
             return "ok", None
@@ -97,7 +101,9 @@ def main(argv: list[str] | None = None) -> None:
             if path.ndim != 2 or path.shape[0] < 1 or path.shape[1] != len(index):
                 return "failed", "path does not match its joint names"
             path = np.vstack([s.q[index], path])  # from where the arm is now
-            timed = trajectory.time_parameterize(path, trajectory.V_MAX * self.v_scale, trajectory.A_MAX * self.a_scale)
+            timed = trajectory.time_parameterize(path, self.limits.velocity * self.v_scale, self.limits.acceleration * self.a_scale)
+            common.log_result("trajectory", robot=robot, method=timed.method, compute_ms=round(timed.compute_ms, 2),
+                              duration_s=round(float(timed.times[-1]), 3))
             out = JointTrajectory()
             out.joint_names = list(msg.joint_names)
             for t, q, qd in zip(timed.times, timed.positions, timed.velocities):
@@ -108,6 +114,8 @@ def main(argv: list[str] | None = None) -> None:
                         time_from_start=Duration(sec=int(t), nanosec=int((t - int(t)) * 1e9)),
                     )
                 )
+            if not common.wait_for_subscriber(self.pub_traj[robot], self.settle_timeout):
+                return "failed", "the robot does not subscribe to its trajectory topic"
             self.pub_traj[robot].publish(out)
             # Trajectories run in simulated time; a simulation behind the wall clock needs longer (down to half speed).
             deadline = time.monotonic() + 2 * float(timed.times[-1]) + self.settle_timeout

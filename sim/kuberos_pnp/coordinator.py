@@ -23,7 +23,8 @@ import time
 
 import numpy as np
 
-from kuberos_pnp import common, planning, tasks
+from kuberos_pnp import common, planning, tasks, world
+from kuberos_pnp.offline import choose_yaw
 from kuberos_pnp.perception import boxes_from_markers
 
 
@@ -60,6 +61,19 @@ class CycleFailed(Exception):
     pass
 
 
+class IkSolver:
+    """Inverse kinematics checked against a scene, in this process (kuberos_pnp.planning.CollisionModel): the
+    coordinator turns a step's goal pose into the joint goal it asks the planner for."""
+
+    def __init__(self):
+        self.model = planning.CollisionModel()
+        self.rng = np.random.default_rng(0)
+
+    def ik(self, position, quat_xyzw, seed_q, boxes=None, ignore=(), attached=None):
+        self.model.set_scene(boxes or [], ignore, attached)
+        return self.model.ik(position, quat_xyzw, seed_q, rng=self.rng)
+
+
 def main(argv: list[str] | None = None) -> None:
     import rclpy
     from rclpy.node import Node
@@ -75,18 +89,21 @@ def main(argv: list[str] | None = None) -> None:
         def __init__(self):
             self.scene: list = []
             self.scene_stamp = 0.0  # camera time of the scene (wall clock of the robot's node)
+            self.scene_key = ""
             self.q: np.ndarray | None = None
             self.names: list[str] = []
 
     class CoordinatorNode(Node):
         def __init__(self):
             super().__init__("task_coordinator")
-            self.rate = float(self.declare_parameter("tasks_per_minute", 6.0).value)
-            self.max_cycles = int(self.declare_parameter("max_cycles", 0).value)
-            self.plan_timeout = float(self.declare_parameter("plan_timeout", 30.0).value)
-            self.execute_timeout = float(self.declare_parameter("execute_timeout", 30.0).value)
-            self.scene_timeout = float(self.declare_parameter("scene_timeout", 20.0).value)
-            self.arm = planning.ArmModel()
+            self.rate = float(common.declare(self, "tasks_per_minute", 6.0))
+            self.max_cycles = int(common.declare(self, "max_cycles", 0))
+            self.plan_timeout = float(common.declare(self, "plan_timeout", 30.0))
+            self.execute_timeout = float(common.declare(self, "execute_timeout", 30.0))
+            self.scene_timeout = float(common.declare(self, "scene_timeout", 20.0))
+            self.startup_timeout = float(common.declare(self, "startup_timeout", 90.0))
+            self.ik = IkSolver()
+            self.joint_names, _limits = world.arm_model()
             self.views = {r: RobotView() for r in robots}
             self.waiter = Waiter()
             self.ids = itertools.count(1)
@@ -106,8 +123,11 @@ def main(argv: list[str] | None = None) -> None:
         # --- inputs
         def on_scene(self, robot, msg) -> None:
             view = self.views[robot]
+            if not msg.markers:
+                return
             view.scene = boxes_from_markers(msg)
-            view.scene_stamp = max(common.stamp_seconds(m.header.stamp) for m in msg.markers) if msg.markers else time.time()
+            view.scene_key = common.scene_key(msg.markers[0].header.stamp)
+            view.scene_stamp = common.stamp_seconds(msg.markers[0].header.stamp)
 
         def on_joints(self, robot, msg) -> None:
             view = self.views[robot]
@@ -124,7 +144,7 @@ def main(argv: list[str] | None = None) -> None:
         # --- helpers for one robot's thread
         def arm_q(self, robot) -> np.ndarray:
             view = self.views[robot]
-            return np.asarray([view.q[view.names.index(n)] for n in self.arm.joint_names], float)
+            return np.asarray([view.q[view.names.index(n)] for n in self.joint_names], float)
 
         def wait_for(self, what, condition, timeout) -> None:
             deadline = time.monotonic() + timeout
@@ -136,14 +156,18 @@ def main(argv: list[str] | None = None) -> None:
         def request_id(self, robot) -> str:
             return f"{robot}/{next(self.ids)}"
 
-        def plan(self, robot, goal_q, attached, cycle, step) -> list:
+        def plan(self, robot, goal_q, step, scene_key, cycle) -> list:
             request_id = self.request_id(robot)
             msg = JointTrajectory()
             msg.header.stamp = self.get_clock().now().to_msg()
-            msg.header.frame_id = common.encode_tag(request_id, attached=attached)
-            msg.joint_names = list(self.arm.joint_names)
+            msg.header.frame_id = common.encode_tag(
+                request_id, scene=scene_key, ignore=common.encode_names(step.ignore), carry=common.encode_carry(step.carry)
+            )
+            msg.joint_names = list(self.joint_names)
             msg.points = [JointTrajectoryPoint(positions=[float(x) for x in self.arm_q(robot)]),
                           JointTrajectoryPoint(positions=[float(x) for x in goal_q])]
+            if not common.wait_for_subscriber(self.pub_plan[robot], self.plan_timeout):
+                raise CycleFailed(f"planning {step.name}: no motion planner subscribed to {self.pub_plan[robot].topic_name}")
             event = self.waiter.expect(request_id)
             sent = time.monotonic()
             self.pub_plan[robot].publish(msg)
@@ -151,19 +175,21 @@ def main(argv: list[str] | None = None) -> None:
             latency = (time.monotonic() - sent) * 1000
             values = common.decode_tag(reply.header.frame_id)[1] if reply is not None else {}
             ok = reply is not None and values.get("status") == "ok" and len(reply.points) > 0
-            common.log_result("plan", robot=robot, request=request_id, cycle=cycle, step=step, ok=ok,
+            common.log_result("plan", robot=robot, request=request_id, cycle=cycle, step=step.name, ok=ok,
                               latency_ms=round(latency, 1), planner=values.get("planner"),
                               planning_ms=float(values["planning_ms"]) if "planning_ms" in values else None,
                               queue_ms=float(values["queue_ms"]) if "queue_ms" in values else None,
                               planner_node=values.get("node"), node=common.node_name(),
                               reason=values.get("reason") or (None if reply is not None else "timeout"))
             if not ok:
-                raise CycleFailed(f"planning {step}: {values.get('reason') or 'no answer within the timeout'}")
+                raise CycleFailed(f"planning {step.name}: {values.get('reason') or 'no answer within the timeout'}")
             return reply
 
         def execute(self, robot, msg, step) -> None:
             request_id = self.request_id(robot)
             msg.header.frame_id = common.encode_tag(request_id)
+            if not common.wait_for_subscriber(self.pub_exec[robot], self.execute_timeout):
+                raise CycleFailed(f"executing {step}: no controller subscribed to {self.pub_exec[robot].topic_name}")
             event = self.waiter.expect(request_id)
             self.pub_exec[robot].publish(msg)
             reply = self.waiter.take(request_id, event, self.execute_timeout)
@@ -179,10 +205,12 @@ def main(argv: list[str] | None = None) -> None:
             msg.points = [JointTrajectoryPoint(positions=[1.0 if close else 0.0])]
             self.execute(robot, msg, step)
 
-        def fresh_scene(self, robot, after: float) -> list:
+        def fresh_scene(self, robot, after: float, timeout: float | None = None) -> tuple[list, str]:
+            """The first planning scene from a camera frame taken after `after` (wall clock), and its key."""
             view = self.views[robot]
-            self.wait_for("camera frame after the last motion", lambda: view.scene_stamp > after and view.q is not None, self.scene_timeout)
-            return list(view.scene)
+            self.wait_for("camera frame after the last motion", lambda: view.scene_stamp > after and view.q is not None,
+                          timeout or self.scene_timeout)
+            return list(view.scene), view.scene_key
 
         # --- the workload
         def run_robot(self, robot) -> None:
@@ -198,51 +226,60 @@ def main(argv: list[str] | None = None) -> None:
                 started = time.monotonic()
                 record = {"robot": robot, "cycle": cycle, "node": common.node_name(), "queue_s": round(started - arrival, 3)}
                 try:
-                    scene = self.fresh_scene(robot, settled_after)
+                    scene, key = self.fresh_scene(robot, settled_after, self.startup_timeout if cycle == 1 else None)
                     targets = tasks.remaining_targets(scene)
                     if not targets:
                         common.log_result("idle", robot=robot, cycle=cycle, reason="no target left on the table")
                         break
-                    record["object"] = targets[0].name
                     before = tasks.count_on_platform(scene)
-                    plans = self.pick(robot, targets[0], scene, cycle)
-                    record["plans"] = plans
+                    record["object"] = targets[0].name
+                    record["plans"] = self.pick(robot, targets[0], scene, key, before, cycle)
                     settled_after = time.time()
-                    after = tasks.count_on_platform(self.fresh_scene(robot, settled_after))
+                    after = tasks.count_on_platform(self.fresh_scene(robot, settled_after)[0])
                     record["outcome"] = "success" if after > before else "failed"
                     if after <= before:
-                        record["reason"] = "object not on the platform after release"
-                except CycleFailed as failure:
-                    record.update(outcome="failed", reason=str(failure))
+                        record["reason"] = "perception sees no new object on the platform after the release"
+                except Exception as failure:  # noqa: BLE001 - any failure ends the cycle, never the robot's task loop
+                    reason = str(failure) if isinstance(failure, CycleFailed) else f"{type(failure).__name__}: {failure}"
+                    record.update(outcome="failed", reason=reason)
+                    self.recover(robot, key if "key" in locals() else "", cycle)
                     settled_after = time.time()
-                    self.recover(robot)
                 record["duration_s"] = round(time.monotonic() - started, 3)
                 common.log_result("cycle", **record)
 
-        def pick(self, robot, target, scene, cycle) -> int:
-            platform = tasks.platform_box(scene)
+        def pick(self, robot, target, scene, key, slot, cycle) -> int:
+            """One pick cycle in the scene `key` (taken with the arm home): the steps of kuberos_pnp.tasks."""
+            platform = tasks.platform_of(scene)
             if platform is None:
                 raise CycleFailed("perception sees no platform")
+            yaw, pregrasp_q = choose_yaw(self.ik, target, self.arm_q(robot), scene)
+            if pregrasp_q is None:
+                raise CycleFailed(f"no grasp of {target.name} reachable from above")
+            goals: dict[str, np.ndarray] = {"pregrasp": np.asarray(pregrasp_q)}
             plans = 0
-            for step in tasks.pick_cycle(target, platform, self.arm.home_q):
-                if step.kind == "grip":
-                    self.grip(robot, step.close, step.name)
+            for step in tasks.pick_cycle_steps(target, platform, slot, yaw):
+                if step.kind == "gripper":
+                    self.grip(robot, bool(step.close_gripper), step.name)
                     continue
-                obstacles = [b for b in scene if b.name != step.attached]
-                goal = step.joint_goal
+                goal = goals.get(step.name) if step.name == "pregrasp" else step.joint_goal
                 if goal is None:
-                    goal = self.arm.ik(step.position, step.quat_xyzw, self.arm_q(robot), obstacles)
+                    seed = goals.get(step.ik_seed_from, self.arm_q(robot))
+                    goal = self.ik.ik(step.pose[0], step.pose[1], seed, scene, step.ignore, step.carry)
                     if goal is None:
                         raise CycleFailed(f"no collision-free inverse kinematics for {step.name}")
-                reply = self.plan(robot, goal, step.attached, cycle, step.name)
+                reply = self.plan(robot, goal, step, key, cycle)
                 plans += 1
                 self.execute(robot, reply, step.name)
+                goals[step.name] = np.asarray(reply.points[-1].positions)
             return plans
 
-        def recover(self, robot) -> None:
-            """After a failed cycle: open the gripper (best effort); the next cycle plans from wherever the arm is."""
+        def recover(self, robot, key, cycle) -> None:
+            """After a failed cycle: open the gripper and go home, best effort."""
             try:
                 self.grip(robot, False, "recover")
+                if key:
+                    home = tasks.Step("recover-home", "move", joint_goal=tuple(tasks.home_q))
+                    self.execute(robot, self.plan(robot, home.joint_goal, home, key, cycle), home.name)
             except CycleFailed:
                 pass
 

@@ -47,8 +47,8 @@ def boxes_from_markers(msg) -> list:
         perception_core.Box(
             name=m.text,
             kind=m.ns,
-            center=np.array([m.pose.position.x, m.pose.position.y, m.pose.position.z]),
-            size=np.array([m.scale.x, m.scale.y, m.scale.z]),
+            center=(m.pose.position.x, m.pose.position.y, m.pose.position.z),
+            size=(m.scale.x, m.scale.y, m.scale.z),
         )
         for m in msg.markers
         if m.ns in KINDS
@@ -88,9 +88,9 @@ def main(argv: list[str] | None = None) -> None:
     class PerceptionNode(Node):
         def __init__(self):
             super().__init__("perception")
-            self.voxel = float(self.declare_parameter("voxel_size", 0.01).value)
-            self.stride = int(self.declare_parameter("stride", 2).value)
-            self.max_rate = float(self.declare_parameter("max_rate_hz", 2.0).value)
+            self.voxel = float(common.declare(self, "voxel_size", 0.01))
+            self.stride = int(common.declare(self, "stride", 2))
+            self.max_rate = float(common.declare(self, "max_rate_hz", 2.0))
             self.inputs = {r: RobotInput() for r in robots}
             self.pub_scene = {r: self.create_publisher(MarkerArray, common.topic(r, common.SCENE_OBJECTS), common.latched_qos()) for r in robots}
             self.pub_points = {r: self.create_publisher(PointCloud2, common.topic(r, common.SCENE_POINTS), common.sensor_qos()) for r in robots}

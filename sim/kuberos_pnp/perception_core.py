@@ -94,6 +94,16 @@ def classify_color(mean_rgb: np.ndarray) -> str:
     return "obstacle"
 
 
+def classify_colors(colors: np.ndarray) -> np.ndarray:
+    """``classify_color`` for every row of an (N, 3) colour array."""
+    c = colors.astype(np.float64)
+    r, g, b = c[:, 0], c[:, 1], c[:, 2]
+    kinds = np.full(len(c), "obstacle", dtype=object)
+    kinds[(g > 70) & (g > 1.4 * r) & (g > 1.4 * b)] = "platform"
+    kinds[(r > 70) & (r > 1.8 * g) & (r > 1.8 * b)] = "target"
+    return kinds
+
+
 def cluster_points(points: np.ndarray, voxel: float) -> list[np.ndarray]:
     """Cluster points above the table by their footprint: 8-connected components of the occupied xy grid.
 
@@ -158,12 +168,15 @@ def segment(points: np.ndarray, colors: np.ndarray, table_height: float | None =
     above = points[:, 2] > height + ABOVE_TABLE
     pts, cols = points[above], colors[above]
     found: dict[str, list[tuple[tuple, tuple]]] = {"target": [], "obstacle": [], "platform": []}
-    for members in cluster_points(pts, voxel):
-        if len(members) < min_points:
-            continue
-        kind = classify_color(np.median(cols[members], axis=0))
-        pad = 0.0 if kind == "target" else OBSTACLE_PADDING
-        found[kind].append(fit_box(pts[members], height, pad))
+    # Colour first, then footprint: a cube standing on the platform is a cluster of its own, not part of it.
+    kinds = classify_colors(cols)
+    for kind in found:
+        of_kind = np.flatnonzero(kinds == kind)
+        for members in cluster_points(pts[of_kind], voxel):
+            if len(members) < min_points:
+                continue
+            pad = 0.0 if kind == "target" else OBSTACLE_PADDING
+            found[kind].append(fit_box(pts[of_kind[members]], height, pad))
     for kind in ("platform", "obstacle", "target"):
         ordered = sorted(found[kind], key=lambda cs: (round(cs[0][1], 2), cs[0][0]))
         for i, (center, size) in enumerate(ordered):

@@ -73,13 +73,13 @@ def main(argv: list[str] | None = None) -> None:
         def __init__(self):
             super().__init__("robot_sim", namespace=common.robot_namespace(robot))
             p = {
-                "seed": self.declare_parameter("seed", 1).value,
-                "objects": self.declare_parameter("objects", 3).value,
-                "camera_rate_hz": self.declare_parameter("camera_rate_hz", 2.0).value,
-                "joint_state_rate_hz": self.declare_parameter("joint_state_rate_hz", 30.0).value,
-                "physics_rate_hz": self.declare_parameter("physics_rate_hz", 60.0).value,
-                "max_catch_up_steps": self.declare_parameter("max_catch_up_steps", 24).value,
-                "report_period_s": self.declare_parameter("report_period_s", 5.0).value,
+                "seed": common.declare(self, "seed", 1),
+                "objects": common.declare(self, "objects", 3),
+                "camera_rate_hz": common.declare(self, "camera_rate_hz", 2.0),
+                "joint_state_rate_hz": common.declare(self, "joint_state_rate_hz", 30.0),
+                "physics_rate_hz": common.declare(self, "physics_rate_hz", 60.0),
+                "max_catch_up_steps": common.declare(self, "max_catch_up_steps", 24),
+                "report_period_s": common.declare(self, "report_period_s", 5.0),
             }
             self.params = p
             self.world = RobotWorld(seed=robot_seed(robot, int(p["seed"])), n_objects=int(p["objects"]))

@@ -154,3 +154,19 @@ def order_targets(boxes: list[Box]) -> list[Box]:
 
 def platform_of(boxes: list[Box]) -> Box | None:
     return next((b for b in boxes if b.kind == "platform"), None)
+
+
+def on_platform(box: Box, platform: Box) -> bool:
+    """Whether ``box``'s centre lies over the platform's footprint (perception sees a placed cube there)."""
+    return all(abs(box.center[i] - platform.center[i]) <= platform.size[i] / 2 for i in (0, 1))
+
+
+def remaining_targets(boxes: list[Box]) -> list[Box]:
+    """Targets still to pick, in pick order: every target not already on the platform."""
+    platform = platform_of(boxes)
+    return [t for t in order_targets(boxes) if platform is None or not on_platform(t, platform)]
+
+
+def count_on_platform(boxes: list[Box]) -> int:
+    platform = platform_of(boxes)
+    return 0 if platform is None else sum(1 for b in boxes if b.kind == "target" and on_platform(b, platform))

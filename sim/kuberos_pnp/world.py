@@ -399,3 +399,19 @@ def measure_camera_ms(seed: int = 0, repeats: int = 20) -> float:
         return (time.perf_counter() - t0) / repeats * 1000.0
     finally:
         w.close()
+
+
+def arm_model() -> tuple[list[str], JointLimits]:
+    """The arm's joint names and limits, read from its URDF without building a world (for the modules that time
+    and plan motions but have no physics: the controller, the coordinator)."""
+    client = bullet_client.BulletClient(connection_mode=p.DIRECT)
+    try:
+        client.setAdditionalSearchPath(pybullet_data.getDataPath())
+        arm = client.loadURDF(PANDA_URDF, ARM_BASE_POSITION, ARM_BASE_QUAT, useFixedBase=True)
+        info = [client.getJointInfo(arm, j) for j in ARM_JOINTS]
+    finally:
+        client.disconnect()
+    limits = JointLimits(
+        lower=np.array([i[8] for i in info]), upper=np.array([i[9] for i in info]),
+        velocity=np.array([i[11] for i in info]), acceleration=np.full(len(ARM_JOINTS), ARM_ACCEL_LIMIT))
+    return [i[1].decode() for i in info], limits

@@ -81,7 +81,7 @@ def run_one(strategy: str, robots: int, rate: float, cycles: int, out: str, seed
         env = robot_env(runtime)
         for index, robot in enumerate(scenario.robot_names(robots)):
             runtime.start_on(robot, f"physics-{robot}", [*PHYSICS.split(), "--ros-args", "-p", f"seed:={seed}", "-p", f"objects:={cycles}"],
-                             {**env, "KUBEROS_ROBOT_NAME": robot}, cgroup="hardware")
+                             {**env, "KUBEROS_ROBOT_NAME": robot, "KUBEROS_NODE_NAME": robot}, cgroup="hardware")
         started = time.monotonic()
         cpu_start = runtime.cpu_seconds()
         finished = wait_for_cycles(runtime, robots, cycles, time_limit)

@@ -1,11 +1,15 @@
-"""Processes on a host: in its network namespace and cgroup, with the pod's volumes and a private /dev/shm.
+"""Processes on a host: in its network namespace and cgroup, with the pod's volumes and the host's /dev/shm.
 
 The launch chain, each step exec'ing the next (one pid, the session leader, throughout):
 
     sh -c JOIN            joins the cgroup(s), in the root namespaces (``ip netns exec`` remounts /sys)
     ip netns exec <ns>    network namespace, a private mount namespace, /etc/netns/<ns>/hosts on /etc/hosts
-    sh -c MOUNTS          volumes at their mountPath, then ros_wheels.PRIVATE_SHM: a private /dev/shm
+    sh -c MOUNTS          volumes at their mountPath, then the host's own /dev/shm (a directory of the run)
     <command>             as rendered
+
+Every process of a host shares that host's /dev/shm and no other host's: Fast DDS takes participants with the
+same network addresses for one machine and talks to them through shared memory only, so processes of one host
+need one /dev/shm (as on a real node), and hosts must not share it (traffic between hosts crosses the fabric).
 
 A mountPath that does not exist on this machine (``/etc/kuberos``) is made inside an overlay of its nearest
 existing ancestor (upper layer in the run directory), so nothing outside the run directory changes; the
@@ -43,8 +47,14 @@ def _ancestor(path: str) -> str:
     return parent
 
 
-def mount_script(mounts: list[VolumeMount], netns: str, scratch: str) -> str:
-    """Shell lines making ``mounts`` in the process's mount namespace, then PRIVATE_SHM (which execs "$@")."""
+def host_shm(shm_dir: str) -> str:
+    """The shell line that puts the host's shared-memory directory on /dev/shm, then execs "$@"."""
+    return f'mount --bind {shlex.quote(shm_dir)} /dev/shm && exec "$@"'
+
+
+def mount_script(mounts: list[VolumeMount], netns: str, scratch: str, shm_dir: str | None = None) -> str:
+    """Shell lines making ``mounts`` in the process's mount namespace, then /dev/shm: the host's ``shm_dir``, or
+    a private one without it (ros_wheels.PRIVATE_SHM); the last line execs "$@"."""
     lines = ["set -e"]
     overlays: list[str] = []
     for mount in mounts:
@@ -71,7 +81,7 @@ def mount_script(mounts: list[VolumeMount], netns: str, scratch: str) -> str:
         lines.append(f"mount --bind {shlex.quote(mount.source)} {target}")
         if mount.read_only:
             lines.append(f"mount -o remount,bind,ro {target}")
-    return "\n".join(lines) + "\n" + ros_wheels.PRIVATE_SHM
+    return "\n".join(lines) + "\n" + (host_shm(shm_dir) if shm_dir else ros_wheels.PRIVATE_SHM)
 
 
 @dataclass
@@ -131,10 +141,14 @@ def launch(
     scratch: str,
     cgroup: str = "node",
     deployment: str | None = None,
+    shm_dir: str | None = None,
 ) -> SimProcess:
     """Start ``command`` on the host: cgroup joined before exec, its own session, output to ``log``."""
     os.makedirs(scratch, exist_ok=True)
-    script = mount_script(mounts, netns, scratch)
+    if shm_dir:
+        os.makedirs(shm_dir, mode=0o1777, exist_ok=True)
+        os.chmod(shm_dir, 0o1777)
+    script = mount_script(mounts, netns, scratch, shm_dir)
     argv = ["sh", "-c", JOIN, "sh", *procs_files, "--", "ip", "netns", "exec", netns, "sh", "-c", script, "sh", *command]
     with open(log, "ab") as out:
         popen = subprocess.Popen(

@@ -241,6 +241,7 @@ class Runtime:
             os.path.join(self.run_dir, "scratch", safe),
             cgroup,
             deployment,
+            os.path.join(self.run_dir, "shm", host),
         )
         self.processes[name] = process
         return process
