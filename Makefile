@@ -9,7 +9,7 @@ export PATH := $(CURDIR)/.venv/bin:$(PATH)
 version = $(shell sed -n 's/^local_cluster_$(1)_version: *//p' roles/local_cluster/defaults/main.yml)
 BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call version,etcd) KWOK_VERSION=$(call version,kwok)
 
-.PHONY: setup binaries cluster cluster-stop demo controller controller-stop status test lint unit schema bench bench-deploy bench-controller clean
+.PHONY: setup binaries cluster cluster-stop demo controller controller-stop status test lint unit schema bench bench-deploy bench-controller sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -66,5 +66,19 @@ bench-deploy:
 bench-controller: binaries
 	$(VENV)/python bench/bench_controller.py
 
+## The pick-and-place fleet for real on this machine: one strategy, one fleet size (as root; docs/simulation.md).
+##   make sim STRATEGY=edge-shared ROBOTS=4 RATE=12 CYCLES=3
+STRATEGY ?= cloud
+ROBOTS ?= 1
+RATE ?= 12
+CYCLES ?= 3
+sim: setup
+	PYTHONPATH=$(CURDIR)/sim:$(CURDIR)/.collections $(VENV)/python -m kuberos_sim.evaluate --strategies $(STRATEGY) \
+	  --robots $(ROBOTS) --rates $(RATE) --cycles $(CYCLES) --out sim/out/$(STRATEGY)-$(ROBOTS)
+
+## The whole evaluation (strategies x fleet sizes x rates) into sim/results/: table, plots, command, commit, machine.
+evaluate: setup
+	PYTHONPATH=$(CURDIR)/sim:$(CURDIR)/.collections $(VENV)/python -m kuberos_sim.evaluate --out sim/results
+
 clean:
-	rm -rf rendered bench/out .pytest_cache .hypothesis
+	rm -rf rendered bench/out sim/out .pytest_cache .hypothesis

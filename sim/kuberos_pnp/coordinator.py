@@ -61,6 +61,10 @@ class CycleFailed(Exception):
     pass
 
 
+class SceneUnknown(CycleFailed):
+    """The planner has not received the scene the cycle plans in (yet): the cycle starts again on a newer one."""
+
+
 class IkSolver:
     """Inverse kinematics checked against a scene, in this process (kuberos_pnp.planning.CollisionModel): the
     coordinator turns a step's goal pose into the joint goal it asks the planner for."""
@@ -181,6 +185,8 @@ def main(argv: list[str] | None = None) -> None:
                               queue_ms=float(values["queue_ms"]) if "queue_ms" in values else None,
                               planner_node=values.get("node"), node=common.node_name(),
                               reason=values.get("reason") or (None if reply is not None else "timeout"))
+            if not ok and (values.get("reason") or "").startswith("unknown scene"):
+                raise SceneUnknown(f"planning {step.name}: {values['reason']}")
             if not ok:
                 raise CycleFailed(f"planning {step.name}: {values.get('reason') or 'no answer within the timeout'}")
             return reply
@@ -215,8 +221,14 @@ def main(argv: list[str] | None = None) -> None:
         # --- the workload
         def run_robot(self, robot) -> None:
             interval = 60.0 / self.rate if self.rate > 0 else 0.0
+            # The workload starts once the robot's planner and controller are matched; the first scene is one the
+            # planner had a chance to receive too (it plans in the scene a request names).
+            for publisher in (self.pub_plan[robot], self.pub_exec[robot]):
+                if not common.wait_for_subscriber(publisher, self.startup_timeout):
+                    common.log_result("idle", robot=robot, cycle=0, reason=f"nobody subscribes to {publisher.topic_name}")
+                    return
+            settled_after = time.time() + 1.0
             next_arrival = time.monotonic()
-            settled_after = 0.0
             for cycle in itertools.count(1):
                 if self.stop.is_set() or (self.max_cycles and cycle > self.max_cycles):
                     break
@@ -233,7 +245,16 @@ def main(argv: list[str] | None = None) -> None:
                         break
                     before = tasks.count_on_platform(scene)
                     record["object"] = targets[0].name
-                    record["plans"] = self.pick(robot, targets[0], scene, key, before, cycle)
+                    for attempt in range(3):
+                        try:
+                            record["plans"] = self.pick(robot, targets[0], scene, key, before, cycle)
+                            break
+                        except SceneUnknown as unknown:
+                            # Nothing has moved yet (it is the cycle's first request): start over on a newer scene.
+                            common.log_result("scene_retry", robot=robot, cycle=cycle, attempt=attempt + 1, reason=str(unknown))
+                            if attempt == 2:
+                                raise
+                            scene, key = self.fresh_scene(robot, time.time())
                     settled_after = time.time()
                     after = tasks.count_on_platform(self.fresh_scene(robot, settled_after)[0])
                     record["outcome"] = "success" if after > before else "failed"
@@ -267,7 +288,12 @@ def main(argv: list[str] | None = None) -> None:
                     goal = self.ik.ik(step.pose[0], step.pose[1], seed, scene, step.ignore, step.carry)
                     if goal is None:
                         raise CycleFailed(f"no collision-free inverse kinematics for {step.name}")
-                reply = self.plan(robot, goal, step, key, cycle)
+                try:
+                    reply = self.plan(robot, goal, step, key, cycle)
+                except SceneUnknown as unknown:
+                    if plans:  # the arm has moved: not a cycle to start over
+                        raise CycleFailed(str(unknown)) from None
+                    raise
                 plans += 1
                 self.execute(robot, reply, step.name)
                 goals[step.name] = np.asarray(reply.points[-1].positions)

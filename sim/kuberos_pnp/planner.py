@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> None:
             listed = str(common.declare(self, "planners", ""))
             self.budget = float(common.declare(self, "planning_time", 1.0))
             parallel = int(common.declare(self, "parallel_plans", 2))
-            self.history = int(common.declare(self, "scene_history", 240))
+            self.history = int(common.declare(self, "scene_history", 600))
             self.scene_wait = float(common.declare(self, "scene_wait", 3.0))
             self.race = planner_list(first, listed, parallel)
             self.planner = planning.Planner(parallel=len(self.race), planners=self.race)
