@@ -167,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         rates = [float(x) for x in args.rates.split(",")]
     except ValueError as error:
         parser.error(f"--robots and --rates take comma-separated numbers: {error}")
+    args.out = os.path.abspath(args.out)  # the deploy playbook resolves relative render paths elsewhere
     os.makedirs(args.out, exist_ok=True)
     header = {
         "command": " ".join(["python -m kuberos_sim.evaluate", *(argv if argv is not None else sys.argv[1:])]),
