@@ -162,7 +162,7 @@ def read_results(text: str) -> list[dict]:
     for line in text.splitlines():
         if line.startswith(RESULT_PREFIX):
             try:
-                records.append(json.loads(line[len(RESULT_PREFIX):]))
+                records.append(json.loads(line[len(RESULT_PREFIX) :]))
             except json.JSONDecodeError:
                 continue  # a line cut off by a killed process
     return records
@@ -189,8 +189,10 @@ def image_msg(array: np.ndarray, encoding: str, stamp, frame_id: str):
 def image_array(msg) -> np.ndarray:
     """An Image as a numpy array: rgb8 -> (h, w, 3) uint8, 32FC1 -> (h, w) float32."""
     if msg.encoding == "rgb8":
-        return np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)[:, : msg.width * 3].reshape(
-            msg.height, msg.width, 3
+        return (
+            np.frombuffer(bytes(msg.data), dtype=np.uint8)
+            .reshape(msg.height, msg.step)[:, : msg.width * 3]
+            .reshape(msg.height, msg.width, 3)
         )
     if msg.encoding == "32FC1":
         row = msg.step // 4

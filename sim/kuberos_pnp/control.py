@@ -50,12 +50,23 @@ def main(argv: list[str] | None = None) -> None:
             self.gripper_settle = float(common.declare(self, "gripper_settle", 0.3))
             _names, self.limits = world.arm_model()
             self.state = {r: RobotState() for r in robots}
-            self.pub_traj = {r: self.create_publisher(JointTrajectory, common.topic(r, common.ARM_TRAJECTORY), common.reliable_qos()) for r in robots}
-            self.pub_grip = {r: self.create_publisher(Bool, common.topic(r, common.GRIPPER_COMMAND), common.reliable_qos()) for r in robots}
-            self.pub_done = {r: self.create_publisher(Header, common.topic(r, common.EXECUTE_RESULT), common.reliable_qos()) for r in robots}
+            self.pub_traj = {
+                r: self.create_publisher(JointTrajectory, common.topic(r, common.ARM_TRAJECTORY), common.reliable_qos())
+                for r in robots
+            }
+            self.pub_grip = {
+                r: self.create_publisher(Bool, common.topic(r, common.GRIPPER_COMMAND), common.reliable_qos()) for r in robots
+            }
+            self.pub_done = {
+                r: self.create_publisher(Header, common.topic(r, common.EXECUTE_RESULT), common.reliable_qos()) for r in robots
+            }
             for r in robots:
-                self.create_subscription(JointState, common.topic(r, common.JOINT_STATES), lambda m, r=r: self.on_joints(r, m), common.sensor_qos())
-                self.create_subscription(JointTrajectory, common.topic(r, common.EXECUTE), lambda m, r=r: self.on_execute(r, m), common.reliable_qos())
+                self.create_subscription(
+                    JointState, common.topic(r, common.JOINT_STATES), lambda m, r=r: self.on_joints(r, m), common.sensor_qos()
+                )
+                self.create_subscription(
+                    JointTrajectory, common.topic(r, common.EXECUTE), lambda m, r=r: self.on_execute(r, m), common.reliable_qos()
+                )
             self.get_logger().info(f"controller for {', '.join(robots)} on {common.node_name()}")
 
         def on_joints(self, robot: str, msg) -> None:
@@ -80,7 +91,9 @@ def main(argv: list[str] | None = None) -> None:
             done = Header()
             done.stamp = msg.header.stamp
             clean = (reason or "").replace(";", ",").replace("=", ":")
-            done.frame_id = common.encode_tag(request_id, status=status, duration_ms=round((time.monotonic() - started) * 1000), reason=clean)
+            done.frame_id = common.encode_tag(
+                request_id, status=status, duration_ms=round((time.monotonic() - started) * 1000), reason=clean
+            )
             common.wait_for_subscriber(self.pub_done[robot], self.settle_timeout)
             self.pub_done[robot].publish(done)
 
@@ -101,12 +114,19 @@ def main(argv: list[str] | None = None) -> None:
             if path.ndim != 2 or path.shape[0] < 1 or path.shape[1] != len(index):
                 return "failed", "path does not match its joint names"
             path = np.vstack([s.q[index], path])  # from where the arm is now
-            timed = trajectory.time_parameterize(path, self.limits.velocity * self.v_scale, self.limits.acceleration * self.a_scale)
-            common.log_result("trajectory", robot=robot, method=timed.method, compute_ms=round(timed.compute_ms, 2),
-                              duration_s=round(float(timed.times[-1]), 3))
+            timed = trajectory.time_parameterize(
+                path, self.limits.velocity * self.v_scale, self.limits.acceleration * self.a_scale
+            )
+            common.log_result(
+                "trajectory",
+                robot=robot,
+                method=timed.method,
+                compute_ms=round(timed.compute_ms, 2),
+                duration_s=round(float(timed.times[-1]), 3),
+            )
             out = JointTrajectory()
             out.joint_names = list(msg.joint_names)
-            for t, q, qd in zip(timed.times, timed.positions, timed.velocities):
+            for t, q, qd in zip(timed.times, timed.positions, timed.velocities, strict=True):
                 out.points.append(
                     JointTrajectoryPoint(
                         positions=[float(x) for x in q],

@@ -112,13 +112,26 @@ def main(argv: list[str] | None = None) -> None:
             self.waiter = Waiter()
             self.ids = itertools.count(1)
             self.stop = threading.Event()
-            self.pub_plan = {r: self.create_publisher(JointTrajectory, common.topic(r, common.PLAN_REQUEST), common.reliable_qos()) for r in robots}
-            self.pub_exec = {r: self.create_publisher(JointTrajectory, common.topic(r, common.EXECUTE), common.reliable_qos()) for r in robots}
+            self.pub_plan = {
+                r: self.create_publisher(JointTrajectory, common.topic(r, common.PLAN_REQUEST), common.reliable_qos())
+                for r in robots
+            }
+            self.pub_exec = {
+                r: self.create_publisher(JointTrajectory, common.topic(r, common.EXECUTE), common.reliable_qos()) for r in robots
+            }
             for r in robots:
-                self.create_subscription(MarkerArray, common.topic(r, common.SCENE_OBJECTS), lambda m, r=r: self.on_scene(r, m), common.latched_qos())
-                self.create_subscription(JointState, common.topic(r, common.JOINT_STATES), lambda m, r=r: self.on_joints(r, m), common.sensor_qos())
-                self.create_subscription(JointTrajectory, common.topic(r, common.PLAN_RESULT), self.on_plan_result, common.reliable_qos(50))
-                self.create_subscription(Header, common.topic(r, common.EXECUTE_RESULT), self.on_execute_result, common.reliable_qos())
+                self.create_subscription(
+                    MarkerArray, common.topic(r, common.SCENE_OBJECTS), lambda m, r=r: self.on_scene(r, m), common.latched_qos()
+                )
+                self.create_subscription(
+                    JointState, common.topic(r, common.JOINT_STATES), lambda m, r=r: self.on_joints(r, m), common.sensor_qos()
+                )
+                self.create_subscription(
+                    JointTrajectory, common.topic(r, common.PLAN_RESULT), self.on_plan_result, common.reliable_qos(50)
+                )
+                self.create_subscription(
+                    Header, common.topic(r, common.EXECUTE_RESULT), self.on_execute_result, common.reliable_qos()
+                )
             self.threads = [threading.Thread(target=self.run_robot, args=(r,), name=f"tasks-{r}", daemon=True) for r in robots]
             for t in self.threads:
                 t.start()
@@ -168,8 +181,10 @@ def main(argv: list[str] | None = None) -> None:
                 request_id, scene=scene_key, ignore=common.encode_names(step.ignore), carry=common.encode_carry(step.carry)
             )
             msg.joint_names = list(self.joint_names)
-            msg.points = [JointTrajectoryPoint(positions=[float(x) for x in self.arm_q(robot)]),
-                          JointTrajectoryPoint(positions=[float(x) for x in goal_q])]
+            msg.points = [
+                JointTrajectoryPoint(positions=[float(x) for x in self.arm_q(robot)]),
+                JointTrajectoryPoint(positions=[float(x) for x in goal_q]),
+            ]
             if not common.wait_for_subscriber(self.pub_plan[robot], self.plan_timeout):
                 raise CycleFailed(f"planning {step.name}: no motion planner subscribed to {self.pub_plan[robot].topic_name}")
             event = self.waiter.expect(request_id)
@@ -179,12 +194,21 @@ def main(argv: list[str] | None = None) -> None:
             latency = (time.monotonic() - sent) * 1000
             values = common.decode_tag(reply.header.frame_id)[1] if reply is not None else {}
             ok = reply is not None and values.get("status") == "ok" and len(reply.points) > 0
-            common.log_result("plan", robot=robot, request=request_id, cycle=cycle, step=step.name, ok=ok,
-                              latency_ms=round(latency, 1), planner=values.get("planner"),
-                              planning_ms=float(values["planning_ms"]) if "planning_ms" in values else None,
-                              queue_ms=float(values["queue_ms"]) if "queue_ms" in values else None,
-                              planner_node=values.get("node"), node=common.node_name(),
-                              reason=values.get("reason") or (None if reply is not None else "timeout"))
+            common.log_result(
+                "plan",
+                robot=robot,
+                request=request_id,
+                cycle=cycle,
+                step=step.name,
+                ok=ok,
+                latency_ms=round(latency, 1),
+                planner=values.get("planner"),
+                planning_ms=float(values["planning_ms"]) if "planning_ms" in values else None,
+                queue_ms=float(values["queue_ms"]) if "queue_ms" in values else None,
+                planner_node=values.get("node"),
+                node=common.node_name(),
+                reason=values.get("reason") or (None if reply is not None else "timeout"),
+            )
             if not ok and (values.get("reason") or "").startswith("unknown scene"):
                 raise SceneUnknown(f"planning {step.name}: {values['reason']}")
             if not ok:
@@ -214,8 +238,11 @@ def main(argv: list[str] | None = None) -> None:
         def fresh_scene(self, robot, after: float, timeout: float | None = None) -> tuple[list, str]:
             """The first planning scene from a camera frame taken after `after` (wall clock), and its key."""
             view = self.views[robot]
-            self.wait_for("camera frame after the last motion", lambda: view.scene_stamp > after and view.q is not None,
-                          timeout or self.scene_timeout)
+            self.wait_for(
+                "camera frame after the last motion",
+                lambda: view.scene_stamp > after and view.q is not None,
+                timeout or self.scene_timeout,
+            )
             return list(view.scene), view.scene_key
 
         # --- the workload
@@ -260,7 +287,7 @@ def main(argv: list[str] | None = None) -> None:
                     record["outcome"] = "success" if after > before else "failed"
                     if after <= before:
                         record["reason"] = "perception sees no new object on the platform after the release"
-                except Exception as failure:  # noqa: BLE001 - any failure ends the cycle, never the robot's task loop
+                except Exception as failure:
                     reason = str(failure) if isinstance(failure, CycleFailed) else f"{type(failure).__name__}: {failure}"
                     record.update(outcome="failed", reason=reason)
                     self.recover(robot, key if "key" in locals() else "", cycle)

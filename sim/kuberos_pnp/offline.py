@@ -118,8 +118,9 @@ def choose_yaw(planner: Planner, target: Box, q, boxes: list[Box]) -> tuple[floa
     return tasks.GRASP_YAWS[0], None
 
 
-def run_cycle(world: W.RobotWorld, planner: Planner, ex: Executor, boxes: list[Box], target: Box, platform: Box,
-              slot: int, budget: float) -> CycleReport:
+def run_cycle(
+    world: W.RobotWorld, planner: Planner, ex: Executor, boxes: list[Box], target: Box, platform: Box, slot: int, budget: float
+) -> CycleReport:
     """One pick-and-place cycle; on any failure the arm is sent home and the cycle reported failed."""
     report = CycleReport(world.seed, target.name, False)
     before = world.objects_on_platform()
@@ -167,8 +168,9 @@ def recover(world: W.RobotWorld, planner: Planner, ex: Executor, boxes: list[Box
         ex.run(trajectory.time_parameterize(res.path, lim.velocity, lim.acceleration, dt=world.time_step))
 
 
-def run_robot(seed: int, n_objects: int, max_cycles: int, planner: Planner, budget: float,
-              log=print) -> tuple[list[CycleReport], dict]:
+def run_robot(
+    seed: int, n_objects: int, max_cycles: int, planner: Planner, budget: float, log=print
+) -> tuple[list[CycleReport], dict]:
     world = W.RobotWorld(seed, n_objects)
     try:
         t0 = time.perf_counter()
@@ -177,8 +179,13 @@ def run_robot(seed: int, n_objects: int, max_cycles: int, planner: Planner, budg
         boxes, pstats = perception_core.perceive(frame)
         platform = tasks.platform_of(boxes)
         targets = tasks.order_targets(boxes)
-        info = {"seed": seed, "camera_ms": cam_ms, "perception_ms": pstats["total_ms"], "targets_seen": len(targets),
-                "targets_true": world.n_targets()}
+        info = {
+            "seed": seed,
+            "camera_ms": cam_ms,
+            "perception_ms": pstats["total_ms"],
+            "targets_seen": len(targets),
+            "targets_true": world.n_targets(),
+        }
         ex = Executor(world)
         reports = []
         if platform is None:
@@ -188,9 +195,11 @@ def run_robot(seed: int, n_objects: int, max_cycles: int, planner: Planner, budg
             reports.append(rep)
             if rep.success:
                 boxes = tasks.update_after_place(boxes, target, platform, slot)
-            log(f"seed {seed} {target.name}: {'OK ' if rep.success else 'FAIL'} plan "
+            log(
+                f"seed {seed} {target.name}: {'OK ' if rep.success else 'FAIL'} plan "
                 f"[{', '.join(f'{t * 1e3:.0f}' for t in rep.planning_s)}] ms, exec {rep.exec_sim_s:.2f} s sim "
-                f"({rep.step_wall_s:.2f} s wall){'' if rep.success else ' - ' + rep.reason}")
+                f"({rep.step_wall_s:.2f} s wall){'' if rep.success else ' - ' + rep.reason}"
+            )
         info["on_platform"] = world.objects_on_platform()
         return reports, info
     finally:
@@ -204,14 +213,18 @@ def summarize(reports: list[CycleReport], infos: list[dict]) -> dict:
     wall_s = sum(r.step_wall_s for r in reports)
     ok = sum(r.success for r in reports)
     return {
-        "cycles": len(reports), "successes": ok, "success_rate": ok / len(reports) if reports else 0.0,
+        "cycles": len(reports),
+        "successes": ok,
+        "success_rate": ok / len(reports) if reports else 0.0,
         "robots": len(infos),
         "planning_queries": len(plans),
         "planning_p50_ms": float(np.percentile(plans, 50) * 1e3) if len(plans) else None,
         "planning_p95_ms": float(np.percentile(plans, 95) * 1e3) if len(plans) else None,
         "toppra_p50_ms": float(np.percentile(toppra_ms, 50)) if len(toppra_ms) else None,
         "toppra_fallbacks": int(sum(r.fallbacks for r in reports)),
-        "exec_sim_s": sim_s, "step_wall_s": wall_s, "real_time_factor": sim_s / wall_s if wall_s else None,
+        "exec_sim_s": sim_s,
+        "step_wall_s": wall_s,
+        "real_time_factor": sim_s / wall_s if wall_s else None,
         "perception_ms_mean": float(np.mean([i["perception_ms"] for i in infos])) if infos else None,
         "camera_ms_mean": float(np.mean([i["camera_ms"] for i in infos])) if infos else None,
         "targets_missed_by_perception": int(sum(i["targets_true"] - i["targets_seen"] for i in infos)),

@@ -92,14 +92,32 @@ def main(argv: list[str] | None = None) -> None:
             self.stride = int(common.declare(self, "stride", 2))
             self.max_rate = float(common.declare(self, "max_rate_hz", 2.0))
             self.inputs = {r: RobotInput() for r in robots}
-            self.pub_scene = {r: self.create_publisher(MarkerArray, common.topic(r, common.SCENE_OBJECTS), common.latched_qos()) for r in robots}
-            self.pub_points = {r: self.create_publisher(PointCloud2, common.topic(r, common.SCENE_POINTS), common.sensor_qos()) for r in robots}
+            self.pub_scene = {
+                r: self.create_publisher(MarkerArray, common.topic(r, common.SCENE_OBJECTS), common.latched_qos()) for r in robots
+            }
+            self.pub_points = {
+                r: self.create_publisher(PointCloud2, common.topic(r, common.SCENE_POINTS), common.sensor_qos()) for r in robots
+            }
             self.lock = threading.Lock()
             for r in robots:
-                self.create_subscription(Image, common.topic(r, common.CAMERA_RGB), lambda m, r=r: self.on_rgb(r, m), common.sensor_qos())
-                self.create_subscription(Image, common.topic(r, common.CAMERA_DEPTH), lambda m, r=r: self.on_depth(r, m), common.sensor_qos())
-                self.create_subscription(CameraInfo, common.topic(r, common.CAMERA_INFO), lambda m, r=r: setattr(self.inputs[r], "info", m), common.sensor_qos())
-                self.create_subscription(PoseStamped, common.topic(r, common.CAMERA_POSE), lambda m, r=r: setattr(self.inputs[r], "pose", m), common.latched_qos())
+                self.create_subscription(
+                    Image, common.topic(r, common.CAMERA_RGB), lambda m, r=r: self.on_rgb(r, m), common.sensor_qos()
+                )
+                self.create_subscription(
+                    Image, common.topic(r, common.CAMERA_DEPTH), lambda m, r=r: self.on_depth(r, m), common.sensor_qos()
+                )
+                self.create_subscription(
+                    CameraInfo,
+                    common.topic(r, common.CAMERA_INFO),
+                    lambda m, r=r: setattr(self.inputs[r], "info", m),
+                    common.sensor_qos(),
+                )
+                self.create_subscription(
+                    PoseStamped,
+                    common.topic(r, common.CAMERA_POSE),
+                    lambda m, r=r: setattr(self.inputs[r], "pose", m),
+                    common.latched_qos(),
+                )
             self.get_logger().info(f"perception for {', '.join(robots)} on {common.node_name()}")
 
         def on_rgb(self, robot: str, msg) -> None:
@@ -117,7 +135,13 @@ def main(argv: list[str] | None = None) -> None:
             k = np.asarray(state.info.k, float).reshape(3, 3)
             p, o = state.pose.pose.position, state.pose.pose.orientation
             points, colors = perception_core.depth_to_points(
-                depth, k, np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]), stride=self.stride, rgb=rgb, voxel_size=self.voxel
+                depth,
+                k,
+                np.array([p.x, p.y, p.z]),
+                np.array([o.x, o.y, o.z, o.w]),
+                stride=self.stride,
+                rgb=rgb,
+                voxel_size=self.voxel,
             )
             boxes = perception_core.segment(points, colors)
             self.pub_points[robot].publish(cloud_msg(points, msg.header.stamp))

@@ -47,9 +47,16 @@ class Box:
         return Box(str(d["name"]), str(d["kind"]), tuple(map(float, d["center"])), tuple(map(float, d["size"])))
 
 
-def depth_to_points(depth: np.ndarray, K: np.ndarray, camera_position, camera_quat_xyzw, stride: int = 2,
-                    max_range: float = 2.5, rgb: np.ndarray | None = None,
-                    voxel_size: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+def depth_to_points(
+    depth: np.ndarray,
+    K: np.ndarray,
+    camera_position,
+    camera_quat_xyzw,
+    stride: int = 2,
+    max_range: float = 2.5,
+    rgb: np.ndarray | None = None,
+    voxel_size: float | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Back-project a metric depth image to robot-frame points.
 
     Every ``stride``-th pixel in both directions is used; pixels at or beyond ``max_range`` (including the
@@ -152,8 +159,14 @@ def crop(points: np.ndarray, colors: np.ndarray | None, workspace) -> tuple[np.n
     return points[keep], None if colors is None else colors[keep]
 
 
-def segment(points: np.ndarray, colors: np.ndarray, table_height: float | None = None,
-            workspace=DEFAULT_WORKSPACE, voxel: float = 0.01, min_points: int = MIN_CLUSTER_POINTS) -> list[Box]:
+def segment(
+    points: np.ndarray,
+    colors: np.ndarray,
+    table_height: float | None = None,
+    workspace=DEFAULT_WORKSPACE,
+    voxel: float = 0.01,
+    min_points: int = MIN_CLUSTER_POINTS,
+) -> list[Box]:
     """Boxes for the table, the platform, every obstacle and every (red) target seen in one cloud.
 
     Names are stable for a given scene: ``target_i``/``obstacle_i`` are sorted by y then x.
@@ -188,10 +201,10 @@ def segment(points: np.ndarray, colors: np.ndarray, table_height: float | None =
 def perceive(frame, stride: int = 1, voxel_size: float | None = None) -> tuple[list[Box], dict]:
     """One camera frame (``world.CameraFrame``-like) to boxes, with timing stats in milliseconds."""
     t0 = time.perf_counter()
-    pts, cols = depth_to_points(frame.depth, frame.K, frame.position, frame.quat_xyzw, stride=stride,
-                                rgb=frame.rgb, voxel_size=voxel_size)
+    pts, cols = depth_to_points(
+        frame.depth, frame.K, frame.position, frame.quat_xyzw, stride=stride, rgb=frame.rgb, voxel_size=voxel_size
+    )
     t1 = time.perf_counter()
     boxes = segment(pts, cols, voxel=0.01 * stride, min_points=max(2, MIN_CLUSTER_POINTS // stride**2))
     t2 = time.perf_counter()
-    return boxes, {"points": len(pts), "cloud_ms": (t1 - t0) * 1e3, "segment_ms": (t2 - t1) * 1e3,
-                   "total_ms": (t2 - t0) * 1e3}
+    return boxes, {"points": len(pts), "cloud_ms": (t1 - t0) * 1e3, "segment_ms": (t2 - t1) * 1e3, "total_ms": (t2 - t0) * 1e3}

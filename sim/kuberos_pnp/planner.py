@@ -62,14 +62,26 @@ def main(argv: list[str] | None = None) -> None:
             self.planner = planning.Planner(parallel=len(self.race), planners=self.race)
             self.scenes: dict[str, dict[str, list]] = {r: {} for r in robots}
             self.requests: queue.Queue = queue.Queue(maxsize=256)
-            self.results = {r: self.create_publisher(JointTrajectory, common.topic(r, common.PLAN_RESULT), common.reliable_qos()) for r in robots}
+            self.results = {
+                r: self.create_publisher(JointTrajectory, common.topic(r, common.PLAN_RESULT), common.reliable_qos())
+                for r in robots
+            }
             for r in robots:
-                self.create_subscription(MarkerArray, common.topic(r, common.SCENE_OBJECTS), lambda m, r=r: self.on_scene(r, m), common.latched_qos())
-                self.create_subscription(JointTrajectory, common.topic(r, common.PLAN_REQUEST), lambda m, r=r: self.on_request(r, m), common.reliable_qos(50))
+                self.create_subscription(
+                    MarkerArray, common.topic(r, common.SCENE_OBJECTS), lambda m, r=r: self.on_scene(r, m), common.latched_qos()
+                )
+                self.create_subscription(
+                    JointTrajectory,
+                    common.topic(r, common.PLAN_REQUEST),
+                    lambda m, r=r: self.on_request(r, m),
+                    common.reliable_qos(50),
+                )
             self.stop = threading.Event()
             self.worker = threading.Thread(target=self.work, name="planning", daemon=True)
             self.worker.start()
-            self.get_logger().info(f"planner for {', '.join(robots)} on {common.node_name()}: race {', '.join(self.race)}, {self.budget} s")
+            self.get_logger().info(
+                f"planner for {', '.join(robots)} on {common.node_name()}: race {', '.join(self.race)}, {self.budget} s"
+            )
 
         def on_scene(self, robot: str, msg) -> None:
             if not msg.markers:
@@ -113,13 +125,28 @@ def main(argv: list[str] | None = None) -> None:
             result = self.planner.plan(start, goal, scene, carry, self.budget, ignore)
             if not result.solved:  # once more, with twice the time
                 result = self.planner.plan(start, goal, scene, carry, 2 * self.budget, ignore)
-            self.reply(robot, msg, result.path if result.solved else None, "ok" if result.solved else "failed",
-                       planner=result.planner, planning_ms=round(result.planning_time_s * 1000, 1),
-                       queue_ms=round(waited * 1000, 1),
-                       reason=None if result.solved else (result.reason or "").replace(";", ",").replace("=", ":"))
-            common.log_result("planning", robot=robot, request=request_id, node=common.node_name(), solved=result.solved,
-                              planner=result.planner, planning_ms=round(result.planning_time_s * 1000, 1),
-                              queue_ms=round(waited * 1000, 1), objects=len(scene), waypoints=len(result.path or []))
+            self.reply(
+                robot,
+                msg,
+                result.path if result.solved else None,
+                "ok" if result.solved else "failed",
+                planner=result.planner,
+                planning_ms=round(result.planning_time_s * 1000, 1),
+                queue_ms=round(waited * 1000, 1),
+                reason=None if result.solved else (result.reason or "").replace(";", ",").replace("=", ":"),
+            )
+            common.log_result(
+                "planning",
+                robot=robot,
+                request=request_id,
+                node=common.node_name(),
+                solved=result.solved,
+                planner=result.planner,
+                planning_ms=round(result.planning_time_s * 1000, 1),
+                queue_ms=round(waited * 1000, 1),
+                objects=len(scene),
+                waypoints=len(result.path or []),
+            )
 
         def wait_for_scene(self, robot: str, key: str):
             """The scene the request names; it may still be on its way here (perception publishes it to the

@@ -64,8 +64,12 @@ class Attached:
     ignore: tuple[str, ...] = ()  # boxes the carried object may touch (e.g. its support when lifting)
 
     def to_dict(self) -> dict:
-        return {"box": self.box.to_dict(), "ee_position": list(self.ee_position),
-                "ee_quat_xyzw": list(self.ee_quat_xyzw), "ignore": list(self.ignore)}
+        return {
+            "box": self.box.to_dict(),
+            "ee_position": list(self.ee_position),
+            "ee_quat_xyzw": list(self.ee_quat_xyzw),
+            "ignore": list(self.ignore),
+        }
 
     @staticmethod
     def from_dict(d: dict) -> Attached:
@@ -198,8 +202,15 @@ class CollisionModel:
         return True, -1
 
     # IK -------------------------------------------------------------------------------------------------
-    def ik(self, position, quat_xyzw, seed_q, restarts: int = 24, rng: np.random.Generator | None = None,
-           check_collision: bool = True) -> np.ndarray | None:
+    def ik(
+        self,
+        position,
+        quat_xyzw,
+        seed_q,
+        restarts: int = 24,
+        rng: np.random.Generator | None = None,
+        check_collision: bool = True,
+    ) -> np.ndarray | None:
         """Joint vector reaching the grasp-link pose, verified by FK and (optionally) collision-free.
 
         Starts from ``seed_q``, then ``READY_Q``, then random restarts; returns the valid solution closest to ``seed_q``
@@ -229,8 +240,17 @@ class CollisionModel:
         q = np.asarray(start, dtype=float)
         for _ in range(4):
             sol = self._p.calculateInverseKinematics(
-                self.arm, W.EE_LINK, position, quat, lowerLimits=lower, upperLimits=upper, jointRanges=ranges,
-                restPoses=[*list(rest), 0.04, 0.04], maxNumIterations=200, residualThreshold=1e-6)
+                self.arm,
+                W.EE_LINK,
+                position,
+                quat,
+                lowerLimits=lower,
+                upperLimits=upper,
+                jointRanges=ranges,
+                restPoses=[*list(rest), 0.04, 0.04],
+                maxNumIterations=200,
+                residualThreshold=1e-6,
+            )
             q = np.clip(np.array(sol[:7]), self.lower, self.upper)
             if self._pose_error_ok(q, position, quat):
                 return q
@@ -297,12 +317,17 @@ def solve_once(model: CollisionModel, request: dict, planner_name: str, should_s
     planner.setProblemDefinition(pdef)
     planner.setup()
     remaining = max(0.01, request["time_budget_s"] - (time.perf_counter() - t0))
-    ptc = ob.plannerOrTerminationCondition(ob.timedPlannerTerminationCondition(remaining),
-                                           ob.PlannerTerminationCondition(should_stop))
+    ptc = ob.plannerOrTerminationCondition(
+        ob.timedPlannerTerminationCondition(remaining), ob.PlannerTerminationCondition(should_stop)
+    )
     planner.solve(ptc)
     if not pdef.hasExactSolution():
-        return PlanResult(False, planner=planner_name, planning_time_s=time.perf_counter() - t0,
-                          reason="cancelled" if should_stop() else "no exact solution within budget")
+        return PlanResult(
+            False,
+            planner=planner_name,
+            planning_time_s=time.perf_counter() - t0,
+            reason="cancelled" if should_stop() else "no exact solution within budget",
+        )
     path = pdef.getSolutionPath()
     simplify(og, si, path)
     states = [[path.getState(k)[i] for i in range(7)] for k in range(path.getStateCount())]
@@ -353,8 +378,14 @@ def _worker_main(index: int, conn, cancel, seed: int, planners: tuple[str, ...])
 class Planner:
     """A persistent pool of planning processes plus a local collision model for IK and checks."""
 
-    def __init__(self, parallel: int = 4, planners: tuple[str, ...] = DEFAULT_PLANNERS, seed: int = 0,
-                 deterministic: bool = False, margin: float = DEFAULT_MARGIN) -> None:
+    def __init__(
+        self,
+        parallel: int = 4,
+        planners: tuple[str, ...] = DEFAULT_PLANNERS,
+        seed: int = 0,
+        deterministic: bool = False,
+        margin: float = DEFAULT_MARGIN,
+    ) -> None:
         for name in planners:
             if name not in SUPPORTED_PLANNERS:
                 raise ValueError(f"unsupported planner {name!r}; choose from {SUPPORTED_PLANNERS}")
@@ -370,8 +401,12 @@ class Planner:
         self._procs = []
         for i in range(self.parallel):
             parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_worker_main, args=(i, child, self._cancel, seed * 1000 + 1, self.planners),
-                               daemon=True, name=f"kuberos-planner-{i}")
+            proc = ctx.Process(
+                target=_worker_main,
+                args=(i, child, self._cancel, seed * 1000 + 1, self.planners),
+                daemon=True,
+                name=f"kuberos-planner-{i}",
+            )
             proc.start()
             self._conns.append(parent)
             self._procs.append(proc)
@@ -382,8 +417,16 @@ class Planner:
     def worker_planners(self) -> list[str]:
         return [self.planners[i % len(self.planners)] for i in range(self.parallel)]
 
-    def plan(self, start_q, goal_q, boxes: list[Box], attached: Attached | None = None, time_budget_s: float = 1.0,
-             ignore: tuple[str, ...] = (), seed: int | None = None) -> PlanResult:
+    def plan(
+        self,
+        start_q,
+        goal_q,
+        boxes: list[Box],
+        attached: Attached | None = None,
+        time_budget_s: float = 1.0,
+        ignore: tuple[str, ...] = (),
+        seed: int | None = None,
+    ) -> PlanResult:
         """Joint-space plan from ``start_q`` to ``goal_q`` avoiding ``boxes`` (minus ``ignore``).
 
         Returns within ``time_budget_s`` plus the time to simplify/validate the winner and to drain the
@@ -393,9 +436,15 @@ class Planner:
         del seed
         t0 = time.perf_counter()
         self._req += 1
-        request = {"start": [float(v) for v in start_q], "goal": [float(v) for v in goal_q],
-                   "boxes": [b.to_dict() for b in boxes], "attached": attached.to_dict() if attached else None,
-                   "ignore": list(ignore), "time_budget_s": float(time_budget_s), "margin": self.margin}
+        request = {
+            "start": [float(v) for v in start_q],
+            "goal": [float(v) for v in goal_q],
+            "boxes": [b.to_dict() for b in boxes],
+            "attached": attached.to_dict() if attached else None,
+            "ignore": list(ignore),
+            "time_budget_s": float(time_budget_s),
+            "margin": self.margin,
+        }
         if np.max(np.abs(np.asarray(start_q) - np.asarray(goal_q))) < 1e-6:
             return PlanResult(True, [list(map(float, start_q))], "trivial", 0.0, 0, "start equals goal")
         self._cancel.clear()
@@ -432,15 +481,31 @@ class Planner:
             return min(solved, key=lambda r: r.worker)
         return min(solved, key=lambda r: r.planning_time_s)
 
-    def ik(self, position, quat_xyzw, seed_q, boxes: list[Box] | None = None, ignore: tuple[str, ...] = (),
-           attached: Attached | None = None) -> np.ndarray | None:
+    def ik(
+        self,
+        position,
+        quat_xyzw,
+        seed_q,
+        boxes: list[Box] | None = None,
+        ignore: tuple[str, ...] = (),
+        attached: Attached | None = None,
+    ) -> np.ndarray | None:
         """IK (see ``CollisionModel.ik``) checked against ``boxes`` minus ``ignore``."""
         self.model.margin = self.margin
         self.model.set_scene(boxes or [], ignore, attached)
         return self.model.ik(position, quat_xyzw, seed_q, rng=self._rng)
 
-    def plan_pose(self, start_q, position, quat_xyzw, boxes: list[Box], attached: Attached | None = None,
-                  time_budget_s: float = 1.0, ignore: tuple[str, ...] = (), ik_seed=None) -> PlanResult:
+    def plan_pose(
+        self,
+        start_q,
+        position,
+        quat_xyzw,
+        boxes: list[Box],
+        attached: Attached | None = None,
+        time_budget_s: float = 1.0,
+        ignore: tuple[str, ...] = (),
+        ik_seed=None,
+    ) -> PlanResult:
         """IK for the grasp-link pose (seeded by ``ik_seed`` or ``start_q``), then ``plan``."""
         t0 = time.perf_counter()
         goal = self.ik(position, quat_xyzw, start_q if ik_seed is None else ik_seed, boxes, ignore, attached)
@@ -450,8 +515,9 @@ class Planner:
         res.planning_time_s = time.perf_counter() - t0
         return res
 
-    def check_path(self, path, boxes: list[Box], attached: Attached | None = None,
-                   ignore: tuple[str, ...] = ()) -> tuple[bool, int]:
+    def check_path(
+        self, path, boxes: list[Box], attached: Attached | None = None, ignore: tuple[str, ...] = ()
+    ) -> tuple[bool, int]:
         """Dense validity of a path in the local model."""
         self.model.set_scene(boxes, ignore, attached)
         return self.model.path_valid(path)

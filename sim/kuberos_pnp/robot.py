@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
         def on_joint_states(self) -> None:
             msg = JointState()
             msg.header.stamp = self.get_clock().now().to_msg()
-            msg.name = list(self.world.joint_names) + [common.GRIPPER_JOINT]
+            msg.name = [*self.world.joint_names, common.GRIPPER_JOINT]
             msg.position = [float(x) for x in self.world.joint_positions()] + [1.0 if self.world.grasped() else 0.0]
             msg.velocity = [float(x) for x in self.world.joint_velocities()] + [0.0]
             self.pub_joints.publish(msg)

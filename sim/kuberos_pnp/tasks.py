@@ -69,8 +69,7 @@ def slot_xy(platform: Box, index: int) -> tuple[float, float]:
     return platform.center[0] + dx, platform.center[1] + dy
 
 
-def place_pose(platform_box: Box, index: int, carried: Box | None = None, yaw: float = 0.0,
-               ee_offset_z: float = 0.0) -> Pose:
+def place_pose(platform_box: Box, index: int, carried: Box | None = None, yaw: float = 0.0, ee_offset_z: float = 0.0) -> Pose:
     """Grasp-link pose releasing the carried cube ``PLACE_CLEARANCE`` above slot ``index`` of the platform.
 
     ``ee_offset_z`` is the carried box centre's height above the grasp point (0 for centre grasps).
@@ -81,8 +80,7 @@ def place_pose(platform_box: Box, index: int, carried: Box | None = None, yaw: f
     return (x, y, surface + PLACE_CLEARANCE + size_z / 2 - ee_offset_z), down_quat(yaw)
 
 
-def preplace_pose(platform_box: Box, index: int, carried: Box | None = None, yaw: float = 0.0,
-                  ee_offset_z: float = 0.0) -> Pose:
+def preplace_pose(platform_box: Box, index: int, carried: Box | None = None, yaw: float = 0.0, ee_offset_z: float = 0.0) -> Pose:
     (x, y, z), q = place_pose(platform_box, index, carried, yaw, ee_offset_z)
     return (x, y, z + PREPLACE_HEIGHT), q
 

@@ -102,8 +102,9 @@ def _toppra(corners: np.ndarray, v_max: np.ndarray, a_max: np.ndarray, dt: float
     pc_vel = constraint.JointVelocityConstraint(vlim)
     pc_acc = constraint.JointAccelerationConstraint(alim, discretization_scheme=constraint.DiscretizationType.Interpolation)
     n_grid = int(min(600, max(50, 3 * len(way))))
-    instance = algo.TOPPRA([pc_vel, pc_acc], path, gridpoints=np.linspace(0, ss[-1], n_grid + 1),
-                           parametrizer="ParametrizeSpline")
+    instance = algo.TOPPRA(
+        [pc_vel, pc_acc], path, gridpoints=np.linspace(0, ss[-1], n_grid + 1), parametrizer="ParametrizeSpline"
+    )
     jnt = instance.compute_trajectory(0.0, 0.0)
     if jnt is None:
         raise RuntimeError("toppra: infeasible parameterization")
@@ -165,8 +166,9 @@ def within_limits(traj: Trajectory, v_max, a_max, tol: float = LIMIT_TOLERANCE) 
     return bool(v_ok and a_ok)
 
 
-def time_parameterize(path, v_max, a_max, dt: float = 1.0 / 240.0, spline_step: float = 0.05,
-                      use_toppra: bool = True) -> Trajectory:
+def time_parameterize(
+    path, v_max, a_max, dt: float = 1.0 / 240.0, spline_step: float = 0.05, use_toppra: bool = True
+) -> Trajectory:
     """Fastest timing of ``path`` (list of joint vectors) under |qd| <= v_max and |qdd| <= a_max."""
     t0 = time.perf_counter()
     v_max = np.asarray(v_max, dtype=float)

@@ -199,15 +199,19 @@ class RobotWorld:
         pb = self._p
         pb.loadURDF("plane.urdf")
         self.base_id = pb.loadURDF("husky/husky.urdf", useFixedBase=True)
-        self.arm_id = pb.loadURDF(PANDA_URDF, ARM_BASE_POSITION, ARM_BASE_QUAT, useFixedBase=True,
-                                  flags=p.URDF_USE_INERTIA_FROM_FILE)
+        self.arm_id = pb.loadURDF(
+            PANDA_URDF, ARM_BASE_POSITION, ARM_BASE_QUAT, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE
+        )
         for link in range(-1, pb.getNumJoints(self.base_id)):
             pb.setCollisionFilterPair(self.base_id, self.arm_id, link, -1, 0)
         info = [pb.getJointInfo(self.arm_id, j) for j in ARM_JOINTS]
         self.joint_names = [i[1].decode() for i in info]
         self.joint_limits = JointLimits(
-            lower=np.array([i[8] for i in info]), upper=np.array([i[9] for i in info]),
-            velocity=np.array([i[11] for i in info]), acceleration=np.full(len(ARM_JOINTS), ARM_ACCEL_LIMIT))
+            lower=np.array([i[8] for i in info]),
+            upper=np.array([i[9] for i in info]),
+            velocity=np.array([i[11] for i in info]),
+            acceleration=np.full(len(ARM_JOINTS), ARM_ACCEL_LIMIT),
+        )
         self.home_q = np.array(HOME_Q)
         for j, q in zip(ARM_JOINTS, HOME_Q, strict=True):
             pb.resetJointState(self.arm_id, j, q)
@@ -257,8 +261,15 @@ class RobotWorld:
         q = [float(v) for v in q]
         qd = [0.0] * len(q) if qd is None else [float(v) for v in qd]
         self._p.setJointMotorControlArray(
-            self.arm_id, ARM_JOINTS, p.POSITION_CONTROL, targetPositions=q, targetVelocities=qd,
-            forces=ARM_FORCES, positionGains=[0.3] * len(q), velocityGains=[1.0] * len(q))
+            self.arm_id,
+            ARM_JOINTS,
+            p.POSITION_CONTROL,
+            targetPositions=q,
+            targetVelocities=qd,
+            forces=ARM_FORCES,
+            positionGains=[0.3] * len(q),
+            velocityGains=[1.0] * len(q),
+        )
 
     def reset_joints(self, q) -> None:
         """Teleport the arm (tests, not for execution)."""
@@ -273,8 +284,9 @@ class RobotWorld:
 
     # --- gripper ---------------------------------------------------------------------------------------
     def _drive_fingers(self, opening: float) -> None:
-        self._p.setJointMotorControlArray(self.arm_id, FINGER_JOINTS, p.POSITION_CONTROL,
-                                          targetPositions=[opening] * 2, forces=[20.0, 20.0])
+        self._p.setJointMotorControlArray(
+            self.arm_id, FINGER_JOINTS, p.POSITION_CONTROL, targetPositions=[opening] * 2, forces=[20.0, 20.0]
+        )
 
     def set_gripper(self, closed: bool) -> bool:
         """Close (attach the target between the fingers; True if one was caught) or open (release)."""
@@ -315,8 +327,9 @@ class RobotWorld:
         obj_pos, obj_orn = pb.getBasePositionAndOrientation(body)
         inv_pos, inv_orn = pb.invertTransform(s[4], s[5])
         rel_pos, rel_orn = pb.multiplyTransforms(inv_pos, inv_orn, obj_pos, obj_orn)
-        cid = pb.createConstraint(self.arm_id, EE_LINK, body, -1, p.JOINT_FIXED, (0, 0, 0), rel_pos, (0, 0, 0),
-                                  parentFrameOrientation=rel_orn)
+        cid = pb.createConstraint(
+            self.arm_id, EE_LINK, body, -1, p.JOINT_FIXED, (0, 0, 0), rel_pos, (0, 0, 0), parentFrameOrientation=rel_orn
+        )
         pb.changeConstraint(cid, maxForce=200.0)
         self._attachment = (cid, name)
 
@@ -368,15 +381,25 @@ class RobotWorld:
         view = pb.computeViewMatrix(CAMERA_EYE, CAMERA_TARGET, CAMERA_UP)
         proj = pb.computeProjectionMatrixFOV(CAMERA_FOV_DEG, CAMERA_WIDTH / CAMERA_HEIGHT, CAMERA_NEAR, CAMERA_FAR)
         flags = 0 if with_segmentation else p.ER_NO_SEGMENTATION_MASK
-        _w, _h, rgba, zbuf, seg = pb.getCameraImage(CAMERA_WIDTH, CAMERA_HEIGHT, view, proj,
-                                                   renderer=p.ER_TINY_RENDERER, flags=flags, shadow=0)
+        _w, _h, rgba, zbuf, seg = pb.getCameraImage(
+            CAMERA_WIDTH, CAMERA_HEIGHT, view, proj, renderer=p.ER_TINY_RENDERER, flags=flags, shadow=0
+        )
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(CAMERA_HEIGHT, CAMERA_WIDTH, 4)[:, :, :3].copy()
         depth = depth_from_zbuffer(np.asarray(zbuf).reshape(CAMERA_HEIGHT, CAMERA_WIDTH), CAMERA_NEAR, CAMERA_FAR)
         segm = np.asarray(seg).reshape(CAMERA_HEIGHT, CAMERA_WIDTH) if with_segmentation else None
-        return CameraFrame(rgb=rgb, depth=depth, K=self.K.copy(), width=CAMERA_WIDTH, height=CAMERA_HEIGHT,
-                           position=tuple(float(v) for v in self._camera_pos),
-                           quat_xyzw=rotation_to_quat(self._camera_rot), near=CAMERA_NEAR, far=CAMERA_FAR,
-                           sim_time=self.sim_time, segmentation=segm)
+        return CameraFrame(
+            rgb=rgb,
+            depth=depth,
+            K=self.K.copy(),
+            width=CAMERA_WIDTH,
+            height=CAMERA_HEIGHT,
+            position=tuple(float(v) for v in self._camera_pos),
+            quat_xyzw=rotation_to_quat(self._camera_rot),
+            near=CAMERA_NEAR,
+            far=CAMERA_FAR,
+            sim_time=self.sim_time,
+            segmentation=segm,
+        )
 
     def object_body(self, name: str) -> int:
         return self._objects[name][0]
@@ -412,6 +435,9 @@ def arm_model() -> tuple[list[str], JointLimits]:
     finally:
         client.disconnect()
     limits = JointLimits(
-        lower=np.array([i[8] for i in info]), upper=np.array([i[9] for i in info]),
-        velocity=np.array([i[11] for i in info]), acceleration=np.full(len(ARM_JOINTS), ARM_ACCEL_LIMIT))
+        lower=np.array([i[8] for i in info]),
+        upper=np.array([i[9] for i in info]),
+        velocity=np.array([i[11] for i in info]),
+        acceleration=np.full(len(ARM_JOINTS), ARM_ACCEL_LIMIT),
+    )
     return [i[1].decode() for i in info], limits

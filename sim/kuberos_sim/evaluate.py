@@ -23,6 +23,7 @@ import sys
 import time
 
 from kuberos_pnp import common
+
 from kuberos_sim import metrics, scenario
 
 PHYSICS = "python3 -m kuberos_pnp.robot"
@@ -43,7 +44,9 @@ def rendered_inventory(rendered: str):
 
 def git_commit() -> str:
     try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=scenario.ROOT, capture_output=True, text=True, check=True).stdout.strip()
+        return subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=scenario.ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
 
@@ -63,7 +66,9 @@ def progress(message: str) -> None:
     print(f"[{datetime.datetime.now():%H:%M:%S}] {message}", flush=True)
 
 
-def run_one(strategy: str, robots: int, rate: float, cycles: int, out: str, seed: int, time_limit: float, cpu_scale: float) -> dict:
+def run_one(
+    strategy: str, robots: int, rate: float, cycles: int, out: str, seed: int, time_limit: float, cpu_scale: float
+) -> dict:
     from kuberos_sim.runtime import Runtime
 
     name = f"{strategy}-r{robots}-t{rate:g}"
@@ -79,9 +84,14 @@ def run_one(strategy: str, robots: int, rate: float, cycles: int, out: str, seed
     with Runtime(rendered, model, os.path.join(directory, "run"), cpu_scale=cpu_scale) as runtime:
         runtime.start()
         env = robot_env(runtime)
-        for index, robot in enumerate(scenario.robot_names(robots)):
-            runtime.start_on(robot, f"physics-{robot}", [*PHYSICS.split(), "--ros-args", "-p", f"seed:={seed}", "-p", f"objects:={cycles}"],
-                             {**env, "KUBEROS_ROBOT_NAME": robot, "KUBEROS_NODE_NAME": robot}, cgroup="hardware")
+        for robot in scenario.robot_names(robots):
+            runtime.start_on(
+                robot,
+                f"physics-{robot}",
+                [*PHYSICS.split(), "--ros-args", "-p", f"seed:={seed}", "-p", f"objects:={cycles}"],
+                {**env, "KUBEROS_ROBOT_NAME": robot, "KUBEROS_NODE_NAME": robot},
+                cgroup="hardware",
+            )
         started = time.monotonic()
         cpu_start = runtime.cpu_seconds()
         finished = wait_for_cycles(runtime, robots, cycles, time_limit)
@@ -98,7 +108,11 @@ def run_one(strategy: str, robots: int, rate: float, cycles: int, out: str, seed
 
 def robot_env(runtime) -> dict[str, str]:
     """The ROS environment of the fleet's modules (discovery servers, domain), for the robots' physics."""
-    return {k: v for k, v in runtime.fleet_env().items() if k in ("ROS_DISCOVERY_SERVER", "ROS_DOMAIN_ID", "RMW_IMPLEMENTATION", "KUBEROS_FLEET")}
+    return {
+        k: v
+        for k, v in runtime.fleet_env().items()
+        if k in ("ROS_DISCOVERY_SERVER", "ROS_DOMAIN_ID", "RMW_IMPLEMENTATION", "KUBEROS_FLEET")
+    }
 
 
 def wait_for_cycles(runtime, robots: int, cycles: int, time_limit: float) -> bool:
@@ -173,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": " ".join(["python -m kuberos_sim.evaluate", *(argv if argv is not None else sys.argv[1:])]),
         "commit": git_commit(),
         "machine": machine(),
-        "date": f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M UTC}",
+        "date": f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M UTC}",
         "cycles_per_robot": args.cycles,
         "seed": args.seed,
         "cpu_scale": args.cpu_scale,
@@ -189,7 +203,14 @@ def main(argv: list[str] | None = None) -> int:
                     progress(f"  failed: {error}")
                     row = {"strategy": strategy, "robots": robots, "rate_per_min": rate, "error": str(error)[:500]}
                 rows.append(row)
-                progress("  " + ", ".join(f"{k}={v}" for k, v in row.items() if k in ("success_rate", "plan_p50_ms", "plan_p95_ms", "cycle_p50_s", "rtf_min")))
+                progress(
+                    "  "
+                    + ", ".join(
+                        f"{k}={v}"
+                        for k, v in row.items()
+                        if k in ("success_rate", "plan_p50_ms", "plan_p95_ms", "cycle_p50_s", "rtf_min")
+                    )
+                )
                 with open(os.path.join(args.out, "results.json"), "w", encoding="utf-8") as handle:
                     json.dump({**header, "rows": rows}, handle, indent=1)
     from kuberos_sim import report

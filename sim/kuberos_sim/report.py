@@ -58,7 +58,8 @@ def write(out: str, results: dict) -> None:
         f"- commit: {results['commit']}",
         f"- machine: {results['machine']}",
         f"- date: {results['date']}",
-        f"- pick cycles per robot: {results['cycles_per_robot']}, seed {results['seed']}, cgroup cores per inventory CPU: {results['cpu_scale']}",
+        f"- pick cycles per robot: {results['cycles_per_robot']}, seed {results['seed']}, "
+        f"cgroup cores per inventory CPU: {results['cpu_scale']}",
         "",
         "What the columns mean and what the figures show: docs/simulation.md.",
         "",
@@ -96,12 +97,12 @@ def plots(out: str, rows: list[dict]) -> None:
         ("cycle_p50_s", "cycle_p95_s", "Pick cycle time (p50, bar to p95)", "s", "cycle_time.png"),
     ):
         figure, axes = plt.subplots(1, len(rates), figsize=(5 * len(rates), 3.8), squeeze=False, sharey=True)
-        for ax, rate in zip(axes[0], rates):
+        for ax, rate in zip(axes[0], rates, strict=True):
             medians, tails = _series(rows, rate, key), _series(rows, rate, low)
             for strategy, points in medians.items():
                 xs, ys = [p[0] for p in points], [p[1] for p in points]
                 high = dict(tails.get(strategy, []))
-                errors = [[0] * len(xs), [max(0.0, high.get(x, y) - y) for x, y in zip(xs, ys)]]
+                errors = [[0] * len(xs), [max(0.0, high.get(x, y) - y) for x, y in zip(xs, ys, strict=True)]]
                 ax.errorbar(xs, ys, yerr=errors, marker="o", capsize=3, label=strategy)
             ax.set_title(f"{rate:g} tasks/min per robot")
             ax.set_xlabel("robots in the fleet")
@@ -121,7 +122,7 @@ def plots(out: str, rows: list[dict]) -> None:
     for tier in ("onboard", "edge", "cloud", "sim"):
         values = [r.get(f"cpu_{tier}_cores") or 0.0 for r in chosen]
         ax.bar([r["strategy"] for r in chosen], values, bottom=bottom, label="physics" if tier == "sim" else tier)
-        bottom = [b + v for b, v in zip(bottom, values)]
+        bottom = [b + v for b, v in zip(bottom, values, strict=True)]
     ax.set_ylabel("cores used (average)")
     ax.set_title(f"CPU per node class, {largest} robots, {rate:g} tasks/min")
     ax.legend(fontsize=8)

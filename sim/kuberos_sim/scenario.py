@@ -48,7 +48,9 @@ def site_inventory(robots: int) -> dict:
             "children": {
                 "robots": {
                     "vars": {"kuberos_cpu": 4, "kuberos_memory": "8Gi", "kuberos_arch": "amd64"},
-                    "hosts": {name: {"kuberos_fleet": FLEET, "kuberos_devices": ["camera", "gripper"]} for name in robot_names(robots)},
+                    "hosts": {
+                        name: {"kuberos_fleet": FLEET, "kuberos_devices": ["camera", "gripper"]} for name in robot_names(robots)
+                    },
                 },
                 "edge": {"vars": {"kuberos_cpu": 16, "kuberos_memory": "32Gi"}, "hosts": {"edge-1": {}, "edge-2": {}}},
                 "cloud": {"vars": {"kuberos_cpu": 32, "kuberos_memory": "64Gi"}, "hosts": {"cloud-1": {}}},
@@ -105,10 +107,14 @@ def render(spec_file: str, inventory_file: str, render_dir: str, log_file: str) 
     command = [
         os.path.join(os.path.dirname(sys.executable), "ansible-playbook"),
         os.path.join(ROOT, "playbooks", "deploy.yml"),
-        "-i", inventory_file,
-        "-e", f"rosdeployment_file={spec_file}",
-        "-e", "kuberos_apply=false",
-        "-e", f"kuberos_render_dir={render_dir}",
+        "-i",
+        inventory_file,
+        "-e",
+        f"rosdeployment_file={spec_file}",
+        "-e",
+        "kuberos_apply=false",
+        "-e",
+        f"kuberos_render_dir={render_dir}",
     ]
     with open(log_file, "w", encoding="utf-8") as log:
         done = subprocess.run(command, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, timeout=300)

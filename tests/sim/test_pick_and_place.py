@@ -18,7 +18,6 @@ import json
 import os
 
 import pytest
-
 from kuberos_sim import evaluate
 from kuberos_sim.runtime import environment_problem
 
@@ -68,4 +67,6 @@ def test_discovery_only_through_the_discovery_servers(run):
     pairs = fabric["pairs"]
     assert fabric["drops"]["multicast"] > 0, "no participant tried multicast: the check below would prove nothing"
     for pair in ("cloud-1->edge-2", "edge-2->cloud-1", "robot-1->edge-2", "edge-1->edge-2"):
-        assert pairs.get(pair, {}).get("packets", 0) > 0, f"no packets {pair} (discovery server 1 runs on edge-2): {sorted(pairs)}"
+        assert pairs.get(pair, {}).get("packets", 0) > 0, (
+            f"no packets {pair} (discovery server 1 runs on edge-2): {sorted(pairs)}"
+        )

@@ -34,7 +34,7 @@ def test_layout_is_valid():
         cubes, obstacle = W.sample_layout(seed, 4)
         for i, c in enumerate(cubes):
             assert np.hypot(c[0] - obstacle[0], c[1] - obstacle[1]) >= W.MIN_OBSTACLE_CLEARANCE
-            for d in cubes[i + 1:]:
+            for d in cubes[i + 1 :]:
                 assert np.hypot(c[0] - d[0], c[1] - d[1]) >= W.MIN_CUBE_SPACING
 
 
@@ -45,8 +45,11 @@ def test_camera_intrinsics_project_known_points():
         assert f.rgb.shape == (f.height, f.width, 3) and f.rgb.dtype == np.uint8
         assert f.depth.shape == (f.height, f.width) and f.depth.dtype == np.float32
         rot = Rotation.from_quat(f.quat_xyzw).as_matrix()
-        assert np.allclose(rot[:, 2], np.subtract(W.CAMERA_TARGET, W.CAMERA_EYE) / np.linalg.norm(
-            np.subtract(W.CAMERA_TARGET, W.CAMERA_EYE)), atol=1e-6)  # z forward
+        assert np.allclose(
+            rot[:, 2],
+            np.subtract(W.CAMERA_TARGET, W.CAMERA_EYE) / np.linalg.norm(np.subtract(W.CAMERA_TARGET, W.CAMERA_EYE)),
+            atol=1e-6,
+        )  # z forward
         assert rot[2, 1] < 0  # y (down in the image) points down in the world
         for o in w.object_states():
             if o.kind != "target":
