@@ -6,7 +6,8 @@ simulation runtime: the discovery servers on edge-1 and edge-2, the coordinator 
 planner on cloud-1 (40 ms round trip from the robot), the controller and the robot's physics on robot-1.
 Asserted: every pick cycle succeeded, as the coordinator saw it through perception and as the physics' ground
 truth says; every planning request was answered by the planner on cloud-1, another host than the coordinator;
-the hosts found each other only through the discovery servers (the fabric dropped every multicast packet, and
+the hosts found each other only through the discovery servers (every module is their client, the fabric forwards
+no multicast, and
 cloud-1 exchanged packets with edge-2, where nothing but discovery server 1 runs).
 
 Needs root, `ip netns`, cgroups and the ROS and simulator wheels (skipped without root or namespaces).
@@ -63,10 +64,19 @@ def test_planning_requests_crossed_hosts(run):
 
 
 def test_discovery_only_through_the_discovery_servers(run):
-    _row, _records, fabric, _directory = run
+    """Every module was a client of the fleet's two discovery servers (its rendered ROS_DISCOVERY_SERVER), the
+    fabric forwards no multicast (test_runtime's negative control shows participants never meet without the
+    servers), and every host that ran a participant exchanged packets with edge-2, where nothing but discovery
+    server 1 runs in this scenario."""
+    _row, _records, fabric, directory = run
+    rendered = os.path.join(directory, "rendered", "manifests", "kuberos-sim-fleet")
+    servers = ";".join(f"kuberos-discovery-{i}.kuberos-sim-fleet.svc.cluster.local:11811" for i in (0, 1))
+    modules = [f for f in os.listdir(rendered) if f.startswith("deployment-pick-and-place-")]
+    assert len(modules) == 4
+    for name in modules:
+        with open(os.path.join(rendered, name), encoding="utf-8") as handle:
+            assert f"value: {servers}" in handle.read(), name
     pairs = fabric["pairs"]
-    assert fabric["drops"]["multicast"] > 0, "no participant tried multicast: the check below would prove nothing"
-    for pair in ("cloud-1->edge-2", "edge-2->cloud-1", "robot-1->edge-2", "edge-1->edge-2"):
-        assert pairs.get(pair, {}).get("packets", 0) > 0, (
-            f"no packets {pair} (discovery server 1 runs on edge-2): {sorted(pairs)}"
-        )
+    for pair in ("cloud-1->edge-2", "edge-2->cloud-1", "robot-1->edge-2", "edge-2->robot-1", "edge-1->edge-2"):
+        assert pairs.get(pair, {}).get("packets", 0) > 0, f"no packets {pair}: {sorted(pairs)}"
+    assert fabric["dropped"] == fabric["drops"]["multicast"], fabric["drops"]  # nothing else was lost
