@@ -7,8 +7,7 @@ planner on cloud-1 (40 ms round trip from the robot), the controller and the rob
 Asserted: every pick cycle succeeded, as the coordinator saw it through perception and as the physics' ground
 truth says; every planning request was answered by the planner on cloud-1, another host than the coordinator;
 the hosts found each other only through the discovery servers (every module is their client, the fabric forwards
-no multicast, and
-cloud-1 exchanged packets with edge-2, where nothing but discovery server 1 runs).
+no multicast, and cloud-1 exchanged packets with edge-2, where nothing but discovery server 1 runs).
 
 Needs root, `ip netns`, cgroups and the ROS and simulator wheels (skipped without root or namespaces).
 """
