@@ -81,6 +81,7 @@ def main(argv: list[str] | None = None) -> None:
     class RobotInput:
         def __init__(self):
             self.rgb = None
+            self.depth = None
             self.info = None
             self.pose = None
             self.last_processed = 0.0
@@ -122,30 +123,47 @@ def main(argv: list[str] | None = None) -> None:
 
         def on_rgb(self, robot: str, msg) -> None:
             self.inputs[robot].rgb = msg
+            self.process(robot)
 
         def on_depth(self, robot: str, msg) -> None:
+            self.inputs[robot].depth = msg
+            self.process(robot)
+
+        def process(self, robot: str) -> None:
+            """Once the depth and the RGB image of one camera frame (the same stamp) are both here, whichever came
+            second: both are needed (colour tells targets from obstacles), and they travel separately."""
             state = self.inputs[robot]
+            depth_msg, rgb_msg = state.depth, state.rgb
+            if depth_msg is None or rgb_msg is None or depth_msg.header.stamp != rgb_msg.header.stamp:
+                return
             now = time.monotonic()
             if state.info is None or state.pose is None or now - state.last_processed < 1.0 / self.max_rate:
                 return
             state.last_processed = now
+            state.depth = None
+            try:
+                self.perceive(robot, state, depth_msg, rgb_msg)
+            except Exception as error:  # a bad frame is skipped; perception keeps running
+                common.log_result(
+                    "perception_error", robot=robot, node=common.node_name(), error=f"{type(error).__name__}: {error}"
+                )
+
+        def perceive(self, robot: str, state, depth_msg, rgb_msg) -> None:
             started = time.perf_counter()
-            depth = common.image_array(msg)
-            rgb = common.image_array(state.rgb) if state.rgb is not None and state.rgb.header.stamp == msg.header.stamp else None
             k = np.asarray(state.info.k, float).reshape(3, 3)
             p, o = state.pose.pose.position, state.pose.pose.orientation
             points, colors = perception_core.depth_to_points(
-                depth,
+                common.image_array(depth_msg),
                 k,
                 np.array([p.x, p.y, p.z]),
                 np.array([o.x, o.y, o.z, o.w]),
                 stride=self.stride,
-                rgb=rgb,
+                rgb=common.image_array(rgb_msg),
                 voxel_size=self.voxel,
             )
             boxes = perception_core.segment(points, colors)
-            self.pub_points[robot].publish(cloud_msg(points, msg.header.stamp))
-            self.pub_scene[robot].publish(scene_markers(boxes, msg.header.stamp))
+            self.pub_points[robot].publish(cloud_msg(points, depth_msg.header.stamp))
+            self.pub_scene[robot].publish(scene_markers(boxes, depth_msg.header.stamp))
             common.log_result(
                 "perception",
                 robot=robot,
