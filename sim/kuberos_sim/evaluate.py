@@ -100,7 +100,13 @@ def run_one(
         records = collect(runtime)
         fabric = runtime.fabric_stats()
     cpu = cpu_by_tier(cpu_start, cpu_end, tiers)
-    row = {"strategy": strategy, "rate_per_min": rate, **metrics.summarize(records, cpu, window, robots), "finished": finished}
+    row = {
+        "strategy": strategy,
+        "rate_per_min": rate,
+        **metrics.summarize(records, cpu, window, robots),
+        "finished": finished,
+        "commit": git_commit(),
+    }
     with open(os.path.join(directory, "records.json"), "w", encoding="utf-8") as handle:
         json.dump({"row": row, "records": records, "fabric": fabric}, handle, indent=1, default=str)
     return row
@@ -161,6 +167,16 @@ def cpu_by_tier(start: dict, end: dict, tiers: dict[str, str]) -> dict[str, floa
     return used
 
 
+def previous_rows(out: str) -> dict[tuple, dict]:
+    """Rows of an earlier invocation into the same directory that ran without error, by (strategy, robots, rate)."""
+    try:
+        with open(os.path.join(out, "results.json"), encoding="utf-8") as handle:
+            rows = json.load(handle)["rows"]
+    except (OSError, ValueError, KeyError):
+        return {}
+    return {(r["strategy"], r["robots"], r["rate_per_min"]): r for r in rows if "error" not in r}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m kuberos_sim.evaluate", description=__doc__.split("\n\n")[0])
     parser.add_argument("--strategies", default=",".join(scenario.STRATEGIES), help="comma separated (default: all)")
@@ -171,6 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--time-limit", type=float, default=240, help="seconds per run before it is cut off (default 240)")
     parser.add_argument("--cpu-scale", type=float, default=0.125, help="cgroup cores per inventory CPU (default 0.125)")
     parser.add_argument("--out", default=os.path.join(scenario.ROOT, "sim", "results"))
+    parser.add_argument(
+        "--resume", action="store_true", help="keep the rows of --out/results.json that ran without error; run the others"
+    )
     args = parser.parse_args(argv)
     strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
     unknown = [s for s in strategies if s not in scenario.STRATEGIES]
@@ -185,17 +204,21 @@ def main(argv: list[str] | None = None) -> int:
     os.makedirs(args.out, exist_ok=True)
     header = {
         "command": " ".join(["python -m kuberos_sim.evaluate", *(argv if argv is not None else sys.argv[1:])]),
-        "commit": git_commit(),
+        "commit": git_commit(),  # of this invocation; each row has the commit it ran with
         "machine": machine(),
         "date": f"{datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M UTC}",
         "cycles_per_robot": args.cycles,
         "seed": args.seed,
         "cpu_scale": args.cpu_scale,
     }
+    done = previous_rows(args.out) if args.resume else {}
     rows = []
     for strategy in strategies:
         for robots in sizes:
             for rate in rates:
+                if (strategy, robots, rate) in done:
+                    rows.append(done[(strategy, robots, rate)])
+                    continue
                 progress(f"{strategy}, {robots} robot(s), {rate:g} tasks/min")
                 try:
                     row = run_one(strategy, robots, rate, args.cycles, args.out, args.seed, args.time_limit, args.cpu_scale)

@@ -47,6 +47,17 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def commits_note(rows: list[dict]) -> str:
+    """Which rows ran with which commit, when they differ (a resumed evaluation)."""
+    by_commit: dict[str, list[str]] = {}
+    for row in rows:
+        if row.get("commit"):
+            by_commit.setdefault(row["commit"], []).append(f"{row['strategy']}/{row['robots']}/{row['rate_per_min']:g}")
+    if len(by_commit) < 2:
+        return ""
+    return " (rows by commit: " + "; ".join(f"{c}: {', '.join(names)}" for c, names in by_commit.items()) + ")"
+
+
 def write(out: str, results: dict) -> None:
     rows = results["rows"]
     with open(os.path.join(out, "results.json"), "w", encoding="utf-8") as handle:
@@ -55,7 +66,7 @@ def write(out: str, results: dict) -> None:
         "# Pick-and-place evaluation: results",
         "",
         f"- command: `{results['command']}`",
-        f"- commit: {results['commit']}",
+        f"- commit: {results['commit']}" + commits_note(rows),
         f"- machine: {results['machine']}",
         f"- date: {results['date']}",
         f"- pick cycles per robot: {results['cycles_per_robot']}, seed {results['seed']}, "
