@@ -171,9 +171,12 @@ def previous_rows(out: str) -> dict[tuple, dict]:
     """Rows of an earlier invocation into the same directory that ran without error, by (strategy, robots, rate)."""
     try:
         with open(os.path.join(out, "results.json"), encoding="utf-8") as handle:
-            rows = json.load(handle)["rows"]
+            previous = json.load(handle)
+        rows = previous["rows"]
     except (OSError, ValueError, KeyError):
         return {}
+    for row in rows:
+        row.setdefault("commit", previous.get("commit"))
     return {(r["strategy"], r["robots"], r["rate_per_min"]): r for r in rows if "error" not in r}
 
 
