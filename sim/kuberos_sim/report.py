@@ -37,7 +37,8 @@ def table(rows: list[dict]) -> str:
     lines = ["| " + " | ".join(title for _, title in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for row in rows:
         if "error" in row:
-            lines.append(f"| {row['strategy']} | {row['robots']} | {row['rate_per_min']:g} | failed: {row['error'][:120]} |")
+            reason = " ".join(row["error"].split())[:160].replace("|", "/")
+            lines.append(f"| {row['strategy']} | {row['robots']} | {row['rate_per_min']:g} | failed: {reason} |")
             continue
         values = []
         for key, _ in COLUMNS:
