@@ -12,7 +12,8 @@ Every planning request and every cycle is logged as a result record (kuberos_pnp
 (robot, queue_s, duration_s, plans, outcome, reason).
 
 Parameters: `tasks_per_minute`, `max_cycles` (per robot; 0 = until no target is left), `plan_timeout`,
-`execute_timeout`, `scene_timeout` (s).
+`execute_timeout`, `scene_timeout`, `startup_timeout` (s; waiting for the first scene and for the planner and
+controller to match: 8 planners starting on one 2-core host take more than a minute).
 """
 
 from __future__ import annotations
@@ -105,7 +106,7 @@ def main(argv: list[str] | None = None) -> None:
             self.plan_timeout = float(common.declare(self, "plan_timeout", 30.0))
             self.execute_timeout = float(common.declare(self, "execute_timeout", 30.0))
             self.scene_timeout = float(common.declare(self, "scene_timeout", 20.0))
-            self.startup_timeout = float(common.declare(self, "startup_timeout", 90.0))
+            self.startup_timeout = float(common.declare(self, "startup_timeout", 300.0))
             self.ik = IkSolver()
             self.joint_names, _limits = world.arm_model()
             self.views = {r: RobotView() for r in robots}
