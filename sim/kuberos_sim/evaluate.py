@@ -168,7 +168,8 @@ def cpu_by_tier(start: dict, end: dict, tiers: dict[str, str]) -> dict[str, floa
 
 
 def previous_rows(out: str) -> dict[tuple, dict]:
-    """Rows of an earlier invocation into the same directory that ran without error, by (strategy, robots, rate)."""
+    """Rows of an earlier invocation into the same directory that ran without error and ran cycles, by (strategy,
+    robots, rate)."""
     try:
         with open(os.path.join(out, "results.json"), encoding="utf-8") as handle:
             previous = json.load(handle)
@@ -177,7 +178,7 @@ def previous_rows(out: str) -> dict[tuple, dict]:
         return {}
     for row in rows:
         row.setdefault("commit", previous.get("commit"))
-    return {(r["strategy"], r["robots"], r["rate_per_min"]): r for r in rows if "error" not in r}
+    return {(r["strategy"], r["robots"], r["rate_per_min"]): r for r in rows if "error" not in r and r.get("cycles")}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -191,7 +192,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cpu-scale", type=float, default=0.125, help="cgroup cores per inventory CPU (default 0.125)")
     parser.add_argument("--out", default=os.path.join(scenario.ROOT, "sim", "results"))
     parser.add_argument(
-        "--resume", action="store_true", help="keep the rows of --out/results.json that ran without error; run the others"
+        "--resume",
+        action="store_true",
+        help="keep the rows of --out/results.json that ran pick cycles without error; run the others",
     )
     args = parser.parse_args(argv)
     strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]

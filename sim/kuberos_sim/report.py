@@ -17,6 +17,7 @@ COLUMNS = [
     ("cycle_p95_s", "pick cycle p95 s"),
     ("success_rate", "success"),
     ("cycles", "cycles"),
+    ("finished", "all ran"),
     ("cpu_onboard_cores", "CPU robots (cores)"),
     ("cpu_edge_cores", "CPU edge"),
     ("cpu_cloud_cores", "CPU cloud"),
