@@ -120,6 +120,9 @@ def plots(out: str, rows: list[dict]) -> None:
             ax.set_title(f"{rate:g} tasks/min per robot")
             ax.set_xlabel("robots in the fleet")
             ax.set_xscale("log", base=2)
+            ax.set_yscale("log")
+            sizes = sorted({r["robots"] for r in rows})
+            ax.set_xticks(sizes, [str(n) for n in sizes])
             ax.grid(alpha=0.3)
         axes[0][0].set_ylabel(ylabel)
         axes[0][-1].legend(fontsize=8)
@@ -127,18 +130,21 @@ def plots(out: str, rows: list[dict]) -> None:
         figure.tight_layout()
         figure.savefig(os.path.join(out, filename), dpi=110)
         plt.close(figure)
-    largest = max(r["robots"] for r in rows)
     rate = max(rates)
-    chosen = [r for r in rows if r["robots"] == largest and r["rate_per_min"] == rate]
-    figure, ax = plt.subplots(figsize=(6.5, 3.8))
-    bottom = [0.0] * len(chosen)
-    for tier in ("onboard", "edge", "cloud", "sim"):
-        values = [r.get(f"cpu_{tier}_cores") or 0.0 for r in chosen]
-        ax.bar([r["strategy"] for r in chosen], values, bottom=bottom, label="physics" if tier == "sim" else tier)
-        bottom = [b + v for b, v in zip(bottom, values, strict=True)]
-    ax.set_ylabel("cores used (average)")
-    ax.set_title(f"CPU per node class, {largest} robots, {rate:g} tasks/min")
-    ax.legend(fontsize=8)
+    sizes = sorted({r["robots"] for r in rows})
+    figure, axes = plt.subplots(1, len(sizes), figsize=(3.6 * len(sizes), 3.8), squeeze=False, sharey=True)
+    for ax, size in zip(axes[0], sizes, strict=True):
+        chosen = [r for r in rows if r["robots"] == size and r["rate_per_min"] == rate]
+        bottom = [0.0] * len(chosen)
+        for tier in ("onboard", "edge", "cloud", "sim"):
+            values = [r.get(f"cpu_{tier}_cores") or 0.0 for r in chosen]
+            ax.bar([r["strategy"] for r in chosen], values, bottom=bottom, label="physics" if tier == "sim" else tier)
+            bottom = [b + v for b, v in zip(bottom, values, strict=True)]
+        ax.set_title(f"{size} robot{'s' if size > 1 else ''}")
+        ax.tick_params(axis="x", labelrotation=35, labelsize=8)
+    axes[0][0].set_ylabel("cores used (average over the run)")
+    axes[0][-1].legend(fontsize=8)
+    figure.suptitle(f"CPU per node class, {rate:g} tasks/min per robot (the machine has 2 cores)")
     figure.tight_layout()
     figure.savefig(os.path.join(out, "cpu_per_class.png"), dpi=110)
     plt.close(figure)
