@@ -17,6 +17,7 @@ COLUMNS = [
     ("cycle_p95_s", "pick cycle p95 s"),
     ("success_rate", "success"),
     ("cycles", "cycles"),
+    ("on_platform", "on platform (physics)"),
     ("finished", "all ran"),
     ("cpu_onboard_cores", "CPU robots (cores)"),
     ("cpu_edge_cores", "CPU edge"),
@@ -50,14 +51,16 @@ def table(rows: list[dict]) -> str:
 
 
 def commits_note(rows: list[dict]) -> str:
-    """Which rows ran with which commit, when they differ (a resumed evaluation)."""
+    """The rows that ran with another commit than most (a resumed evaluation)."""
     by_commit: dict[str, list[str]] = {}
     for row in rows:
         if row.get("commit"):
             by_commit.setdefault(row["commit"], []).append(f"{row['strategy']}/{row['robots']}/{row['rate_per_min']:g}")
     if len(by_commit) < 2:
         return ""
-    return " (rows by commit: " + "; ".join(f"{c}: {', '.join(names)}" for c, names in by_commit.items()) + ")"
+    usual = max(by_commit, key=lambda c: len(by_commit[c]))
+    others = "; ".join(f"{', '.join(names)}: {c}" for c, names in by_commit.items() if c != usual)
+    return f" (other commits: {others})"
 
 
 def write(out: str, results: dict) -> None:
