@@ -66,19 +66,6 @@ class SceneUnknown(CycleFailed):
     """The planner has not received the scene the cycle plans in (yet): the cycle starts again on a newer one."""
 
 
-class IkSolver:
-    """Inverse kinematics checked against a scene, in this process (kuberos_pnp.planning.CollisionModel): the
-    coordinator turns a step's goal pose into the joint goal it asks the planner for."""
-
-    def __init__(self):
-        self.model = planning.CollisionModel()
-        self.rng = np.random.default_rng(0)
-
-    def ik(self, position, quat_xyzw, seed_q, boxes=None, ignore=(), attached=None):
-        self.model.set_scene(boxes or [], ignore, attached)
-        return self.model.ik(position, quat_xyzw, seed_q, rng=self.rng)
-
-
 def main(argv: list[str] | None = None) -> None:
     import rclpy
     from rclpy.node import Node
@@ -107,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
             self.execute_timeout = float(common.declare(self, "execute_timeout", 30.0))
             self.scene_timeout = float(common.declare(self, "scene_timeout", 20.0))
             self.startup_timeout = float(common.declare(self, "startup_timeout", 300.0))
-            self.ik = IkSolver()
+            self.ik = planning.IkSolver()
             self.joint_names, _limits = world.arm_model()
             self.views = {r: RobotView() for r in robots}
             self.waiter = Waiter()
@@ -257,6 +244,7 @@ def main(argv: list[str] | None = None) -> None:
                     return
             settled_after = time.time() + 1.0
             next_arrival = time.monotonic()
+            key = ""  # the scene the latest cycle planned in; a failed cycle goes home in it
             for cycle in itertools.count(1):
                 if self.stop.is_set() or (self.max_cycles and cycle > self.max_cycles):
                     break
@@ -291,7 +279,7 @@ def main(argv: list[str] | None = None) -> None:
                 except Exception as failure:
                     reason = str(failure) if isinstance(failure, CycleFailed) else f"{type(failure).__name__}: {failure}"
                     record.update(outcome="failed", reason=reason)
-                    self.recover(robot, key if "key" in locals() else "", cycle)
+                    self.recover(robot, key, cycle)
                     settled_after = time.time()
                 record["duration_s"] = round(time.monotonic() - started, 3)
                 common.log_result("cycle", **record)

@@ -91,18 +91,8 @@ def estimate_table_height(points: np.ndarray, bin_size: float = 0.005) -> float:
     return float(np.median(near))
 
 
-def classify_color(mean_rgb: np.ndarray) -> str:
-    """'target' for red, 'platform' for green, 'obstacle' otherwise."""
-    r, g, b = (float(c) for c in mean_rgb)
-    if r > 70 and r > 1.8 * g and r > 1.8 * b:
-        return "target"
-    if g > 70 and g > 1.4 * r and g > 1.4 * b:
-        return "platform"
-    return "obstacle"
-
-
 def classify_colors(colors: np.ndarray) -> np.ndarray:
-    """``classify_color`` for every row of an (N, 3) colour array."""
+    """'target' for red, 'platform' for green, 'obstacle' otherwise, for every row of an (N, 3) colour array."""
     c = colors.astype(np.float64)
     r, g, b = c[:, 0], c[:, 1], c[:, 2]
     kinds = np.full(len(c), "obstacle", dtype=object)

@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> None:
             if decoded is None:
                 return None
             name, position, quat, ignore = decoded
-            box = next(b for b in scene if b.name == name) if any(b.name == name for b in scene) else None
+            box = next((b for b in scene if b.name == name), None)
             if box is None:
                 raise KeyError(f"no box {name} in the scene")
             return planning.Attached(box, position, quat, ignore)

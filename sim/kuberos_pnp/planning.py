@@ -375,6 +375,28 @@ def _worker_main(index: int, conn, cancel, seed: int, planners: tuple[str, ...])
     os._exit(0)  # skip nanobind's leak report at interpreter shutdown
 
 
+class IkSolver:
+    """Inverse kinematics checked against a scene, in this process: a collision model and a seeded random source
+    for the restarts. The Planner uses one; so does the coordinator, which turns goal poses into joint goals."""
+
+    def __init__(self, margin: float = DEFAULT_MARGIN, seed: int = 0) -> None:
+        self.model = CollisionModel(margin)
+        self.rng = np.random.default_rng(seed)
+
+    def ik(
+        self,
+        position,
+        quat_xyzw,
+        seed_q,
+        boxes: list[Box] | None = None,
+        ignore: tuple[str, ...] = (),
+        attached: Attached | None = None,
+    ) -> np.ndarray | None:
+        """IK (see ``CollisionModel.ik``) checked against ``boxes`` minus ``ignore``."""
+        self.model.set_scene(boxes or [], ignore, attached)
+        return self.model.ik(position, quat_xyzw, seed_q, rng=self.rng)
+
+
 class Planner:
     """A persistent pool of planning processes plus a local collision model for IK and checks."""
 
@@ -393,8 +415,8 @@ class Planner:
         self.planners = tuple(planners)
         self.deterministic = deterministic
         self.margin = margin
-        self.model = CollisionModel(margin)
-        self._rng = np.random.default_rng(seed)
+        self._ik = IkSolver(margin, seed)
+        self.model = self._ik.model
         ctx = mp.get_context("spawn")
         self._cancel = ctx.Event()
         self._conns = []
@@ -490,10 +512,9 @@ class Planner:
         ignore: tuple[str, ...] = (),
         attached: Attached | None = None,
     ) -> np.ndarray | None:
-        """IK (see ``CollisionModel.ik``) checked against ``boxes`` minus ``ignore``."""
+        """IK (see ``IkSolver.ik``) with this planner's margin."""
         self.model.margin = self.margin
-        self.model.set_scene(boxes or [], ignore, attached)
-        return self.model.ik(position, quat_xyzw, seed_q, rng=self._rng)
+        return self._ik.ik(position, quat_xyzw, seed_q, boxes, ignore, attached)
 
     def plan_pose(
         self,

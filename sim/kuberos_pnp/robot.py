@@ -86,7 +86,6 @@ def main(argv: list[str] | None = None) -> None:
             self.follower = TrajectoryFollower()
             self.wall_start = time.monotonic()
             self.sim_start = self.world.sim_time
-            self.behind_ticks = 0
             self.last_report = self.wall_start
             self.camera_ms: list[float] = []
 
@@ -127,8 +126,6 @@ def main(argv: list[str] | None = None) -> None:
                     self.world.set_joint_targets(q)
                 self.world.step()
                 steps += 1
-            if self.world.sim_time < target - 0.05:
-                self.behind_ticks += 1
             now = time.monotonic()
             if now - self.last_report >= float(self.params["report_period_s"]):
                 self.last_report = now
