@@ -34,6 +34,12 @@ options:
         cluster (P(kuberos.platform.node_allocations#module) returns them)."
     type: dict
     required: false
+  previous:
+    description:
+      - What runs now (C(previous) of P(kuberos.platform.node_allocations#module)): instances that still fit where
+        they run stay there, and the fleets' discovery servers stay on their nodes (sticky placement).
+    type: dict
+    required: false
 """
 
 EXAMPLES = r"""
@@ -60,8 +66,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service i
 
 
 @reports_kuberos_errors
-def place_modules(spec, inventory, allocated=None, unavailable=None):
-    _deployments, placement = load_and_place(spec, inventory, allocated, unavailable)
+def place_modules(spec, inventory, allocated=None, unavailable=None, previous=None):
+    _deployments, placement = load_and_place(spec, inventory, allocated, unavailable, previous=previous)
     return placement.to_dict()
 
 

@@ -194,3 +194,38 @@ def unavailable_nodes(clients, wanted: list[str]) -> dict[str, str]:
         elif found[name]:
             out[name] = found[name]
     return out
+
+
+def previous_placement(clients, targets: list[dict]) -> dict:
+    """What runs now for sticky placement, as placement data: the instances of the targets' records
+    (``[{name, fleet}]``) and the live discovery servers of their fleets."""
+    from kubernetes.client import ApiClient
+    from kubernetes.client.exceptions import ApiException
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import discovery_from_deployments
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
+        merge_previous,
+        record_name,
+        record_placement,
+    )
+
+    plain = ApiClient().sanitize_for_serialization
+    placements, objects = [], []
+    for fleet in sorted({t["fleet"] for t in targets}):
+        namespace = fleet_namespace(fleet)
+        try:
+            found = clients["apps"].list_namespaced_deployment(namespace, label_selector=f"{COMPONENT}=discovery-server")
+        except ApiException as exc:
+            if exc.status == 404:
+                continue
+            raise
+        objects.extend(plain(d) for d in found.items)
+        for target in (t for t in targets if t["fleet"] == fleet):
+            try:
+                configmap = clients["core"].read_namespaced_config_map(record_name(target["name"]), namespace)
+            except ApiException as exc:
+                if exc.status == 404:
+                    continue
+                raise
+            placements.append(record_placement(plain(configmap)))
+    return merge_previous(placements, discovery_from_deployments(objects)).to_dict()

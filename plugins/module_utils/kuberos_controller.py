@@ -40,6 +40,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     DEPLOYMENT,
     INSTANCE,
     MANAGED_BY,
+    discovery_from_deployments,
     render_deployment,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import (
@@ -454,6 +455,14 @@ class Controller:
         record = self._record(configmap)
         if record is None:
             return None
+        # A fleet's discovery servers are the fleet's: where their Deployments pin them is the truth for every
+        # record of the fleet (another deployment's pass, or a deploy, may have moved one since this record was written).
+        live = discovery_from_deployments(
+            [d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace]
+        )
+        for fleet in record.placement.discovery:
+            if live.get(fleet):
+                record.placement.discovery[fleet] = live[fleet]
         key = (record.namespace, record.name)
         self._load_history(record)
         memory = self.memory.setdefault(key, Memory())

@@ -34,6 +34,14 @@ options:
         names each of its nodes that is NotReady or not in the cluster, with why, for the
         P(kuberos.platform.place_modules#filter) filter to leave out.
     type: dict
+  previous_of:
+    description:
+      - RosDeployments about to be placed again, as C([{name, fleet}]). The result's C(previous) holds what runs now
+        for them (the instances of their deployment records and their fleets' live discovery servers), for the
+        P(kuberos.platform.place_modules#filter) filter's sticky placement.
+    type: list
+    elements: dict
+    default: []
 attributes:
   check_mode:
     support: full
@@ -61,6 +69,10 @@ namespaces:
   returned: always
   type: list
   elements: str
+previous:
+  description: What runs now for O(previous_of), as a placement (empty instances and discovery when nothing runs).
+  returned: always
+  type: dict
 unavailable:
   description: "Nodes of O(inventory) that are NotReady or not in the cluster, as C({node: why})."
   returned: always
@@ -75,8 +87,10 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     explain,
     namespace_names,
     node_allocations,
+    previous_placement,
     unavailable_nodes,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 
 
@@ -87,6 +101,7 @@ def main():
             exclude_deployments=dict(type="list", elements="str", default=[]),
             exclude_discovery_of_fleets=dict(type="list", elements="str", default=[]),
             inventory=dict(type="dict"),
+            previous_of=dict(type="list", elements="dict", default=[]),
         ),
         supports_check_mode=True,
     )
@@ -96,9 +111,12 @@ def main():
         namespaces = namespace_names(clients)
         wanted = list(load_inventory(module.params["inventory"]).nodes) if module.params["inventory"] else []
         unavailable = unavailable_nodes(clients, wanted)
+        previous = previous_placement(clients, module.params["previous_of"])
+    except KuberosError as exc:
+        module.fail_json(msg=str(exc))
     except Exception as exc:  # connection and configuration problems: one clear line, no traceback
         module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
-    module.exit_json(changed=False, allocated=allocated, namespaces=namespaces, unavailable=unavailable)
+    module.exit_json(changed=False, allocated=allocated, namespaces=namespaces, unavailable=unavailable, previous=previous)
 
 
 if __name__ == "__main__":

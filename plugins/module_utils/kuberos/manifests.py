@@ -146,6 +146,38 @@ def _discovery_objects(server: DiscoveryServer, options: RenderOptions) -> list[
     return [deployment, service]
 
 
+def discovery_from_deployments(objects: list[dict]) -> dict[str, list[DiscoveryServer]]:
+    """The fleets' discovery servers as they run: read back from their live Deployments (plain dicts).
+
+    A fleet's discovery servers are the fleet's, not one deployment's: the Deployments in the cluster say where
+    each one runs, for deploy (which keeps them there) and for the controller (which reads every record of the
+    fleet against them)."""
+    fleets: dict[str, list[DiscoveryServer]] = {}
+    for obj in objects:
+        meta = obj.get("metadata") or {}
+        labels = meta.get("labels") or {}
+        if labels.get(COMPONENT) != "discovery-server" or meta.get("deletionTimestamp"):
+            continue
+        pod = ((obj.get("spec") or {}).get("template") or {}).get("spec") or {}
+        node = (pod.get("nodeSelector") or {}).get(node_labels.HOSTNAME)
+        ports = [p.get("containerPort") for c in pod.get("containers") or [] for p in c.get("ports") or []]
+        try:
+            server_id = int(labels.get(DISCOVERY_ID, ""))
+        except ValueError:
+            continue
+        if not node or not ports:
+            continue
+        annotations = meta.get("annotations") or {}
+        fleet = labels.get(node_labels.FLEET, "")
+        fleets.setdefault(fleet, []).append(
+            DiscoveryServer(
+                fleet, meta.get("namespace", ""), server_id, meta.get("name", naming.discovery_server_name(server_id)), node,
+                annotations.get(TIER_ANNOTATION, "edge"), int(ports[0]), annotations.get(REASON_ANNOTATION, ""),
+            )
+        )  # fmt: skip
+    return {fleet: sorted(servers, key=lambda s: s.server_id) for fleet, servers in sorted(fleets.items())}
+
+
 def params_configmap_name(deployment: str, module: str) -> str:
     return naming.dns_label(deployment, module, "params")
 

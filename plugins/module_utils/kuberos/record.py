@@ -122,6 +122,21 @@ def placement_patch(name: str, namespace: str, placement: Placement) -> dict:
     }
 
 
+def record_placement(configmap: dict) -> Placement:
+    """Only the placement of a record ConfigMap (plain dict): what deploy keeps where it runs."""
+    meta = configmap.get("metadata") or {}
+    try:
+        return Placement.from_dict(_unpack((configmap.get("binaryData") or {})["placement.json.gz"]))
+    except (KeyError, ValueError, TypeError, OSError, EOFError) as exc:
+        where = f"ConfigMap {meta.get('namespace', '?')}/{meta.get('name', '?')}"
+        raise SpecError([Problem(where, "", f"not a readable KubeROS record ({exc!r})")]) from None
+
+
+def merge_previous(records: list[Placement], discovery: dict) -> Placement:
+    """What runs now, for sticky placement: the instances of the records, and the fleets' live discovery servers."""
+    return Placement([i for p in records for i in p.instances], dict(discovery), [], [])
+
+
 @dataclass
 class Record:
     name: str

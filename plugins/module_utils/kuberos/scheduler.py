@@ -198,6 +198,8 @@ class _Scheduler:
         # Nodes nothing may be placed on (e.g. NotReady), and for the instance being placed, nodes it must avoid.
         self.unavailable = dict(unavailable or {})
         self.avoid: dict[str, str] = {}
+        # Instances that keep the node they run on (sticky placement): name -> previous Instance, resources taken.
+        self.kept: dict[str, Instance] = {}
 
     # -- feasibility -------------------------------------------------------------------------
     def rejection(self, node: Node, module: RosModule, robots, cpu: int, memory: int, gpu: int) -> str | None:
@@ -325,6 +327,10 @@ class _Scheduler:
             return
         if module.strategy != "shared":
             for robot in robots:
+                name = naming.dedicated_instance_name(deployment.name, module.name, robot)
+                if name in self.kept:
+                    out.append(_kept_instance(self.kept[name], module))
+                    continue
                 node, tier, latency, detail = self.choose(deployment, module, (robot,))
                 if node is None:
                     self.fail(deployment, module, (robot,), detail)
@@ -350,7 +356,19 @@ class _Scheduler:
         open_instances: list[dict] = []  # every instance, in creation order
         with_room: list[dict] = []  # those that can still take a robot
         limit = module.requirements.max_latency_ms
-        for robot in robots:
+        kept = sorted(
+            (k for k in self.kept.values() if k.deployment == deployment.name and k.module == module.name and k.shared),
+            key=lambda k: k.name,
+        )
+        covered = set()
+        for inst in kept:
+            entry = {"kept": inst, "node": self.inventory.nodes[inst.node], "robots": list(inst.robots), "latency": inst.latency_ms}
+            open_instances.append(entry)
+            covered.update(inst.robots)
+            if len(inst.robots) < module.robots_per_instance:
+                with_room.append(entry)
+        used_names = {k.name for k in kept}
+        for robot in (r for r in robots if r not in covered):
             for inst in with_room:
                 latency = self.inventory.latency_ms(robot, inst["node"].name)
                 if limit is None or latency <= limit:
@@ -368,10 +386,23 @@ class _Scheduler:
                 open_instances.append(inst)
                 if module.robots_per_instance > 1:
                     with_room.append(inst)
-        for index, inst in enumerate(open_instances):
+        index = 0
+        for inst in open_instances:
+            if "kept" in inst:
+                previous = inst["kept"]
+                grown = len(inst["robots"]) > len(previous.robots)
+                reason = previous.reason
+                if grown:
+                    reason = f"{reason.split('; shared by ')[0]}; shared by {len(inst['robots'])}/{module.robots_per_instance} robots"
+                out.append(_kept_instance(previous, module, tuple(inst["robots"]), reason, inst["latency"]))
+                continue
+            while naming.shared_instance_name(deployment.name, module.name, index) in used_names:
+                index += 1
+            name = naming.shared_instance_name(deployment.name, module.name, index)
+            used_names.add(name)
             out.append(
                 Instance(
-                    naming.shared_instance_name(deployment.name, module.name, index),
+                    name,
                     deployment.name,
                     deployment.fleet,
                     namespace,
@@ -491,6 +522,64 @@ class _Scheduler:
         return servers
 
 
+def _kept_instance(previous: Instance, module: RosModule, robots=None, reason=None, latency=None) -> Instance:
+    """A previous instance on the node it runs on, with the module's resources as the spec says them now."""
+    res = module.resources
+    return Instance(
+        previous.name, previous.deployment, previous.fleet, previous.namespace, previous.module, previous.node,
+        previous.tier, tuple(robots if robots is not None else previous.robots), reason or previous.reason,
+        previous.latency_ms if latency is None else latency, res.cpu_millis, res.memory_bytes, res.gpu, previous.shared,
+    )  # fmt: skip
+
+
+def _keep_previous(scheduler: _Scheduler, deployments: list[RosDeployment], targets: dict[str, tuple], previous: Placement):
+    """Sticky placement: every instance of ``previous`` that still fits where it runs stays there.
+
+    An instance stays when its deployment and module still exist, it still serves one of the targeted robots, its
+    node is in the inventory and available, serves the fleet, is of a tier the module may use, meets the module's
+    hard requirements and has room for the module's resources as the spec says them now. An instance that ran on
+    its preferred tier while the spec now prefers another tier is placed again (the developer asked for the move);
+    one that ran on a fallback tier, or was moved there by the controller, stays. Kept instances take their
+    resources before anything new is placed.
+    """
+    modules = {(d.name, m.name): (d, m) for d in deployments for m in d.modules}
+    for inst in sorted(previous.instances, key=lambda i: i.name):
+        found = modules.get((inst.deployment, inst.module))
+        if found is None or inst.cluster:
+            continue
+        dep, module = found
+        robots = tuple(r for r in inst.robots if r in targets.get(dep.name, ()))
+        if module.cluster or not robots or inst.shared != (module.strategy == "shared"):
+            continue
+        robots = robots[: module.robots_per_instance]
+        node = scheduler.inventory.nodes.get(inst.node)
+        if node is None or node.tier not in module.tiers:
+            continue
+        if node.tier != module.tiers[0] and not inst.reason.startswith(("fallback", "moved from")):
+            continue
+        if node not in scheduler.candidates(node.tier, dep.fleet, robots[0]):
+            continue
+        res = module.resources
+        if scheduler.rejection(node, module, robots, res.cpu_millis, res.memory_bytes, res.gpu) is not None:
+            continue
+        scheduler.take(node.name, res.cpu_millis, res.memory_bytes, res.gpu)
+        scheduler.kept[inst.name] = _kept_instance(inst, module, robots)
+
+
+def _kept_discovery(scheduler: _Scheduler, previous: Placement | None, fleet: str) -> dict[int, DiscoveryServer]:
+    """The fleet's discovery servers that stay where they run (their node is in the inventory and available)."""
+    kept = {}
+    for server in (previous.discovery.get(fleet, []) if previous else []):
+        node = scheduler.inventory.nodes.get(server.node)
+        if node is None or scheduler.unavailable.get(node.name) or scheduler.capacity_rejection(
+            node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0
+        ):
+            continue
+        scheduler.take(node.name, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+        kept[server.server_id] = server
+    return kept
+
+
 def _check_against_inventory(deployments: list[RosDeployment], inventory: Inventory) -> list[Problem]:
     problems = []
     ports: dict[str, tuple[int, str]] = {}
@@ -563,9 +652,14 @@ def place_modules(
     inventory: Inventory,
     allocated: dict | None = None,
     unavailable: dict[str, str] | None = None,
+    previous: Placement | None = None,
 ) -> Placement:
     """Place every module instance of every deployment; see the module docstring. Nodes in ``unavailable``
-    (node name -> why, e.g. NotReady in the cluster) take nothing; the reason shows in a failure's account."""
+    (node name -> why, e.g. NotReady in the cluster) take nothing; the reason shows in a failure's account.
+
+    ``previous`` is what runs now (the deployments' records and the fleets' live discovery servers): what still
+    fits where it runs stays there (see ``_keep_previous``), and a fleet's discovery servers are the fleet's, kept
+    on their nodes and never fewer than run now. ``allocated`` must then leave out what ``previous`` holds."""
     problems = _check_against_inventory(deployments, inventory)
     if problems:
         raise SpecError(problems, title="the RosDeployment does not match the inventory")
@@ -574,16 +668,21 @@ def place_modules(
     fleets: dict[str, list[RosDeployment]] = {}
     for dep in deployments:
         fleets.setdefault(dep.fleet, []).append(dep)
+    targets = {dep.name: (tuple(sorted(dep.robots)) if dep.robots else inventory.fleets[dep.fleet]) for dep in deployments}
+    kept_servers = {fleet: _kept_discovery(scheduler, previous, fleet) for fleet in sorted(fleets)}
+    if previous is not None:
+        _keep_previous(scheduler, deployments, targets, previous)
     for fleet in sorted(fleets):
-        count = max(d.discovery_servers for d in fleets[fleet])
-        placement.discovery[fleet] = scheduler.place_discovery(fleet, count, fleets[fleet][0].discovery_port)
+        count = max([d.discovery_servers for d in fleets[fleet]] + [len((previous.discovery if previous else {}).get(fleet, []))])
+        port = previous.discovery[fleet][0].port if previous and previous.discovery.get(fleet) else fleets[fleet][0].discovery_port
+        placement.discovery[fleet] = scheduler.place_discovery(fleet, count, port, kept_servers[fleet])
     for fleet in sorted(fleets):
         for cluster in sorted({m.cluster for d in fleets[fleet] for m in d.modules if m.cluster}):
             bridge = scheduler.place_bridge(fleet, cluster)
             if bridge is not None:
                 placement.bridges.setdefault(fleet, []).append(bridge)
     for dep in deployments:
-        robots = tuple(sorted(dep.robots)) if dep.robots else inventory.fleets[dep.fleet]
+        robots = targets[dep.name]
         placement.deployments.append(
             {
                 "name": dep.name,

@@ -33,7 +33,10 @@ def load_specs(spec) -> list[RosDeployment]:
     raise SpecError([Problem("<spec>", "", f"expected a spec file path or a RosDeployment mapping, got {type(spec).__name__}")])
 
 
-def load_and_place(spec, inventory, allocated=None, unavailable=None) -> tuple[list[RosDeployment], Placement]:
+def load_and_place(spec, inventory, allocated=None, unavailable=None, previous=None) -> tuple[list[RosDeployment], Placement]:
+    """``previous`` (a Placement or its dict form) is what runs now: sticky placement keeps what still fits there."""
     deployments = load_specs(spec)
     model = load_inventory(inventory)
-    return deployments, place_modules(deployments, model, allocated, unavailable)
+    if isinstance(previous, dict):
+        previous = Placement.from_dict(previous) if previous.get("instances") or previous.get("discovery") else None
+    return deployments, place_modules(deployments, model, allocated, unavailable, previous)
