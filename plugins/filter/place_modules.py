@@ -40,6 +40,10 @@ options:
         they run stay there, and the fleets' discovery servers stay on their nodes (sticky placement).
     type: dict
     required: false
+  catalog:
+    description: The software catalog (a directory of catalog files, or one file) that C(module) references resolve against.
+    type: path
+    required: false
 """
 
 EXAMPLES = r"""
@@ -62,12 +66,14 @@ _value:
 """
 
 from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_and_place
 
 
 @reports_kuberos_errors
-def place_modules(spec, inventory, allocated=None, unavailable=None, previous=None):
-    _deployments, placement = load_and_place(spec, inventory, allocated, unavailable, previous=previous)
+def place_modules(spec, inventory, allocated=None, unavailable=None, previous=None, catalog=None):
+    loaded = load_catalog(catalog) if catalog else None
+    _deployments, placement = load_and_place(spec, inventory, allocated, unavailable, previous=previous, catalog=loaded)
     return placement.to_dict()
 
 

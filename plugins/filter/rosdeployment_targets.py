@@ -17,6 +17,10 @@ options:
     description: Path of a RosDeployment file, or one spec or a list of specs as data.
     type: raw
     required: true
+  catalog:
+    description: The software catalog that C(module) references resolve against (a directory or one file).
+    type: path
+    required: false
 """
 
 EXAMPLES = r"""
@@ -33,12 +37,14 @@ _value:
 """
 
 from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
 
 
 @reports_kuberos_errors
-def rosdeployment_targets(spec):
-    return [{"name": deployment.name, "fleet": deployment.fleet} for deployment in load_specs(spec)]
+def rosdeployment_targets(spec, catalog=None):
+    loaded = load_catalog(catalog) if catalog else None
+    return [{"name": deployment.name, "fleet": deployment.fleet} for deployment in load_specs(spec, catalog=loaded)]
 
 
 class FilterModule:

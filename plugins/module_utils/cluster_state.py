@@ -91,10 +91,21 @@ def managed_objects(clients, namespace: str) -> list[dict]:
 
 def stale_objects(live: list[dict], keep: list[dict], deployments: list[str], remove_discovery: bool) -> list[dict]:
     """Live objects of ``deployments`` (and discovery servers) that are not in ``keep``."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import REVISION_HISTORY, REVISION_LABEL
+
     wanted = {_key(o) for o in keep}
+    newest: dict[str, int] = {}
+    for obj in live:
+        number = obj["metadata"]["labels"].get(REVISION_LABEL, "")
+        if number.isdigit():
+            owner = obj["metadata"]["labels"].get(DEPLOYMENT, "")
+            newest[owner] = max(newest.get(owner, 0), int(number))
     stale = []
     for obj in live:
         obj_labels = obj["metadata"]["labels"]
+        number = obj_labels.get(REVISION_LABEL, "")
+        if keep and number.isdigit() and int(number) > newest[obj_labels.get(DEPLOYMENT, "")] - REVISION_HISTORY:
+            continue  # a kept revision (rollback.yml returns to it); the oldest beyond the history go
         ours = obj_labels.get(DEPLOYMENT) in deployments
         discovery = obj_labels.get(COMPONENT) in FLEET_COMPONENTS and remove_discovery
         if (ours or discovery) and _key(obj) not in wanted:
@@ -210,7 +221,7 @@ def previous_placement(clients, targets: list[dict]) -> dict:
     )
 
     plain = ApiClient().sanitize_for_serialization
-    placements, objects = [], []
+    placements, objects, revisions = [], [], {}
     for fleet in sorted({t["fleet"] for t in targets}):
         namespace = fleet_namespace(fleet)
         try:
@@ -228,4 +239,6 @@ def previous_placement(clients, targets: list[dict]) -> dict:
                     continue
                 raise
             placements.append(record_placement(plain(configmap)))
-    return merge_previous(placements, discovery_from_deployments(objects)).to_dict()
+            data = configmap.data or {}
+            revisions[target["name"]] = {"revision": int(data.get("revision") or 0), "hash": data.get("revision-hash", "")}
+    return {**merge_previous(placements, discovery_from_deployments(objects)).to_dict(), "revisions": revisions}

@@ -45,6 +45,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import (
     ClusterView,
+    Decision,
     Memory,
     NodeView,
     PodView,
@@ -402,7 +403,7 @@ class Controller:
     def _write_status(self, record: Record, view: ClusterView, stranded: dict[str, str], waiting: list[str]) -> str:
         key = (record.namespace, record.name)
         rows = status_rows(record, view, stranded, self.history.get(key, {}))
-        table = status_table(record.deployment, rows)
+        table = status_table(record.deployment + (f" (revision {record.revision})" if record.revision else ""), rows)
         content = json.dumps({"rows": rows, "waiting": waiting}, sort_keys=True)
         if self.status_written.get(key) == content:
             return table
@@ -467,7 +468,12 @@ class Controller:
         self._load_history(record)
         memory = self.memory.setdefault(key, Memory())
         rview = self._record_view(view, record.namespace)
-        decision = decide(record, rview, memory, self.settings, now, self._allocated(record))
+        if record.rollout:
+            # A rollout owns the deployment's modules until it ends (it clears the marker, also when it fails): nothing
+            # of it is re-placed or re-pinned meanwhile; faults are seen again on the first pass after it.
+            decision = Decision(record, waiting=[f"rollout to revision {record.rollout.get('revision')} in progress"])
+        else:
+            decision = decide(record, rview, memory, self.settings, now, self._allocated(record))
         stranded = dict(self.reported.get(key, {}))
         if decision.replacement is not None:
             replacement = decision.replacement
@@ -504,7 +510,7 @@ class Controller:
         self.reported[key] = stranded
         for line in decision.waiting:
             log.debug("%s/%s waits: %s", record.namespace, record.deployment, line)
-        applied = self.converge(record, rview)
+        applied = 0 if record.rollout else self.converge(record, rview)
         table = self._write_status(record, rview, stranded, decision.waiting)
         moves = decision.replacement.moves if decision.replacement is not None else []
         self.last_pass.append(

@@ -70,7 +70,9 @@ namespaces:
   type: list
   elements: str
 previous:
-  description: What runs now for O(previous_of), as a placement (empty instances and discovery when nothing runs).
+  description:
+    - What runs now for O(previous_of), as a placement (empty instances and discovery when nothing runs), and under
+      C(revisions) each one's current revision as C({name: {revision, hash}}).
   returned: always
   type: dict
 unavailable:

@@ -59,6 +59,18 @@ options:
     description: Container image of the KubeROS-Bridge (for modules in third-party clusters).
     type: str
     default: ghcr.io/kuberos/bridge:0.2.0
+  catalog:
+    description:
+      - The software catalog (a directory of catalog files, or one file) that C(module) references of the spec
+        resolve against. The entries used are kept in the deployment record and its revision.
+    type: path
+  revisions:
+    description:
+      - Each deployment's current revision in the cluster, as C({name: {revision, hash}}) (C(previous.revisions) of
+        P(kuberos.platform.node_allocations#module)). A deployment whose spec asks for something new gets the next
+        revision number; one whose spec is unchanged keeps its number. Without it, revisions start at 1.
+    type: dict
+    default: {}
 attributes:
   check_mode:
     support: full
@@ -119,6 +131,7 @@ files:
 
 from ansible.module_utils.basic import AnsibleModule
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
@@ -147,6 +160,8 @@ ARGUMENT_SPEC = dict(
     inventory=dict(type="dict"),
     field_manager=dict(type="str", default="kuberos"),
     bridge_image=dict(type="str", default="ghcr.io/kuberos/bridge:0.2.0"),
+    catalog=dict(type="path"),
+    revisions=dict(type="dict", default={}),
 )
 
 
@@ -210,7 +225,8 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
 
 def run(module: AnsibleModule) -> dict:
     params = module.params
-    deployments = load_specs(params["src"])
+    catalog = load_catalog(params["catalog"]) if params["catalog"] else None
+    deployments = load_specs(params["src"], catalog=catalog)
     placement = Placement.from_dict(params["placement"])
     options = RenderOptions(
         cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"], bridge_image=params["bridge_image"]
@@ -224,9 +240,11 @@ def run(module: AnsibleModule) -> dict:
     if params["inventory"] is not None:
         with open(params["src"], encoding="utf-8") as handle:
             spec_text = handle.read()
+        used = catalog.subset((m.catalog_module, m.version) for d in deployments for m in d.modules if m.version) if catalog else None
         records = build_records(
-            spec_text, params["src"], deployments, placement, params["inventory"], options, params["field_manager"]
-        )
+            spec_text, params["src"], deployments, placement, params["inventory"], options, params["field_manager"],
+            params["revisions"], used,
+        )  # fmt: skip
         objects = sorted(objects + records, key=object_order)
     table = placement_table(placement)
     plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement), remote)

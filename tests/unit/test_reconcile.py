@@ -39,7 +39,7 @@ def record(placed, local_raw, root):
     deployments, placement = placed
     with open(f"{root}/{SPEC}", encoding="utf-8") as handle:
         text = handle.read()
-    (configmap,) = build_records(text, SPEC, deployments, placement, local_raw, RenderOptions(), "kuberos")
+    _revision, configmap = build_records(text, SPEC, deployments, placement, local_raw, RenderOptions(), "kuberos")
     return parse_record(configmap)
 
 
@@ -168,7 +168,7 @@ def test_a_record_round_trips(record, placed, local_raw):
 )
 def test_a_damaged_record_names_itself_and_the_problem(placed, local_raw, damage, expected):
     deployments, placement = placed
-    (configmap,) = build_records("", SPEC, deployments, placement, local_raw, RenderOptions(), "kuberos")
+    _revision, configmap = build_records("", SPEC, deployments, placement, local_raw, RenderOptions(), "kuberos")
     configmap = copy.deepcopy(configmap)
     with open(SPEC, encoding="utf-8") as handle:
         configmap["data"]["spec.yaml"] = handle.read()

@@ -38,6 +38,14 @@ ROBOTS_ANNOTATION = "kuberos.io/robots"
 REASON_ANNOTATION = "kuberos.io/placement-reason"
 TIER_ANNOTATION = "kuberos.io/tier"
 CLUSTER_ANNOTATION = "kuberos.io/cluster"
+VERSION = "kuberos.io/version"  # a catalog module's resolved version
+CATALOG_MODULE = "kuberos.io/catalog-module"
+# How a module's pod is replaced (an upgrade, a move): surge starts the new pod and stops the old one once the new
+# one is Ready; recreate stops the old pod first (a module that must never run twice, e.g. one holding hardware).
+UPGRADE_STRATEGIES = {
+    "surge": {"type": "RollingUpdate", "rollingUpdate": {"maxSurge": 1, "maxUnavailable": 0}},
+    "recreate": {"type": "Recreate"},
+}
 BRIDGE_ENTRY = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge"
 BRIDGE_TLS_DIR = "/etc/kuberos-bridge/tls"
 BRIDGE_TOPICS_DIR = "/etc/kuberos-bridge/topics"
@@ -209,6 +217,10 @@ def _module_deployment(
     labels = {**base_labels, MODULE: module.name, INSTANCE: inst.name}
     if not inst.shared:
         labels[node_labels.ROBOT] = inst.robots[0]
+    pod_labels = dict(labels)  # a version only in the Deployment's labels: relabelling alone restarts no pod
+    if module.version:
+        labels[VERSION] = module.version
+        labels[CATALOG_MODULE] = module.catalog_module
     env = [
         {"name": "ROS_DISCOVERY_SERVER", "value": discovery},
         {"name": "RMW_IMPLEMENTATION", "value": RMW},
@@ -254,9 +266,9 @@ def _module_deployment(
         },
         "spec": {
             "replicas": 1,
-            "strategy": {"type": "Recreate"},
+            "strategy": dict(UPGRADE_STRATEGIES[module.upgrade]),
             "selector": {"matchLabels": {INSTANCE: inst.name}},
-            "template": {"metadata": {"labels": dict(labels)}, "spec": pod_spec},
+            "template": {"metadata": {"labels": pod_labels}, "spec": pod_spec},
         },
     }
 

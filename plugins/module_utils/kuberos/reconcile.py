@@ -222,6 +222,7 @@ def instance_phase(inst: Instance, pods: list[PodView], stranded: bool) -> tuple
 def status_rows(record: Record, cluster: ClusterView, stranded: dict[str, str], history: dict[str, dict]) -> list[dict]:
     """One row per (robot, module) plus one per discovery server: node, phase, pod and the last move."""
     rows = []
+    versions = {m.name: (m.version or m.image.rsplit("/", 1)[-1]) for m in record.spec.modules}
     for inst in record.placement.instances:
         phase, pod = instance_phase(inst, cluster.pods.get(inst.name, []), inst.name in stranded)
         last = history.get(inst.name, {})
@@ -230,6 +231,7 @@ def status_rows(record: Record, cluster: ClusterView, stranded: dict[str, str], 
                 {
                     "robot": robot,
                     "module": inst.module,
+                    "version": versions.get(inst.module, ""),
                     "instance": inst.name,
                     "node": inst.node,
                     "tier": inst.tier,
@@ -250,6 +252,7 @@ def status_rows(record: Record, cluster: ClusterView, stranded: dict[str, str], 
                 {
                     "robot": "-",
                     "module": server.name,
+                    "version": "",
                     "instance": server.name,
                     "node": server.node,
                     "tier": server.tier,
@@ -264,14 +267,14 @@ def status_rows(record: Record, cluster: ClusterView, stranded: dict[str, str], 
 
 
 def status_table(deployment: str, rows: list[dict]) -> str:
-    header = ("ROBOT", "MODULE", "NODE", "PHASE", "LAST MOVE")
+    header = ("ROBOT", "MODULE", "VERSION", "NODE", "PHASE", "LAST MOVE")
     lines = []
     for r in rows:
         move = r["last_move"]
         text = f"{move['at']} from {move['from']}: {move['why']}" if move else ""
         if r["note"]:
             text = (text + "; " if text else "") + r["note"]
-        lines.append((r["robot"], r["module"], r["node"], r["phase"], text))
+        lines.append((r["robot"], r["module"], r.get("version", "") or "-", r["node"], r["phase"], text))
     widths = [max(len(str(row[i])) for row in [header, *lines]) for i in range(len(header) - 1)]
     out = [f"RosDeployment {deployment}"]
     for row in [header, *lines]:

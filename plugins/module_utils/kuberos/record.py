@@ -13,7 +13,9 @@ Pure: plain dicts in, plain dicts out.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import gzip
+import hashlib
 import json
 from dataclasses import dataclass
 
@@ -26,8 +28,11 @@ from .spec import RosDeployment, load_rosdeployments
 
 RECORD_LABEL = "kuberos.io/record"
 STATUS_LABEL = "kuberos.io/status"
+REVISION_LABEL = "kuberos.io/revision"
 RECORD_PREFIX = "kuberos-record-"
 STATUS_PREFIX = "kuberos-status-"
+REVISION_PREFIX = "kuberos-rev-"
+REVISION_HISTORY = 10  # revisions kept per deployment (older ones are removed by the prune)
 FORMAT = "1"
 # Who wrote the placement last. The controller re-pins Deployments only to finish its own moves: while
 # deploy is applying a placement it wrote, the Deployments are deploy's to change.
@@ -41,6 +46,37 @@ def record_name(deployment: str) -> str:
 
 def status_name(deployment: str) -> str:
     return naming.dns_label(STATUS_PREFIX + deployment, max_len=253)
+
+
+def revision_name(deployment: str, number: int) -> str:
+    return naming.dns_label(f"{REVISION_PREFIX}{deployment}-{number}", max_len=253)
+
+
+def fingerprint(dep: RosDeployment) -> str:
+    """A digest of what a deployment asks for (its modules, versions, images, parameters...), not where it was read."""
+    data = dataclasses.asdict(dep)
+    data.pop("source", None)
+    data.pop("lines", None)
+    for module in data.get("modules", []):
+        module.pop("index", None)
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def next_revision(dep: RosDeployment, current: dict | None) -> int:
+    """The revision number an applied state gets: the current one when nothing it asks for changed, else one more.
+    ``current`` is ``{"revision": n, "hash": fingerprint}`` of the record in the cluster (None: not deployed)."""
+    if not current or not current.get("revision"):
+        return 1
+    if current.get("hash") == fingerprint(dep):
+        return int(current["revision"])
+    return int(current["revision"]) + 1
+
+
+def module_versions(dep: RosDeployment) -> dict[str, str]:
+    """Per module, its catalog module and version, or its image when it names no catalog module."""
+    return {
+        m.name: (f"{m.catalog_module}@{m.version}" if getattr(m, "version", "") else m.image) for m in dep.modules
+    }
 
 
 def _pack(data) -> str:
@@ -72,11 +108,41 @@ def build_records(
     inventory_raw: dict,
     options: RenderOptions,
     field_manager: str,
+    revisions: dict | None = None,
+    catalog=None,
+    cause: str = "deploy",
 ) -> list[dict]:
-    """One record ConfigMap per deployment, ready for server-side apply."""
+    """One record ConfigMap per deployment, and one ConfigMap of its revision, ready for server-side apply.
+
+    ``revisions`` maps a deployment to its record's ``{"revision", "hash"}`` in the cluster; ``catalog`` (a
+    ``Catalog``) holds the catalog entries the spec resolved, kept with the record so that it reads back alone."""
     records = []
     for dep in deployments:
         namespace = naming.fleet_namespace(dep.fleet)
+        number = next_revision(dep, (revisions or {}).get(dep.name))
+        used = catalog.to_dict() if catalog is not None else None
+        revision = {
+            "apiVersion": "v1",
+            "kind": "ConfigMap",
+            "metadata": {
+                "name": revision_name(dep.name, number),
+                "namespace": namespace,
+                "labels": {MANAGED_BY: "kuberos", REVISION_LABEL: str(number), DEPLOYMENT: dep.name},
+            },
+            "data": {
+                "format": FORMAT,
+                "deployment": dep.name,
+                "revision": str(number),
+                "hash": fingerprint(dep),
+                "cause": cause,
+                "source": source,
+                "spec.yaml": spec_text,
+                "versions.json": json.dumps(module_versions(dep), sort_keys=True),
+            },
+        }
+        if used:
+            revision["binaryData"] = {"catalog.json.gz": _pack(used)}
+        records.append(revision)
         records.append(
             {
                 "apiVersion": "v1",
@@ -90,6 +156,8 @@ def build_records(
                     "format": FORMAT,
                     "writer": WRITER_DEPLOY,
                     "deployment": dep.name,
+                    "revision": str(number),
+                    "revision-hash": fingerprint(dep),
                     "source": source,
                     "spec.yaml": spec_text,
                     "options.json": json.dumps(
@@ -105,10 +173,38 @@ def build_records(
                 "binaryData": {
                     "inventory.json.gz": _pack(inventory_raw),
                     "placement.json.gz": _pack(restrict_placement(placement, dep.name).to_dict()),
+                    **({"catalog.json.gz": _pack(used)} if used else {}),
                 },
             }
         )
     return records
+
+
+def catalog_of(configmap: dict):
+    """The catalog entries kept with a record or a revision ConfigMap (None when it used none)."""
+    packed = (configmap.get("binaryData") or {}).get("catalog.json.gz")
+    if not packed:
+        return None
+    from .catalog import Catalog
+
+    return Catalog.from_dict(_unpack(packed))
+
+
+def parse_revision(configmap: dict):
+    """A revision ConfigMap (plain dict): (number, cause, the deployment's RosDeployment, its spec text, catalog)."""
+    meta = configmap.get("metadata") or {}
+    where = f"ConfigMap {meta.get('namespace', '?')}/{meta.get('name', '?')}"
+    data = configmap.get("data") or {}
+    try:
+        name = data["deployment"]
+        catalog = catalog_of(configmap)
+        found = [d for d in load_rosdeployments(data["spec.yaml"], f"{where} (revision {data.get('revision')})", catalog=catalog)]
+        dep = next(d for d in found if d.name == name)
+        return int(data["revision"]), data.get("cause", ""), dep, data["spec.yaml"], catalog
+    except SpecError:
+        raise
+    except (KeyError, ValueError, TypeError, OSError, EOFError, StopIteration) as exc:
+        raise SpecError([Problem(where, "", f"not a readable KubeROS revision ({exc!r})")]) from None
 
 
 def placement_patch(name: str, namespace: str, placement: Placement) -> dict:
@@ -150,6 +246,9 @@ class Record:
     field_manager: str
     resource_version: str = ""
     writer: str = WRITER_DEPLOY
+    revision: int = 0
+    revision_hash: str = ""
+    rollout: dict | None = None  # a rollout in progress: {"revision", "instances", ...}; the controller holds them
 
     @property
     def spec(self) -> RosDeployment:
@@ -166,7 +265,9 @@ def parse_record(configmap: dict) -> Record:
         if data.get("format") != FORMAT:
             raise ValueError(f"format {data.get('format')!r}, expected {FORMAT!r}")
         name = data["deployment"]
-        deployments = load_rosdeployments(data["spec.yaml"], f"{where} (spec of {data.get('source', '?')})")
+        deployments = load_rosdeployments(
+            data["spec.yaml"], f"{where} (spec of {data.get('source', '?')})", catalog=catalog_of(configmap)
+        )
         ordered = [d for d in deployments if d.name == name] + [d for d in deployments if d.name != name]
         if not ordered or ordered[0].name != name:
             raise ValueError(f"its spec has no RosDeployment named {name!r}")
@@ -193,4 +294,18 @@ def parse_record(configmap: dict) -> Record:
         field_manager=options.get("field_manager", "kuberos"),
         resource_version=meta.get("resourceVersion", ""),
         writer=data.get("writer", WRITER_DEPLOY),
+        revision=int(data.get("revision") or 0),
+        revision_hash=data.get("revision-hash", ""),
+        rollout=_rollout_of(data),
     )
+
+
+ROLLOUT_KEY = "rollout.json"
+
+
+def _rollout_of(data: dict) -> dict | None:
+    try:
+        value = json.loads(data[ROLLOUT_KEY]) if data.get(ROLLOUT_KEY) else None
+    except ValueError:
+        return None
+    return value if isinstance(value, dict) else None

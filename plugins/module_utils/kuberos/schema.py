@@ -22,6 +22,9 @@ MEMORY = r"^\s*[0-9]+(\.[0-9]+)?\s*(Ki|Mi|Gi|Ti|k|K|M|G|T)?\s*$"
 ROS_TOPIC = r"^/[A-Za-z0-9_~{}]+(/[A-Za-z0-9_{}]+)*$"
 ROS_TYPE = r"^[A-Za-z][A-Za-z0-9_]*/msg/[A-Z][A-Za-z0-9]*$"
 DIRECTIONS = ("to_module", "from_module")
+UPGRADES = ("surge", "recreate")
+# A catalog module: its name, then optionally '@' and a version range (docs/software.md).
+MODULE_REF = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(@.*\S.*)?$"
 
 _ONE_OR_MORE_STRINGS = {
     "anyOf": [
@@ -30,6 +33,122 @@ _ONE_OR_MORE_STRINGS = {
     ]
 }
 _TIER = {"type": "string", "enum": list(TIERS), "x-expected": "one of onboard, edge, cloud"}
+
+# Fragments shared with the software catalog's schema (catalog.py).
+IMAGE = {
+    "type": "string",
+    "minLength": 1,
+    "pattern": r"^\S+$",
+    "description": "Container image of the module.",
+    "x-expected": "a container image reference without spaces, such as 'registry/planner:1.0'",
+}
+LAUNCH = {
+    **_ONE_OR_MORE_STRINGS,
+    "description": "Command line(s) that start the module, e.g. 'ros2 launch pkg file.launch.py'.",
+    "x-expected": "a command line or a non-empty list of command lines",
+}
+PREFERENCE = {
+    "anyOf": [
+        _TIER,
+        {"type": "array", "minItems": 1, "uniqueItems": True, "items": _TIER},
+    ],
+    "description": (
+        "Where the module should run. A single tier falls back to the others in a fixed "
+        "order; a list is the exact order of tiers to try."
+    ),
+    "x-expected": "one of onboard, edge, cloud, or an ordered list of them without repeats",
+}
+REQUIREMENTS = {
+    "type": "object",
+    "x-expected": "a mapping of requirements",
+    "additionalProperties": False,
+    "properties": {
+        "onboard": {
+            "type": "boolean",
+            "description": "The module must run on the robot's own computer.",
+            "x-expected": "true or false",
+        },
+        "max_latency": {
+            "type": ["string", "number"],
+            "pattern": LATENCY,
+            "minimum": 0,
+            "description": "Largest network latency allowed between the robot and the node.",
+            "x-expected": "a latency such as '200 ms', '0.5 s' or a number of milliseconds",
+        },
+        "arch": {
+            **_ONE_OR_MORE_STRINGS,
+            "description": "CPU architecture(s) the image runs on, e.g. amd64 or [amd64, arm64].",
+            "x-expected": "an architecture such as 'amd64' or a list of them",
+        },
+        "devices": {
+            "type": "array",
+            "uniqueItems": True,
+            "items": {"type": "string", "minLength": 1},
+            "description": "Devices the node must carry, e.g. [camera, lidar].",
+            "x-expected": "a list of distinct device names",
+        },
+    },
+}
+RESOURCES = {
+    "type": "object",
+    "x-expected": "a mapping with cpu, memory and gpu",
+    "additionalProperties": False,
+    "properties": {
+        "cpu": {
+            "type": ["string", "number"],
+            "pattern": CPU,
+            "minimum": 0,
+            "default": "100m",
+            "description": "CPU requested, e.g. 2 or '500m'.",
+            "x-expected": "a CPU quantity such as 2, 0.5 or '500m'",
+        },
+        "memory": {
+            "type": ["string", "integer"],
+            "pattern": MEMORY,
+            "minimum": 0,
+            "default": "128Mi",
+            "description": "Memory requested and limited to, e.g. '512Mi'.",
+            "x-expected": "a memory quantity such as '512Mi', '2Gi' or '1G'",
+        },
+        "gpu": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 16,
+            "default": 0,
+            "description": "Number of GPUs (nvidia.com/gpu).",
+            "x-expected": "a whole number of GPUs from 0 to 16",
+        },
+    },
+}
+ENV = {
+    "type": "object",
+    "propertyNames": {
+        "type": "string",
+        "pattern": ENV_NAME,
+        "x-expected": "an environment variable name of letters, digits and '_', not starting with a digit",
+    },
+    "additionalProperties": {
+        "type": ["string", "number", "boolean"],
+        "x-expected": "a string, number or boolean",
+    },
+    "description": "Extra environment variables of the module's container.",
+    "x-expected": "a mapping of variable names to values",
+}
+ROS_PARAMETERS = {
+    "type": "object",
+    "description": "ROS parameters, written to a ConfigMap and mounted as a parameter file.",
+    "x-expected": "a mapping of parameter names to values",
+}
+UPGRADE = {
+    "type": "string",
+    "enum": list(UPGRADES),
+    "description": (
+        "How a new version replaces a running one: surge starts the new instance before the old one stops; "
+        "recreate stops the old one first, so that two never run at once (modules that hold hardware). "
+        "Default: recreate with requirements.devices, surge otherwise."
+    ),
+    "x-expected": "surge or recreate",
+}
 
 SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -133,7 +252,15 @@ SCHEMA = {
                 "type": "object",
                 "x-expected": "a mapping with name, image and launch",
                 "additionalProperties": False,
-                "required": ["name", "image", "launch"],
+                "required": ["name"],
+                # A module names a catalog module, or gives its image and launch itself; not both.
+                "if": {"type": "object", "required": ["module"]},
+                "then": {
+                    "not": {"required": ["image"]},
+                    "x-message": "give either module or image and launch, not both",
+                    "x-field": "module",
+                },
+                "else": {"required": ["image", "launch"]},
                 "properties": {
                     "name": {
                         "type": "string",
@@ -142,91 +269,21 @@ SCHEMA = {
                         "description": "Module name, unique in the deployment.",
                         "x-expected": "a name of at most 40 lowercase letters, digits and '-', such as 'motion-planner'",
                     },
-                    "image": {
+                    "module": {
                         "type": "string",
-                        "minLength": 1,
-                        "pattern": r"^\S+$",
-                        "description": "Container image of the module.",
-                        "x-expected": "a container image reference without spaces, such as 'registry/planner:1.0'",
-                    },
-                    "launch": {
-                        **_ONE_OR_MORE_STRINGS,
-                        "description": "Command line(s) that start the module, e.g. 'ros2 launch pkg file.launch.py'.",
-                        "x-expected": "a command line or a non-empty list of command lines",
-                    },
-                    "preference": {
-                        "anyOf": [
-                            _TIER,
-                            {"type": "array", "minItems": 1, "uniqueItems": True, "items": _TIER},
-                        ],
+                        "pattern": MODULE_REF,
+                        "maxLength": 300,
                         "description": (
-                            "Where the module should run. A single tier falls back to the others in a fixed "
-                            "order; a list is the exact order of tiers to try."
+                            "A module of the software catalog instead of image and launch: its name, optionally with "
+                            "'@' and a version range, e.g. 'pnp-planner@^0.2'; the highest matching version is used."
                         ),
-                        "x-expected": "one of onboard, edge, cloud, or an ordered list of them without repeats",
+                        "x-expected": "a catalog module reference such as 'pnp-planner@^0.2' or 'pnp-planner'",
                     },
-                    "requirements": {
-                        "type": "object",
-                        "x-expected": "a mapping of requirements",
-                        "additionalProperties": False,
-                        "properties": {
-                            "onboard": {
-                                "type": "boolean",
-                                "description": "The module must run on the robot's own computer.",
-                                "x-expected": "true or false",
-                            },
-                            "max_latency": {
-                                "type": ["string", "number"],
-                                "pattern": LATENCY,
-                                "minimum": 0,
-                                "description": "Largest network latency allowed between the robot and the node.",
-                                "x-expected": "a latency such as '200 ms', '0.5 s' or a number of milliseconds",
-                            },
-                            "arch": {
-                                **_ONE_OR_MORE_STRINGS,
-                                "description": "CPU architecture(s) the image runs on, e.g. amd64 or [amd64, arm64].",
-                                "x-expected": "an architecture such as 'amd64' or a list of them",
-                            },
-                            "devices": {
-                                "type": "array",
-                                "uniqueItems": True,
-                                "items": {"type": "string", "minLength": 1},
-                                "description": "Devices the node must carry, e.g. [camera, lidar].",
-                                "x-expected": "a list of distinct device names",
-                            },
-                        },
-                    },
-                    "resources": {
-                        "type": "object",
-                        "x-expected": "a mapping with cpu, memory and gpu",
-                        "additionalProperties": False,
-                        "properties": {
-                            "cpu": {
-                                "type": ["string", "number"],
-                                "pattern": CPU,
-                                "minimum": 0,
-                                "default": "100m",
-                                "description": "CPU requested, e.g. 2 or '500m'.",
-                                "x-expected": "a CPU quantity such as 2, 0.5 or '500m'",
-                            },
-                            "memory": {
-                                "type": ["string", "integer"],
-                                "pattern": MEMORY,
-                                "minimum": 0,
-                                "default": "128Mi",
-                                "description": "Memory requested and limited to, e.g. '512Mi'.",
-                                "x-expected": "a memory quantity such as '512Mi', '2Gi' or '1G'",
-                            },
-                            "gpu": {
-                                "type": "integer",
-                                "minimum": 0,
-                                "maximum": 16,
-                                "default": 0,
-                                "description": "Number of GPUs (nvidia.com/gpu).",
-                                "x-expected": "a whole number of GPUs from 0 to 16",
-                            },
-                        },
-                    },
+                    "image": IMAGE,
+                    "launch": LAUNCH,
+                    "preference": PREFERENCE,
+                    "requirements": REQUIREMENTS,
+                    "resources": RESOURCES,
                     "strategy": {
                         "type": "string",
                         "enum": list(STRATEGIES),
@@ -234,6 +291,7 @@ SCHEMA = {
                         "description": "dedicated: one instance per robot; shared: one instance serves several robots.",
                         "x-expected": "dedicated or shared",
                     },
+                    "upgrade": UPGRADE,
                     "robotsPerInstance": {
                         "type": "integer",
                         "minimum": 1,
@@ -241,25 +299,8 @@ SCHEMA = {
                         "description": "With strategy shared: most robots one instance serves (default 4).",
                         "x-expected": "a whole number from 1 to 1000",
                     },
-                    "env": {
-                        "type": "object",
-                        "propertyNames": {
-                            "type": "string",
-                            "pattern": ENV_NAME,
-                            "x-expected": "an environment variable name of letters, digits and '_', not starting with a digit",
-                        },
-                        "additionalProperties": {
-                            "type": ["string", "number", "boolean"],
-                            "x-expected": "a string, number or boolean",
-                        },
-                        "description": "Extra environment variables of the module's container.",
-                        "x-expected": "a mapping of variable names to values",
-                    },
-                    "rosParameters": {
-                        "type": "object",
-                        "description": "ROS parameters, written to a ConfigMap and mounted as a parameter file.",
-                        "x-expected": "a mapping of parameter names to values",
-                    },
+                    "env": ENV,
+                    "rosParameters": ROS_PARAMETERS,
                     "cluster": {
                         "type": "string",
                         "pattern": DNS_LABEL,

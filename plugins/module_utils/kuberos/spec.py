@@ -2,19 +2,23 @@
 
 ``load_rosdeployments(text, source)`` turns file text into validated ``RosDeployment`` objects
 or raises ``SpecError`` listing every problem (file, line, field path, value, expectation).
-``parse_rosdeployment(data, source)`` does the same for already-loaded data.
+``parse_rosdeployment(data, source)`` does the same for already-loaded data. Both take an optional
+``catalog`` (``catalog.Catalog``) that resolves modules naming a catalog module instead of an image.
 """
 
 from __future__ import annotations
 
-import shlex
-from dataclasses import dataclass, field
+import copy
+from dataclasses import dataclass, field, replace
 
 import jsonschema
 
 from . import quantities
-from .errors import Problem, SpecError, describe, did_you_mean
+from .catalog import Catalog, CatalogEntry
+from .errors import Problem, SpecError, describe
 from .schema import API_VERSION, KIND, SCHEMA, TIERS
+from .semver import parse_range
+from .validation import as_tuple, env_name_problem, launch_problems, problem, schema_problems
 from .yaml_source import Document, format_path, load_documents
 
 # A single preferred tier falls back to the others in this order.
@@ -27,7 +31,10 @@ DEFAULT_PREFERENCE = "edge"
 DEFAULT_CPU = "100m"
 DEFAULT_MEMORY = "128Mi"
 DEFAULT_ROBOTS_PER_INSTANCE = 4
-RESERVED_ENV = ("ROS_DISCOVERY_SERVER", "RMW_IMPLEMENTATION", "ROS_DOMAIN_ID")
+NO_CATALOG = (
+    "no catalog given; set kuberos_catalog to the software catalog (a directory of RosModuleCatalog files, "
+    "by default the inventory's catalog/ directory), or give image and launch instead"
+)
 
 _VALIDATOR = jsonschema.Draft202012Validator(SCHEMA)
 
@@ -69,6 +76,10 @@ class RosModule:
     index: int = 0
     cluster: str = ""  # a registered third-party cluster; its topics cross the bridge
     bridge_topics: tuple[BridgeTopic, ...] = ()
+    version: str = ""  # the catalog version it was resolved to; "" for a module that gives its image
+    catalog_module: str = ""  # the catalog module it names (``module: <name>@<range>``)
+    upgrade: str = "surge"  # surge | recreate (never two at once: modules that hold hardware)
+    ros_distro: str = ""  # the catalog entry's rosDistro
 
     @property
     def path(self) -> str:
@@ -92,66 +103,15 @@ class RosDeployment:
         return self.lines.get(path)
 
 
-def _parts(data, parts) -> tuple:
-    """Path parts with list positions as ints and mapping keys as strings (``1: x`` is field '1')."""
-    out, node = [], data
-    for part in parts:
-        if isinstance(node, list) and isinstance(part, int):
-            out.append(part)
-            node = node[part] if 0 <= part < len(node) else None
-        else:
-            out.append(str(part))
-            node = node.get(part) if isinstance(node, dict) else None
-    return tuple(out)
-
-
 def _problem(doc: Document, parts: tuple, message: str) -> Problem:
-    return Problem(doc.source, format_path(parts), message, doc.line_of(parts))
-
-
-def _problems_of(error: jsonschema.ValidationError, doc: Document) -> list[Problem]:
-    parts = _parts(doc.data, error.absolute_path)
-    schema = error.schema if isinstance(error.schema, dict) else {}
-    expected = schema.get("x-expected", "")
-    value = error.instance
-    if "propertyNames" in error.absolute_schema_path:
-        return [_problem(doc, (*parts, str(value)), f"{describe(value)} is not a valid name; expected {expected}")]
-    if error.validator == "additionalProperties" and isinstance(value, dict):
-        allowed = sorted(schema.get("properties", {}))
-        extras = sorted((k for k in value if k not in allowed), key=str)
-        return [
-            _problem(doc, (*parts, str(key)), f"unknown field{did_you_mean(key, allowed)} (allowed here: {', '.join(allowed)})")
-            for key in extras
-        ]
-    if error.validator == "required":
-        missing = error.message.split("'")[1] if "'" in error.message else error.message
-        return [_problem(doc, parts, f"missing required field '{missing}'")]
-    if error.validator == "uniqueItems":
-        return [_problem(doc, parts, f"has repeated entries; expected {expected}")]
-    return [_problem(doc, parts, f"{describe(value)} is not valid; expected {expected or error.message}")]
+    return problem(doc, parts, message)
 
 
 def _schema_problems(doc: Document) -> list[Problem]:
-    problems = []
-    seen = set()
-    errors = sorted(_VALIDATOR.iter_errors(doc.data), key=lambda e: ([str(p) for p in e.absolute_path], e.validator))
-    for error in errors:
-        for problem in _problems_of(error, doc):
-            # A value that is both of the wrong type and fails a pattern is reported once.
-            if problem.path in seen and error.validator in ("pattern", "minimum", "type"):
-                continue
-            if (problem.path, problem.message) not in seen:
-                problems.append(problem)
-                seen.update([(problem.path, problem.message), problem.path])
-    return problems
+    return schema_problems(_VALIDATOR, doc)
 
 
-def _as_tuple(value) -> tuple:
-    if value is None:
-        return ()
-    if isinstance(value, (list, tuple)):
-        return tuple(value)
-    return (value,)
+_as_tuple = as_tuple
 
 
 def _tiers_for(module: dict, problems: list[Problem], doc: Document, index: int) -> tuple[str, ...]:
@@ -189,21 +149,8 @@ def _tiers_for(module: dict, problems: list[Problem], doc: Document, index: int)
 
 
 def _launch_lines(module: dict, problems: list[Problem], doc: Document, index: int) -> tuple[str, ...]:
-    lines = _as_tuple(module["launch"])
-    for number, line in enumerate(lines):
-        path = ("rosModules", index, "launch") + ((number,) if isinstance(module["launch"], list) else ())
-        try:
-            if not shlex.split(line):
-                raise ValueError("empty command")
-        except ValueError as exc:
-            problems.append(
-                _problem(
-                    doc,
-                    path,
-                    f"{describe(line)} is not a valid command line ({exc}); expected e.g. 'ros2 launch pkg file.launch.py'",
-                )
-            )
-    return lines
+    problems.extend(launch_problems(module["launch"], doc, ("rosModules", index)))
+    return _as_tuple(module["launch"])
 
 
 def _semantic_module(module: dict, index: int, doc: Document, problems: list[Problem]) -> RosModule:
@@ -256,12 +203,9 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
 
     env = module.get("env") or {}
     for name in env:
-        if not isinstance(name, str):
-            problem(("env", str(name)), f"{describe(name)} is not a valid name; expected a string of letters, digits and '_'")
-        elif name in RESERVED_ENV:
-            problem(("env", name), "is set by KubeROS (use rosDomainId and discovery instead); remove it")
-        elif name.startswith("KUBEROS_"):
-            problem(("env", name), "names starting with KUBEROS_ are reserved for KubeROS; rename it")
+        why = env_name_problem(name)
+        if why:
+            problem(("env", str(name)), why)
 
     return RosModule(
         name=module["name"],
@@ -282,6 +226,7 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
         index=index,
         cluster=cluster,
         bridge_topics=tuple(BridgeTopic(t["name"], t["type"], t["direction"]) for t in topics),
+        upgrade=module.get("upgrade") or ("recreate" if requirements.get("devices") else "surge"),
     )
 
 
@@ -291,11 +236,134 @@ def _env_value(value) -> str:
     return str(value)
 
 
-def _parse_document(doc: Document) -> RosDeployment:
+def _deep_merge(base: dict, over: dict) -> dict:
+    """``over`` written over ``base``: mappings merge key by key, anything else replaces."""
+    merged = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = _deep_merge(merged[key], value)
+        else:
+            merged[key] = copy.deepcopy(value)
+    return merged
+
+
+def _merged_module(module: dict, entry: CatalogEntry, index: int, doc: Document, problems: list[Problem]) -> dict | None:
+    """The spec's module written over the catalog entry (docs/software.md, "Resolution and overrides")."""
+    merged = {key: value for key, value in module.items() if key != "module"}
+    merged["image"] = entry.image_ref
+    merged.setdefault("launch", list(entry.launch))
+    spec_requirements = module.get("requirements") or {}
+    # A spec that pins the module onboard does not inherit the catalog's preference (it would contradict).
+    if "preference" not in module and entry.preference is not None and not spec_requirements.get("onboard"):
+        merged["preference"] = list(entry.preference) if isinstance(entry.preference, tuple) else entry.preference
+    requirements = {**entry.requirements, **spec_requirements}
+    # The images exist for the catalog's architectures only: the module may run on nodes of those.
+    built = list(entry.architectures)
+    if built and entry.requirements.get("arch"):
+        built = [a for a in built if a in as_tuple(entry.requirements["arch"])]
+    if built:
+        wanted = as_tuple(spec_requirements.get("arch"))
+        arch = [a for a in built if a in wanted] if wanted else built
+        if not arch:
+            problems.append(
+                _problem(
+                    doc,
+                    ("rosModules", index, "requirements", "arch"),
+                    f"{describe(spec_requirements['arch'])} shares no architecture with {entry.label}, "
+                    f"whose image is built for {', '.join(built)}; expected some of them (or leave arch out)",
+                )
+            )
+            return None
+        requirements["arch"] = arch
+    merged["requirements"] = requirements
+    merged["resources"] = {**entry.resources, **(module.get("resources") or {})}
+    merged["rosParameters"] = _deep_merge(entry.ros_parameters, module.get("rosParameters") or {})
+    merged["env"] = {**entry.env, **(module.get("env") or {})}
+    if "upgrade" not in module and entry.upgrade:
+        merged["upgrade"] = entry.upgrade
+    return merged
+
+
+def _resolve(module: dict, index: int, doc: Document, catalog: Catalog | None, problems: list[Problem]):
+    """The catalog entry ``module:`` names and the module merged over it, or None (a problem is added)."""
+    path = ("rosModules", index, "module")
+    reference = module["module"]
+    if catalog is None:
+        problems.append(_problem(doc, path, f"'{reference}' names a catalog module, but {NO_CATALOG}"))
+        return None
+    name, _, range_text = reference.partition("@")
+    try:
+        entry = catalog.resolve(name.strip(), range_text.strip() or None)
+    except (LookupError, ValueError) as exc:
+        problems.append(_problem(doc, path, str(exc)))
+        return None
+    merged = _merged_module(module, entry, index, doc, problems)
+    return None if merged is None else (merged, entry)
+
+
+def _catalog_problems(doc: Document, resolved: list[tuple[RosModule, CatalogEntry]], unresolved: set[str]) -> list[Problem]:
+    """The catalog modules of one deployment agree: dependencies, rosDistro and interface versions.
+
+    ``unresolved`` names the catalog modules of modules already reported (no second error for them).
+    """
+    problems = []
+
+    def add(module: RosModule, message: str):
+        problems.append(_problem(doc, ("rosModules", module.index, "module"), message))
+
+    def named(module: RosModule, entry: CatalogEntry) -> str:
+        return f"{module.path} ({module.name}: {entry.label})"
+
+    by_catalog: dict[str, list[tuple[RosModule, CatalogEntry]]] = {}
+    for module, entry in resolved:
+        by_catalog.setdefault(entry.name, []).append((module, entry))
+    distro = None
+    interfaces: dict[str, tuple[int, RosModule, CatalogEntry]] = {}
+    for module, entry in resolved:
+        for name, text in entry.dependencies:
+            users = by_catalog.get(name)
+            if not users and name in unresolved:
+                continue
+            if not users:
+                add(module, f"{entry.label} depends on {name} {text}; the deployment has no module from {name}")
+                continue
+            try:
+                wanted = parse_range(text)
+            except ValueError:  # the catalog checked its ranges; a hand-made Catalog may not have
+                add(module, f"{entry.label} depends on {name} with an invalid range {text!r}")
+                continue
+            for other, other_entry in users:
+                if not wanted.matches(other_entry.semver):
+                    add(module, f"{entry.label} depends on {name} {text}; {other.path} ({other.name}) uses {other_entry.label}")
+        if entry.ros_distro:
+            if distro is None:
+                distro = (module, entry)
+            elif distro[1].ros_distro != entry.ros_distro:
+                add(
+                    module,
+                    f"{entry.label} is built for ROS 2 {entry.ros_distro}, but {named(*distro)} is built for "
+                    f"{distro[1].ros_distro}; expected one rosDistro in a deployment",
+                )
+        for name, number in entry.interfaces:
+            first = interfaces.setdefault(name, (number, module, entry))
+            if first[0] != number:
+                add(
+                    module,
+                    f"{entry.label} speaks interface {name} version {number}, but {named(first[1], first[2])} speaks "
+                    f"version {first[0]}; expected one version of each interface in a deployment",
+                )
+    return problems
+
+
+def _parse_document(doc: Document, catalog: Catalog | None = None) -> RosDeployment:
+    if catalog is not None and not isinstance(catalog, Catalog):
+        raise TypeError(f"catalog must be a Catalog or None, not {type(catalog).__name__}")
     data = doc.data
     problems = _schema_problems(doc)
     broken = {p.path for p in problems}
     modules = []
+    resolved: list[tuple[RosModule, CatalogEntry]] = []
+    unresolved: set[str] = set()
     names: dict[str, int] = {}
     raw_modules = data.get("rosModules") if isinstance(data, dict) else None
     for index, module in enumerate(raw_modules if isinstance(raw_modules, list) else []):
@@ -313,7 +381,23 @@ def _parse_document(doc: Document) -> RosDeployment:
                 )
             )
         names.setdefault(module["name"], index)
-        modules.append(_semantic_module(module, index, doc, problems))
+        if "module" not in module:
+            modules.append(_semantic_module(module, index, doc, problems))
+            continue
+        found = _resolve(module, index, doc, catalog, problems)
+        if found is None:
+            unresolved.add(module["module"].partition("@")[0].strip())
+            continue
+        merged, entry = found
+        resolved_module = replace(
+            _semantic_module(merged, index, doc, problems),
+            version=entry.version,
+            catalog_module=entry.name,
+            ros_distro=entry.ros_distro,
+        )
+        modules.append(resolved_module)
+        resolved.append((resolved_module, entry))
+    problems.extend(_catalog_problems(doc, resolved, unresolved))
     if problems:
         raise SpecError(sorted(problems, key=lambda p: (p.line or 0, p.path)), title=f"{doc.source} is not a valid RosDeployment")
     metadata = data["metadata"]
@@ -334,12 +418,15 @@ def _parse_document(doc: Document) -> RosDeployment:
     )
 
 
-def parse_rosdeployment(data, source: str = "<spec>", lines: dict | None = None) -> RosDeployment:
-    """Validate one loaded spec (a dict) and return it as a ``RosDeployment``."""
-    return _parse_document(Document(data, source, 0, lines or {}))
+def parse_rosdeployment(data, source: str = "<spec>", lines: dict | None = None, catalog: Catalog | None = None) -> RosDeployment:
+    """Validate one loaded spec (a dict) and return it as a ``RosDeployment``.
+
+    ``catalog`` resolves the modules that name a catalog module (``module: pnp-planner@^0.2``).
+    """
+    return _parse_document(Document(data, source, 0, lines or {}), catalog)
 
 
-def load_rosdeployments(text: str, source: str = "<spec>") -> list[RosDeployment]:
+def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | None = None) -> list[RosDeployment]:
     """Parse and validate every document of a spec file; all problems of all documents at once."""
     documents = [doc for doc in load_documents(text, source) if doc.data is not None]
     if not documents:
@@ -349,7 +436,7 @@ def load_rosdeployments(text: str, source: str = "<spec>") -> list[RosDeployment
         if len(documents) > 1:
             doc.source = f"{source} (document {doc.index + 1})"
         try:
-            deployments.append(_parse_document(doc))
+            deployments.append(_parse_document(doc, catalog))
         except SpecError as exc:
             problems.extend(exc.problems)
     names: dict[str, str] = {}
@@ -369,7 +456,7 @@ def load_rosdeployments(text: str, source: str = "<spec>") -> list[RosDeployment
     return deployments
 
 
-def load_rosdeployment_file(path: str, display: str | None = None) -> list[RosDeployment]:
+def load_rosdeployment_file(path: str, display: str | None = None, catalog: Catalog | None = None) -> list[RosDeployment]:
     """Read ``path`` and validate it; errors name ``display`` (the path as the user wrote it)."""
     display = display or path
     try:
@@ -383,7 +470,7 @@ def load_rosdeployment_file(path: str, display: str | None = None) -> list[RosDe
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise SpecError([Problem(display, "", f"not UTF-8 text (byte {exc.start})")], title=f"{display} is not valid") from None
-    return load_rosdeployments(text, display)
+    return load_rosdeployments(text, display, catalog)
 
 
 __all__ = [

@@ -1,0 +1,284 @@
+"""Rollouts: what a move from one applied state of a deployment to another changes, robot by robot, in waves.
+
+Pure: rendered objects (plain dicts) in, a plan out. ``plan_rollout`` compares the objects the deployment's
+current record renders with the objects the new state renders and groups the differences:
+
+- ``prepare``: objects that are not one robot's (parameter ConfigMaps, Services, fleet objects), applied before
+  the first wave (new ones are created; a changed parameter ConfigMap reaches every robot's mounted file);
+- ``waves``: the module Deployments that change, grouped by robot: the canary robots first, then waves of
+  ``wave_size`` robots in the fleet's order. A shared instance goes with the first of its robots to be reached;
+- ``removals``: objects the new state no longer renders, removed once every wave passed.
+
+Robots whose modules do not change are in no wave and are never touched. ``gate_verdict`` is the health gate a
+wave must pass (pure over what was observed); ``Downtime`` measures, per instance, the time no pod of it was
+Ready while it was replaced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from . import labels as node_labels
+from .manifests import COMPONENT, INSTANCE, MODULE, ROBOTS_ANNOTATION, VERSION
+
+ROLLOUT_KEYS = ("apiVersion", "kind", "metadata", "spec", "data", "binaryData", "type")
+FAILING_REASONS = ("CrashLoopBackOff", "ErrImagePull", "ImagePullBackOff", "CreateContainerConfigError", "RunContainerError")
+
+
+def object_key(obj: dict) -> tuple[str, str, str]:
+    return obj["kind"], obj["metadata"].get("namespace", ""), obj["metadata"]["name"]
+
+
+@dataclass(frozen=True)
+class Change:
+    """One object a rollout creates, updates or removes."""
+
+    action: str  # create | update | remove
+    kind: str
+    namespace: str
+    name: str
+    robot: str = ""  # the robot it belongs to ("" for fleet objects)
+    module: str = ""
+    summary: str = ""  # what changes, for people (image, version, ...)
+    before: dict | None = field(default=None, compare=False, repr=False)
+    after: dict | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def instance(self) -> str:
+        return self.name if self.kind == "Deployment" else ""
+
+
+@dataclass
+class Wave:
+    number: int
+    canary: bool
+    robots: tuple[str, ...]
+    changes: list[Change]
+
+
+@dataclass
+class RolloutPlan:
+    prepare: list[Change] = field(default_factory=list)
+    waves: list[Wave] = field(default_factory=list)
+    removals: list[Change] = field(default_factory=list)
+    untouched: tuple[str, ...] = ()  # robots with nothing to change
+
+    @property
+    def changed(self) -> bool:
+        return bool(self.prepare or self.waves or self.removals)
+
+    def instances(self) -> list[str]:
+        """Every module instance the rollout replaces (the controller leaves them alone meanwhile)."""
+        return sorted({c.name for w in self.waves for c in w.changes if c.kind == "Deployment"})
+
+    def per_robot(self) -> dict[str, list[str]]:
+        """For --check --diff: per robot, one line per module that changes."""
+        out: dict[str, list[str]] = {}
+        for wave in self.waves:
+            for change in wave.changes:
+                for robot in change.robot.split(","):
+                    out.setdefault(robot, []).append(f"{change.module}: {change.action} ({change.summary})")
+        for change in self.prepare + self.removals:
+            out.setdefault("(fleet)", []).append(f"{change.kind}/{change.name}: {change.action} ({change.summary})")
+        return {robot: sorted(lines) for robot, lines in sorted(out.items())}
+
+    def to_dict(self) -> dict:
+        def rows(changes):
+            return [
+                {"action": c.action, "kind": c.kind, "name": c.name, "robot": c.robot, "module": c.module, "summary": c.summary}
+                for c in changes
+            ]
+
+        return {
+            "prepare": rows(self.prepare),
+            "waves": [
+                {"number": w.number, "canary": w.canary, "robots": list(w.robots), "changes": rows(w.changes)} for w in self.waves
+            ],
+            "removals": rows(self.removals),
+            "untouched": list(self.untouched),
+        }
+
+
+def _comparable(obj: dict) -> dict:
+    return {k: obj[k] for k in ROLLOUT_KEYS if k in obj}
+
+
+def _container(obj: dict) -> dict:
+    containers = ((obj.get("spec") or {}).get("template") or {}).get("spec", {}).get("containers") or [{}]
+    return containers[0]
+
+
+def summarize(before: dict | None, after: dict | None) -> str:
+    """What differs between two renderings of one object, in a few words."""
+    if before is None:
+        return "new"
+    if after is None:
+        return "no longer rendered"
+    if before["kind"] != "Deployment":
+        return "content changed"
+    parts = []
+    old_c, new_c = _container(before), _container(after)
+    old_v = (before["metadata"].get("labels") or {}).get(VERSION)
+    new_v = (after["metadata"].get("labels") or {}).get(VERSION)
+    if old_v != new_v:
+        parts.append(f"version {old_v or '-'} -> {new_v or '-'}")
+    if old_c.get("image") != new_c.get("image"):
+        parts.append(f"image {old_c.get('image')} -> {new_c.get('image')}")
+    old_node = before["spec"]["template"]["spec"].get("nodeSelector")
+    new_node = after["spec"]["template"]["spec"].get("nodeSelector")
+    if old_node != new_node:
+        parts.append(f"node {'/'.join((old_node or {}).values())} -> {'/'.join((new_node or {}).values())}")
+    for key, words in (("args", "launch"), ("env", "env"), ("resources", "resources"), ("volumeMounts", "parameters")):
+        if old_c.get(key) != new_c.get(key):
+            parts.append(f"{words} changed")
+    if not parts and before["spec"].get("strategy") != after["spec"].get("strategy"):
+        parts.append("upgrade strategy changed")
+    return "; ".join(parts) or "metadata changed"
+
+
+def _robots_of(obj: dict) -> tuple[str, ...]:
+    labels = obj["metadata"].get("labels") or {}
+    if labels.get(node_labels.ROBOT):
+        return (labels[node_labels.ROBOT],)
+    robots = (obj["metadata"].get("annotations") or {}).get(ROBOTS_ANNOTATION, "")
+    return tuple(r for r in robots.split(",") if r)
+
+
+def plan_rollout(
+    before: list[dict],
+    after: list[dict],
+    robots: list[str] | tuple[str, ...],
+    canary: int = 1,
+    wave_size: int = 10,
+    canary_robots: tuple[str, ...] = (),
+    skip=lambda obj: False,
+) -> RolloutPlan:
+    """Group the differences between two renderings of a deployment into prepare, waves and removals.
+
+    ``robots`` is the fleet's robot order; ``canary_robots`` (when given) are the canary set, else the first
+    ``canary`` robots with a change. Objects for which ``skip(obj)`` is true (the record) are left out."""
+    if canary < 0 or wave_size < 1:
+        raise ValueError("canary must be 0 or more and wave_size 1 or more")
+    old = {object_key(o): o for o in before if not skip(o) and o["kind"] != "Namespace"}
+    new = {object_key(o): o for o in after if not skip(o) and o["kind"] != "Namespace"}
+    plan = RolloutPlan()
+    by_robot: dict[str, list[Change]] = {}
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if a is not None and b is not None and _comparable(a) == _comparable(b):
+            continue
+        obj = b if b is not None else a
+        action = "create" if a is None else "remove" if b is None else "update"
+        labels = obj["metadata"].get("labels") or {}
+        module = labels.get(MODULE, labels.get(COMPONENT, ""))
+        owners = _robots_of(obj) if obj["kind"] == "Deployment" and labels.get(COMPONENT) == "ros-module" else ()
+        change = Change(action, key[0], key[1], key[2], ",".join(owners), module, summarize(a, b), a, b)
+        if action == "remove":
+            plan.removals.append(change)
+        elif not owners:
+            plan.prepare.append(change)
+        else:
+            first = min(owners, key=lambda r: (robots.index(r) if r in robots else len(robots), r))
+            by_robot.setdefault(first, []).append(change)
+    order = [r for r in robots if r in by_robot] + sorted(r for r in by_robot if r not in robots)
+    chosen = [r for r in canary_robots if r in by_robot] if canary_robots else order[:canary]
+    rest = [r for r in order if r not in chosen]
+    groups = ([(True, chosen)] if chosen else []) + [
+        (False, rest[i : i + wave_size]) for i in range(0, len(rest), wave_size)
+    ]
+    for number, (is_canary, members) in enumerate(groups, start=1):
+        changes = [c for r in members for c in by_robot[r]]
+        touched = tuple(sorted({r for c in changes for r in c.robot.split(",")}))
+        plan.waves.append(Wave(number, is_canary, touched, changes))
+    touched_all = {r for w in plan.waves for r in w.robots}
+    plan.untouched = tuple(r for r in robots if r not in touched_all)
+    return plan
+
+
+# -- the health gate ------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PodState:
+    """One pod of an instance as observed: enough for the gate."""
+
+    name: str
+    node: str
+    phase: str
+    ready: bool
+    restarts: int = 0
+    waiting_reason: str = ""
+    deleting: bool = False
+    image: str = ""
+
+
+def pod_failure(pod: PodState, baseline_restarts: int = 0) -> str | None:
+    """Why a pod counts as failing, or None."""
+    if pod.deleting:
+        return None
+    if pod.phase == "Failed":
+        return f"pod {pod.name} failed"
+    if pod.waiting_reason in FAILING_REASONS:
+        return f"pod {pod.name} is in {pod.waiting_reason} ({pod.restarts} restarts)"
+    if pod.restarts > baseline_restarts:
+        return f"pod {pod.name} restarted ({pod.restarts} restarts)"
+    return None
+
+
+def instance_settled(pods: list[PodState], node: str, image: str) -> bool:
+    """The instance runs exactly one pod, of the new image, Running and Ready on its placed node."""
+    live = [p for p in pods if not p.deleting]
+    return len(live) == 1 and live[0].node == node and live[0].phase == "Running" and live[0].ready and live[0].image == image
+
+
+def gate_verdict(observed: dict[str, list[PodState]], wanted: dict[str, tuple[str, str]]) -> tuple[list[str], list[str]]:
+    """(failures, pending) of a wave: ``wanted`` maps each instance to (node, image) of its new state."""
+    failures, pending = [], []
+    for instance, (node, image) in sorted(wanted.items()):
+        pods = observed.get(instance, [])
+        new_pods = [p for p in pods if p.image == image]
+        failing = [why for p in new_pods if (why := pod_failure(p)) is not None]
+        if failing:
+            failures.append(f"{instance}: {failing[0]}")
+        elif not instance_settled(pods, node, image):
+            pending.append(instance)
+    return failures, pending
+
+
+@dataclass
+class Downtime:
+    """Per instance, the seconds no pod of it was Ready while it was replaced (from polling)."""
+
+    down_since: dict[str, float] = field(default_factory=dict)
+    total: dict[str, float] = field(default_factory=dict)
+
+    def observe(self, instance: str, any_ready: bool, now: float) -> None:
+        self.total.setdefault(instance, 0.0)
+        if any_ready:
+            since = self.down_since.pop(instance, None)
+            if since is not None:
+                self.total[instance] += now - since
+        else:
+            self.down_since.setdefault(instance, now)
+
+    def finish(self, now: float) -> dict[str, float]:
+        for instance in list(self.down_since):
+            self.observe(instance, True, now)
+        return {k: round(v, 3) for k, v in sorted(self.total.items())}
+
+
+@dataclass
+class RevisionInfo:
+    """One kept revision of a deployment, for listings."""
+
+    number: int
+    cause: str
+    versions: dict[str, str]
+    created: str = ""
+
+
+def revision_table(revisions: list[RevisionInfo], current: int) -> str:
+    lines = ["REVISION  CAUSE     MODULES"]
+    for rev in sorted(revisions, key=lambda r: r.number):
+        mark = "*" if rev.number == current else " "
+        modules = ", ".join(f"{m} {v}" for m, v in sorted(rev.versions.items()))
+        lines.append(f"{rev.number:>7}{mark}  {rev.cause:<8}  {modules}")
+    return "\n".join(lines)

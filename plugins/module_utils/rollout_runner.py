@@ -1,0 +1,450 @@
+"""Carrying out a rollout plan against a cluster, with the Kubernetes Python client (I/O; the decisions are in
+``kuberos/rollout.py``).
+
+Every object is applied with one server-side apply; a wave's gate polls the wave's pods (one list call per poll)
+until each replaced instance runs exactly one pod of its new state, Running and Ready on its placed node, then
+watches them for the soak window: a restart, a crash loop or a failed pod fails the gate. An optional ROS probe
+command runs after the soak (non-zero exit fails the gate). On failure, every robot touched so far gets its
+previous objects back, and the objects created for the rollout are removed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import HOSTNAME
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import INSTANCE, MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import (
+    Change,
+    Downtime,
+    PodState,
+    Wave,
+    gate_verdict,
+    pod_failure,
+)
+
+ROLLOUT_MANAGER = "kuberos-rollout"
+APPLY_TYPE = "application/apply-patch+yaml"
+
+
+class GateFailed(Exception):
+    """A wave did not pass its health gate; the message says which instance and why."""
+
+
+class Cluster:
+    """The few calls a rollout makes: server-side apply, delete, and the pods of instances."""
+
+    def __init__(self, clients, field_manager: str):
+        self.core = clients["core"]
+        self.apps = clients["apps"]
+        self.field_manager = field_manager
+        self._names: dict[str, str] | None = None
+
+    def inventory_name(self, node: str) -> str:
+        """A Kubernetes node's inventory name (its hostname label), which placements use."""
+        if self._names is None or (node and node not in self._names):
+            self._names = {
+                n.metadata.name: (n.metadata.labels or {}).get(HOSTNAME, n.metadata.name) for n in self.core.list_node().items
+            }
+        return self._names.get(node, node)
+
+    def apply(self, obj: dict, dry_run: bool = False, manager: str | None = None) -> None:
+        meta = obj["metadata"]
+        kwargs = {"field_manager": manager or self.field_manager, "force": True, "_content_type": APPLY_TYPE}
+        if dry_run:
+            kwargs["dry_run"] = "All"
+        body = json.loads(json.dumps(obj))
+        if obj["kind"] == "Deployment":
+            self.apps.patch_namespaced_deployment(meta["name"], meta["namespace"], body, **kwargs)
+        elif obj["kind"] == "ConfigMap":
+            self.core.patch_namespaced_config_map(meta["name"], meta["namespace"], body, **kwargs)
+        elif obj["kind"] == "Service":
+            self.core.patch_namespaced_service(meta["name"], meta["namespace"], body, **kwargs)
+        elif obj["kind"] == "Secret":
+            self.core.patch_namespaced_secret(meta["name"], meta["namespace"], body, **kwargs)
+        elif obj["kind"] == "Namespace":
+            self.core.patch_namespace(meta["name"], body, **kwargs)
+        else:
+            raise ValueError(f"a rollout does not apply {obj['kind']}")
+
+    def delete(self, kind: str, namespace: str, name: str) -> None:
+        from kubernetes.client.exceptions import ApiException
+
+        calls = {
+            "Deployment": self.apps.delete_namespaced_deployment,
+            "ConfigMap": self.core.delete_namespaced_config_map,
+            "Service": self.core.delete_namespaced_service,
+            "Secret": self.core.delete_namespaced_secret,
+        }
+        try:
+            calls[kind](name, namespace, propagation_policy="Background")
+        except ApiException as exc:
+            if exc.status != 404:
+                raise
+
+    def pods(self, namespace: str, instances: set[str]) -> dict[str, list[PodState]]:
+        found: dict[str, list[PodState]] = {}
+        items = self.core.list_namespaced_pod(namespace, label_selector=f"{MANAGED_BY}=kuberos").items
+        for pod in items:
+            instance = (pod.metadata.labels or {}).get(INSTANCE)
+            if instance not in instances:
+                continue
+            statuses = pod.status.container_statuses or []
+            waiting = next((s.state.waiting.reason or "" for s in statuses if s.state and s.state.waiting), "")
+            found.setdefault(instance, []).append(
+                PodState(
+                    pod.metadata.name,
+                    self.inventory_name(pod.spec.node_name) if pod.spec.node_name else "",
+                    pod.status.phase or "",
+                    any(c.type == "Ready" and c.status == "True" for c in pod.status.conditions or []),
+                    sum(s.restart_count or 0 for s in statuses),
+                    waiting,
+                    bool(pod.metadata.deletion_timestamp),
+                    pod.spec.containers[0].image if pod.spec.containers else "",
+                )
+            )
+        return found
+
+
+def _node_and_image(obj: dict) -> tuple[str, str]:
+    pod = obj["spec"]["template"]["spec"]
+    return next(iter((pod.get("nodeSelector") or {}).values()), ""), pod["containers"][0]["image"]
+
+
+class Rollout:
+    """Runs a plan's waves through their gates; rolls the touched robots back when a gate fails."""
+
+    def __init__(self, cluster: Cluster, namespace: str, gate_timeout: float, soak_s: float, poll_s: float = 0.2,
+                 ros_probe: list[str] | None = None, progress=None):  # fmt: skip
+        self.cluster = cluster
+        self.namespace = namespace
+        self.gate_timeout = gate_timeout
+        self.soak_s = soak_s
+        self.poll_s = poll_s
+        self.ros_probe = ros_probe or []
+        self.progress = progress or (lambda line: None)
+        self.downtime = Downtime()
+        self.applied: list[Change] = []  # in order, to undo
+        self.waves_done: list[dict] = []
+
+    # -- applying ---------------------------------------------------------------------------------
+    def apply_change(self, change: Change) -> None:
+        if change.action == "remove":
+            self.cluster.delete(change.kind, change.namespace, change.name)
+        else:
+            self.cluster.apply(change.after)
+        self.applied.append(change)
+
+    def undo(self) -> list[str]:
+        """Give every touched object its previous state back (newest first); objects the rollout created go."""
+        undone = []
+        for change in reversed(self.applied):
+            if change.action == "create":
+                self.cluster.delete(change.kind, change.namespace, change.name)
+            elif change.before is not None:
+                self.cluster.apply(change.before)
+            undone.append(f"{change.kind}/{change.name}")
+        self.applied = []
+        return undone
+
+    # -- the gate -----------------------------------------------------------------------------------
+    def _observe(self, wanted: dict[str, tuple[str, str]]):
+        observed = self.cluster.pods(self.namespace, set(wanted))
+        now = time.monotonic()
+        for instance in wanted:
+            ready = any(p.ready and p.phase == "Running" and not p.deleting for p in observed.get(instance, []))
+            self.downtime.observe(instance, ready, now)
+        return observed
+
+    def gate(self, wave: Wave) -> float:
+        """Wait until the wave's instances settle, then soak; raises GateFailed. Returns the seconds it took."""
+        start = time.monotonic()
+        wanted = {c.name: _node_and_image(c.after) for c in wave.changes if c.kind == "Deployment" and c.after}
+        deadline = start + self.gate_timeout
+        pending = list(wanted)
+        while True:
+            observed = self._observe(wanted)
+            failures, pending = gate_verdict(observed, wanted)
+            if failures:
+                raise GateFailed("; ".join(failures))
+            if not pending:
+                break
+            if time.monotonic() > deadline:
+                raise GateFailed(
+                    f"not Running and Ready on their placed nodes within {self.gate_timeout:g} s: {', '.join(pending)}"
+                )
+            time.sleep(self.poll_s)
+        baseline = {
+            p.name: p.restarts for pods in self._observe(wanted).values() for p in pods if not p.deleting
+        }  # restarts before the soak (0 for fresh pods)
+        soak_end = time.monotonic() + self.soak_s
+        while time.monotonic() < soak_end:
+            observed = self._observe(wanted)
+            for instance, pods in sorted(observed.items()):
+                for pod in pods:
+                    why = pod_failure(pod, baseline.get(pod.name, 0))
+                    if why is not None:
+                        raise GateFailed(f"{instance}: {why} within the soak window of {self.soak_s:g} s")
+                if not any(p.ready and not p.deleting for p in pods):
+                    raise GateFailed(f"{instance}: no pod Ready within the soak window of {self.soak_s:g} s")
+            time.sleep(self.poll_s)
+        if self.ros_probe:
+            self._probe(wave, sorted(wanted))
+        return time.monotonic() - start
+
+    def _probe(self, wave: Wave, instances: list[str]) -> None:
+        env = {
+            **os.environ,
+            "KUBEROS_NAMESPACE": self.namespace,
+            "KUBEROS_ROBOTS": ",".join(wave.robots),
+            "KUBEROS_INSTANCES": ",".join(instances),
+            "KUBEROS_MODULES": ",".join(sorted({c.module for c in wave.changes})),
+        }
+        try:
+            done = subprocess.run(self.ros_probe, env=env, capture_output=True, text=True, timeout=self.gate_timeout, check=False)
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            raise GateFailed(f"the ROS probe {self.ros_probe[0]} did not run: {exc}") from None
+        if done.returncode != 0:
+            detail = (done.stdout + done.stderr).strip().splitlines()[-3:]
+            raise GateFailed(f"the ROS probe failed (exit {done.returncode}): {' | '.join(detail)}")
+
+    def settle_back(self, instances: dict[str, tuple[str, str]]) -> list[str]:
+        """After a rollback: wait (up to the gate timeout) for the previous state; the instances that did not return."""
+        deadline = time.monotonic() + self.gate_timeout
+        pending = list(instances)
+        while pending and time.monotonic() < deadline:
+            observed = self._observe(instances)
+            _failures, pending = gate_verdict(observed, instances)
+            if pending:
+                time.sleep(self.poll_s)
+        return pending
+
+    # -- the whole plan -----------------------------------------------------------------------------
+    def run(self, prepare: list[Change], waves: list[Wave]) -> dict:
+        """Apply prepare, then every wave through its gate. On a failed gate: undo, and report."""
+        for change in prepare:
+            self.apply_change(change)
+        for wave in waves:
+            label = "canary" if wave.canary else f"wave {wave.number}"
+            self.progress(f"{label}: {len(wave.robots)} robot(s) {', '.join(wave.robots[:5])}{' ...' if len(wave.robots) > 5 else ''}")
+            started = time.monotonic()
+            try:
+                for change in wave.changes:
+                    self.apply_change(change)
+                self.gate(wave)
+            except GateFailed as exc:
+                touched = sorted({r for w in self.waves_done for r in w["robots"]} | set(wave.robots))
+                back = {
+                    c.name: _node_and_image(c.before)
+                    for c in self.applied
+                    if c.kind == "Deployment" and c.before is not None and c.action == "update"
+                }
+                self.undo()
+                not_back = self.settle_back(back)
+                return {
+                    "ok": False,
+                    "failed_wave": wave.number,
+                    "failed_canary": wave.canary,
+                    "why": str(exc),
+                    "rolled_back_robots": touched,
+                    "not_back": not_back,
+                    "waves": self.waves_done,
+                }
+            self.waves_done.append(
+                {"number": wave.number, "canary": wave.canary, "robots": list(wave.robots),
+                 "seconds": round(time.monotonic() - started, 2)}
+            )  # fmt: skip
+        return {"ok": True, "waves": self.waves_done}
+
+
+# -- one rollout, end to end --------------------------------------------------------------------------
+def _plain(obj) -> dict:
+    from kubernetes.client import ApiClient
+
+    return ApiClient().sanitize_for_serialization(obj)
+
+
+def read_record(clients, namespace: str, deployment: str):
+    """The deployment's record as it is in the cluster (plain dict), with the fleet's live discovery servers."""
+    from kubernetes.client.exceptions import ApiException
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+        COMPONENT,
+        discovery_from_deployments,
+    )
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import parse_record, record_name
+
+    try:
+        configmap = _plain(clients["core"].read_namespaced_config_map(record_name(deployment), namespace))
+    except ApiException as exc:
+        if exc.status == 404:
+            raise SpecError(
+                [Problem(f"deployment {deployment}", "", f"is not deployed in {namespace} (no record); deploy it first with playbooks/deploy.yml")]
+            ) from None
+        raise
+    record = parse_record(configmap)
+    found = clients["apps"].list_namespaced_deployment(namespace, label_selector=f"{COMPONENT}=discovery-server").items
+    live = discovery_from_deployments([_plain(d) for d in found])
+    for fleet in record.placement.discovery:
+        if live.get(fleet):
+            record.placement.discovery[fleet] = live[fleet]
+    return record, configmap
+
+
+def list_revisions(clients, namespace: str, deployment: str) -> list[dict]:
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import DEPLOYMENT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import REVISION_LABEL
+
+    items = clients["core"].list_namespaced_config_map(namespace, label_selector=f"{DEPLOYMENT}={deployment},{REVISION_LABEL}").items
+    return sorted((_plain(i) for i in items), key=lambda c: int(c["metadata"]["labels"][REVISION_LABEL]))
+
+
+def marker(record, body: dict | None) -> dict:
+    """The rollout marker on the record (applied by its own field manager; ``None`` removes it)."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import ROLLOUT_KEY
+
+    obj = {"apiVersion": "v1", "kind": "ConfigMap", "metadata": {"name": record.name, "namespace": record.namespace}}
+    if body is not None:
+        obj["data"] = {ROLLOUT_KEY: json.dumps(body, sort_keys=True)}
+    return obj
+
+
+def _target(clients, params: dict, namespace_of):
+    """The state to roll out to: a spec file (resolved against the catalog), or a kept revision of the deployment.
+    Returns (deployment, spec text, source, catalog used, cause)."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import parse_revision, revision_name
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
+
+    if params.get("revision"):
+        name, fleet = params["deployment"], params["fleet"]
+        if not name or not fleet:
+            raise SpecError([Problem("rollback", "deployment", "a rollback needs the deployment's name and fleet")])
+        from kubernetes.client.exceptions import ApiException
+
+        try:
+            configmap = _plain(clients["core"].read_namespaced_config_map(revision_name(name, params["revision"]), namespace_of(fleet)))
+        except ApiException as exc:
+            if exc.status != 404:
+                raise
+            kept = [c["data"].get("revision") for c in list_revisions(clients, namespace_of(fleet), name)]
+            raise SpecError(
+                [Problem(f"deployment {name}", "revision", f"{params['revision']} is not a kept revision (kept: {', '.join(kept) or 'none'})")]
+            ) from None
+        number, _cause, dep, text, catalog = parse_revision(configmap)
+        return dep, text, configmap["data"].get("source", ""), catalog, f"rollback to {number}"
+    catalog = load_catalog(params["catalog"]) if params.get("catalog") else None
+    deployments = load_specs(params["src"], catalog=catalog)
+    if params.get("deployment"):
+        deployments = [d for d in deployments if d.name == params["deployment"]]
+    if len(deployments) != 1:
+        names = ", ".join(d.name for d in load_specs(params["src"], catalog=catalog))
+        raise SpecError([Problem(params["src"], "metadata.name", f"name one deployment to roll out with deployment (the file has: {names})")])
+    dep = deployments[0]
+    with open(params["src"], encoding="utf-8") as handle:
+        text = handle.read()
+    used = catalog.subset((m.catalog_module, m.version) for m in dep.modules if m.version) if catalog else None
+    return dep, text, params["src"], used, "rollout"
+
+
+def execute(clients, params: dict, check_mode: bool, progress) -> dict:
+    """Plan a rollout of one deployment to a new state, and (unless check mode) carry it out; see the module."""
+    from ansible_collections.kuberos.platform.plugins.module_utils import cluster_state
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+    from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import FLEET_COMPONENTS
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+        COMPONENT,
+        RenderOptions,
+        render_deployment,
+    )
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
+        RECORD_LABEL,
+        REVISION_HISTORY,
+        build_records,
+        module_versions,
+    )
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import plan_rollout
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
+
+    started = time.monotonic()
+    dep, text, source, catalog, cause = _target(clients, params, fleet_namespace)
+    namespace = fleet_namespace(dep.fleet)
+    record, _configmap = read_record(clients, namespace, dep.name)
+    if record.rollout:
+        raise RolloutBusy(
+            f"a rollout of {dep.name} to revision {record.rollout.get('revision')} is in progress since "
+            f"{record.rollout.get('started')}; wait for it, or remove {record.name}'s data key rollout.json if it died"
+        )
+    inventory = load_inventory(params["inventory"])
+    allocated = cluster_state.node_allocations(clients, [dep.name], [dep.fleet])
+    unavailable = cluster_state.unavailable_nodes(clients, list(inventory.nodes))
+    placement = place_modules([dep], inventory, allocated, unavailable, record.placement)
+    options = RenderOptions(
+        cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"], bridge_image=params["bridge_image"],
+    )
+    before = render_deployment(record.deployments, record.placement, record.options)
+    after = render_deployment([dep], placement, options)
+    robots = list(inventory.fleets[dep.fleet])
+    plan = plan_rollout(
+        before, after, robots, params["canary"], params["wave_size"], tuple(params["canary_robots"] or ()),
+        skip=lambda o: (o["metadata"].get("labels") or {}).get(COMPONENT) in FLEET_COMPONENTS,  # the fleet's, never a rollout's
+    )  # fmt: skip
+    current = {"revision": record.revision, "hash": record.revision_hash}
+    records = build_records(text, source, [dep], placement, params["inventory"], options, record.field_manager, {dep.name: current}, catalog, cause)
+    revision = int(next(o for o in records if RECORD_LABEL in o["metadata"]["labels"])["data"]["revision"])
+    result = {
+        "deployment": dep.name,
+        "namespace": namespace,
+        "revision": revision,
+        "from_revision": record.revision,
+        "versions": {"before": module_versions(record.spec), "after": module_versions(dep)},
+        "plan": plan.to_dict(),
+        "per_robot": plan.per_robot(),
+        "changed": plan.changed or revision != record.revision,
+    }
+    if check_mode or not result["changed"]:
+        return result
+    cluster = Cluster(clients, record.field_manager)
+    progress(f"dry run of {sum(len(w.changes) for w in plan.waves) + len(plan.prepare) + len(records)} objects")
+    for change in plan.prepare + [c for w in plan.waves for c in w.changes]:
+        cluster.apply(change.after, dry_run=True)
+    for obj in records:
+        cluster.apply(obj, dry_run=True)
+    stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    cluster.apply(
+        marker(record, {"revision": revision, "from": record.revision, "instances": plan.instances(), "started": stamp}),
+        manager=ROLLOUT_MANAGER,
+    )
+    runner = Rollout(cluster, namespace, params["gate_timeout"], params["soak"], ros_probe=params.get("ros_probe"), progress=progress)
+    try:
+        outcome = runner.run(plan.prepare, plan.waves)
+        if outcome["ok"]:
+            for obj in records:
+                cluster.apply(obj)
+            for change in plan.removals:
+                cluster.delete(change.kind, change.namespace, change.name)
+            kept = list_revisions(clients, namespace, dep.name)
+            for old in kept[: max(0, len(kept) - REVISION_HISTORY)]:
+                cluster.delete("ConfigMap", namespace, old["metadata"]["name"])
+    finally:
+        cluster.apply(marker(record, None), manager=ROLLOUT_MANAGER)
+    downtime = runner.downtime.finish(time.monotonic())
+    result.update(
+        outcome,
+        downtime_s=downtime,
+        max_module_downtime_s=max(downtime.values(), default=0.0),
+        total_s=round(time.monotonic() - started, 2),
+    )
+    if not outcome["ok"]:
+        result["revision"] = record.revision
+    return result
+
+
+class RolloutBusy(Exception):
+    """Another rollout of the deployment is in progress."""

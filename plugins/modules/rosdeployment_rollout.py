@@ -1,0 +1,221 @@
+#!/usr/bin/python
+# Copyright: KubeROS contributors
+# GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
+"""Roll a deployed RosDeployment out to a new state across its fleet, in waves with health gates."""
+
+from __future__ import annotations
+
+DOCUMENTATION = r"""
+module: rosdeployment_rollout
+short_description: Roll a deployed RosDeployment out to new module versions in waves, with canaries, gates and rollback
+version_added: 0.2.0
+description:
+  - Moves one deployed RosDeployment to a new state (a changed spec, typically new catalog versions of its modules), or
+    back to a kept revision (O(revision)), robot by robot. Only the robots whose modules change are touched; placement
+    is sticky (what still fits where it runs stays there) and the fleet's discovery servers are never touched.
+  - A canary set of robots goes first, then waves of O(wave_size) robots. After each wave a health gate: every replaced
+    instance runs exactly one pod of its new state, Running and Ready on its placed node, within O(gate_timeout); no
+    restart, crash loop or failed pod during the O(soak) window; then, when given, the O(ros_probe) command exits 0.
+  - A failed gate stops the rollout and gives every robot touched so far its previous objects back (objects created
+    for the rollout are removed); robots not yet reached are never touched, and the deployment stays at its revision.
+  - Per robot, a module with upgrade C(surge) keeps its old pod until the new one is Ready; one with C(recreate)
+    (a module that must never run twice) stops first, and the seconds it had no Ready pod are its downtime.
+  - Before anything is written every object is dry-run server-side. While it runs, the deployment record carries a
+    rollout marker and the controller moves none of the deployment's modules. Success writes the record and a new
+    numbered revision (the last 10 are kept).
+options:
+  src:
+    description: The RosDeployment file of the new state. Required unless O(revision) is given.
+    type: path
+  deployment:
+    description: The deployment to roll out, when O(src) holds several; required with O(revision).
+    type: str
+  fleet:
+    description: The deployment's fleet; required with O(revision).
+    type: str
+  revision:
+    description: Roll back (or forward) to this kept revision of O(deployment) instead of O(src).
+    type: int
+  catalog:
+    description: The software catalog that C(module) references of O(src) resolve against.
+    type: path
+  inventory:
+    description: The fleet resource model (P(kuberos.platform.fleet_inventory#filter)).
+    type: dict
+    required: true
+  canary:
+    description: How many robots form the canary wave (the first robots of the fleet with a change).
+    type: int
+    default: 1
+  canary_robots:
+    description: The canary robots by name, instead of the first O(canary) ones.
+    type: list
+    elements: str
+    default: []
+  wave_size:
+    description: Robots per wave after the canary.
+    type: int
+    default: 10
+  soak:
+    description: Seconds each wave's new pods must stay Ready without a restart.
+    type: float
+    default: 5
+  gate_timeout:
+    description: Seconds a wave's pods have to be Running and Ready on their placed nodes.
+    type: float
+    default: 120
+  ros_probe:
+    description:
+      - A command (argv list) run after each wave's soak, with C(KUBEROS_NAMESPACE), C(KUBEROS_ROBOTS),
+        C(KUBEROS_INSTANCES) and C(KUBEROS_MODULES) in its environment; a non-zero exit fails the gate. The collection
+        ships one that looks for the wave's ROS 2 nodes through the fleet's discovery servers (docs/software.md).
+    type: list
+    elements: str
+    default: []
+  cluster_domain:
+    description: DNS domain of the cluster, used in the discovery server addresses.
+    type: str
+    default: cluster.local
+  discovery_image:
+    description: Container image that provides C(fast-discovery-server).
+    type: str
+    default: ros:jazzy-ros-base
+  bridge_image:
+    description: Container image of the KubeROS-Bridge.
+    type: str
+    default: ghcr.io/kuberos/bridge:0.2.0
+attributes:
+  check_mode:
+    support: full
+    details: Plans the waves and reports, per robot, what would change; writes nothing.
+  diff_mode:
+    support: full
+extends_documentation_fragment:
+  - kuberos.platform.cluster
+author:
+  - KubeROS contributors
+"""
+
+EXAMPLES = r"""
+- name: Upgrade the pick-and-place modules, canary first, then 10 robots at a time
+  kuberos.platform.rosdeployment_rollout:
+    kubeconfig: ~/.cache/kuberos/cluster/kubeconfig
+    src: examples/pick-and-place-catalog.yml
+    catalog: inventories/local/catalog
+    inventory: "{{ groups | kuberos.platform.fleet_inventory(hostvars) }}"
+    wave_size: 10
+
+- name: Back to revision 3
+  kuberos.platform.rosdeployment_rollout:
+    kubeconfig: ~/.cache/kuberos/cluster/kubeconfig
+    deployment: pick-and-place
+    fleet: test-fleet
+    revision: 3
+    inventory: "{{ groups | kuberos.platform.fleet_inventory(hostvars) }}"
+"""
+
+RETURN = r"""
+revision:
+  description: The deployment's revision afterwards (unchanged when the rollout failed or in check mode, the planned one).
+  returned: always
+  type: int
+from_revision:
+  description: The revision before.
+  returned: always
+  type: int
+per_robot:
+  description: Per robot, one line per module that changes (C((fleet)) for objects of no single robot).
+  returned: always
+  type: dict
+plan:
+  description: C(prepare), C(waves) (number, canary, robots, changes) and C(removals), and the C(untouched) robots.
+  returned: always
+  type: dict
+waves:
+  description: The waves that passed their gate, with the seconds each took.
+  returned: when not in check mode
+  type: list
+downtime_s:
+  description: Per replaced instance, the seconds it had no Ready pod.
+  returned: when not in check mode
+  type: dict
+max_module_downtime_s:
+  description: The longest of O(downtime_s).
+  returned: when not in check mode
+  type: float
+rolled_back_robots:
+  description: The robots given their previous state after a failed gate.
+  returned: when a gate failed
+  type: list
+"""
+
+from ansible.module_utils.basic import AnsibleModule
+
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, api_clients, explain
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.rollout_runner import RolloutBusy, execute
+
+ARGUMENT_SPEC = dict(
+    **KUBECONFIG_ARG,
+    src=dict(type="path"),
+    deployment=dict(type="str"),
+    fleet=dict(type="str"),
+    revision=dict(type="int"),
+    catalog=dict(type="path"),
+    inventory=dict(type="dict", required=True),
+    canary=dict(type="int", default=1),
+    canary_robots=dict(type="list", elements="str", default=[]),
+    wave_size=dict(type="int", default=10),
+    soak=dict(type="float", default=5.0),
+    gate_timeout=dict(type="float", default=120.0),
+    ros_probe=dict(type="list", elements="str", default=[]),
+    cluster_domain=dict(type="str", default="cluster.local"),
+    discovery_image=dict(type="str", default="ros:jazzy-ros-base"),
+    bridge_image=dict(type="str", default="ghcr.io/kuberos/bridge:0.2.0"),
+)
+
+
+def diff_of(result: dict) -> dict:
+    before = [f"revision {result['from_revision']}"] + [f"  {m}: {v}" for m, v in sorted(result["versions"]["before"].items())]
+    after = [f"revision {result['revision']}"] + [f"  {m}: {v}" for m, v in sorted(result["versions"]["after"].items())]
+    for robot, lines in result["per_robot"].items():
+        after.append(f"{robot}:")
+        after.extend(f"  {line}" for line in lines)
+    return {"before_header": "deployed", "after_header": "rollout", "before": "\n".join(before) + "\n", "after": "\n".join(after) + "\n"}
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=ARGUMENT_SPEC,
+        required_one_of=[("src", "revision")],
+        mutually_exclusive=[("src", "revision")],
+        required_by={"revision": ("deployment", "fleet")},
+        supports_check_mode=True,
+    )
+    if module.params["canary"] < 0 or module.params["wave_size"] < 1:
+        module.fail_json(msg="canary must be 0 or more and wave_size 1 or more")
+    progress = []
+    try:
+        result = execute(api_clients(module.params["kubeconfig"]), module.params, module.check_mode, progress.append)
+    except (KuberosError, RolloutBusy) as exc:
+        module.fail_json(msg=str(exc))
+    except Exception as exc:  # connection and API problems: one clear line, no traceback
+        module.fail_json(msg=explain(exc, module.params["kubeconfig"]), progress=progress)
+    result["progress"] = progress
+    if module._diff:
+        result["diff"] = diff_of(result)
+    if result.get("ok") is False:
+        module.fail_json(
+            msg=(
+                f"rollout of {result['deployment']} stopped at {'the canary' if result['failed_canary'] else 'wave ' + str(result['failed_wave'])}: "
+                f"{result['why']}; rolled back robots {', '.join(result['rolled_back_robots'])}"
+                + (f"; not back yet: {', '.join(result['not_back'])}" if result["not_back"] else "")
+            ),
+            **{k: v for k, v in result.items() if k != "changed"},
+            changed=True,
+        )
+    module.exit_json(**result)
+
+
+if __name__ == "__main__":
+    main()
