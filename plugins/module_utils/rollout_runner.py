@@ -42,14 +42,28 @@ class Cluster:
         self.apps = clients["apps"]
         self.field_manager = field_manager
         self._names: dict[str, str] | None = None
+        self._ready: dict[str, bool] = {}
+        self._nodes_read = 0.0
+
+    def _nodes(self) -> None:
+        """Node names and readiness, read at most once a second."""
+        if self._names is not None and time.monotonic() - self._nodes_read < 1.0:
+            return
+        items = self.core.list_node().items
+        self._names = {n.metadata.name: (n.metadata.labels or {}).get(HOSTNAME, n.metadata.name) for n in items}
+        self._ready = {
+            n.metadata.name: any(c.type == "Ready" and c.status == "True" for c in n.status.conditions or []) for n in items
+        }
+        self._nodes_read = time.monotonic()
 
     def inventory_name(self, node: str) -> str:
         """A Kubernetes node's inventory name (its hostname label), which placements use."""
-        if self._names is None or (node and node not in self._names):
-            self._names = {
-                n.metadata.name: (n.metadata.labels or {}).get(HOSTNAME, n.metadata.name) for n in self.core.list_node().items
-            }
+        self._nodes()
         return self._names.get(node, node)
+
+    def node_ready(self, node: str) -> bool:
+        self._nodes()
+        return self._ready.get(node, False)
 
     def apply(self, obj: dict, dry_run: bool = False, manager: str | None = None) -> None:
         meta = obj["metadata"]
@@ -99,7 +113,9 @@ class Cluster:
                     pod.metadata.name,
                     self.inventory_name(pod.spec.node_name) if pod.spec.node_name else "",
                     pod.status.phase or "",
-                    any(c.type == "Ready" and c.status == "True" for c in pod.status.conditions or []),
+                    # A pod on a node that is not Ready is not serving, whatever its last reported condition.
+                    any(c.type == "Ready" and c.status == "True" for c in pod.status.conditions or [])
+                    and self.node_ready(pod.spec.node_name),
                     sum(s.restart_count or 0 for s in statuses),
                     waiting,
                     bool(pod.metadata.deletion_timestamp),
@@ -229,7 +245,9 @@ class Rollout:
             self.apply_change(change)
         for wave in waves:
             label = "canary" if wave.canary else f"wave {wave.number}"
-            self.progress(f"{label}: {len(wave.robots)} robot(s) {', '.join(wave.robots[:5])}{' ...' if len(wave.robots) > 5 else ''}")
+            self.progress(
+                f"{label}: {len(wave.robots)} robot(s) {', '.join(wave.robots[:5])}{' ...' if len(wave.robots) > 5 else ''}"
+            )
             started = time.monotonic()
             try:
                 for change in wave.changes:
@@ -283,7 +301,13 @@ def read_record(clients, namespace: str, deployment: str):
     except ApiException as exc:
         if exc.status == 404:
             raise SpecError(
-                [Problem(f"deployment {deployment}", "", f"is not deployed in {namespace} (no record); deploy it first with playbooks/deploy.yml")]
+                [
+                    Problem(
+                        f"deployment {deployment}",
+                        "",
+                        f"is not deployed in {namespace} (no record); deploy it first with playbooks/deploy.yml",
+                    )
+                ]
             ) from None
         raise
     record = parse_record(configmap)
@@ -299,7 +323,9 @@ def list_revisions(clients, namespace: str, deployment: str) -> list[dict]:
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import DEPLOYMENT
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import REVISION_LABEL
 
-    items = clients["core"].list_namespaced_config_map(namespace, label_selector=f"{DEPLOYMENT}={deployment},{REVISION_LABEL}").items
+    items = (
+        clients["core"].list_namespaced_config_map(namespace, label_selector=f"{DEPLOYMENT}={deployment},{REVISION_LABEL}").items
+    )
     return sorted((_plain(i) for i in items), key=lambda c: int(c["metadata"]["labels"][REVISION_LABEL]))
 
 
@@ -328,13 +354,21 @@ def _target(clients, params: dict, namespace_of):
         from kubernetes.client.exceptions import ApiException
 
         try:
-            configmap = _plain(clients["core"].read_namespaced_config_map(revision_name(name, params["revision"]), namespace_of(fleet)))
+            configmap = _plain(
+                clients["core"].read_namespaced_config_map(revision_name(name, params["revision"]), namespace_of(fleet))
+            )
         except ApiException as exc:
             if exc.status != 404:
                 raise
             kept = [c["data"].get("revision") for c in list_revisions(clients, namespace_of(fleet), name)]
             raise SpecError(
-                [Problem(f"deployment {name}", "revision", f"{params['revision']} is not a kept revision (kept: {', '.join(kept) or 'none'})")]
+                [
+                    Problem(
+                        f"deployment {name}",
+                        "revision",
+                        f"{params['revision']} is not a kept revision (kept: {', '.join(kept) or 'none'})",
+                    )
+                ]
             ) from None
         number, _cause, dep, text, catalog = parse_revision(configmap)
         return dep, text, configmap["data"].get("source", ""), catalog, f"rollback to {number}"
@@ -344,7 +378,9 @@ def _target(clients, params: dict, namespace_of):
         deployments = [d for d in deployments if d.name == params["deployment"]]
     if len(deployments) != 1:
         names = ", ".join(d.name for d in load_specs(params["src"], catalog=catalog))
-        raise SpecError([Problem(params["src"], "metadata.name", f"name one deployment to roll out with deployment (the file has: {names})")])
+        raise SpecError(
+            [Problem(params["src"], "metadata.name", f"name one deployment to roll out with deployment (the file has: {names})")]
+        )
     dep = deployments[0]
     with open(params["src"], encoding="utf-8") as handle:
         text = handle.read()
@@ -355,8 +391,8 @@ def _target(clients, params: dict, namespace_of):
 def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     """Plan a rollout of one deployment to a new state, and (unless check mode) carry it out; see the module."""
     from ansible_collections.kuberos.platform.plugins.module_utils import cluster_state
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
     from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import FLEET_COMPONENTS
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
         COMPONENT,
         RenderOptions,
@@ -386,7 +422,9 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     unavailable = cluster_state.unavailable_nodes(clients, list(inventory.nodes))
     placement = place_modules([dep], inventory, allocated, unavailable, record.placement)
     options = RenderOptions(
-        cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"], bridge_image=params["bridge_image"],
+        cluster_domain=params["cluster_domain"],
+        discovery_image=params["discovery_image"],
+        bridge_image=params["bridge_image"],
     )
     before = render_deployment(record.deployments, record.placement, record.options)
     after = render_deployment([dep], placement, options)
@@ -396,7 +434,9 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
         skip=lambda o: (o["metadata"].get("labels") or {}).get(COMPONENT) in FLEET_COMPONENTS,  # the fleet's, never a rollout's
     )  # fmt: skip
     current = {"revision": record.revision, "hash": record.revision_hash}
-    records = build_records(text, source, [dep], placement, params["inventory"], options, record.field_manager, {dep.name: current}, catalog, cause)
+    records = build_records(
+        text, source, [dep], placement, params["inventory"], options, record.field_manager, {dep.name: current}, catalog, cause
+    )
     revision = int(next(o for o in records if RECORD_LABEL in o["metadata"]["labels"])["data"]["revision"])
     result = {
         "deployment": dep.name,
@@ -421,7 +461,9 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
         marker(record, {"revision": revision, "from": record.revision, "instances": plan.instances(), "started": stamp}),
         manager=ROLLOUT_MANAGER,
     )
-    runner = Rollout(cluster, namespace, params["gate_timeout"], params["soak"], ros_probe=params.get("ros_probe"), progress=progress)
+    runner = Rollout(
+        cluster, namespace, params["gate_timeout"], params["soak"], ros_probe=params.get("ros_probe"), progress=progress
+    )
     try:
         outcome = runner.run(plan.prepare, plan.waves)
         if outcome["ok"]:

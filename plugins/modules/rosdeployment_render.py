@@ -240,7 +240,11 @@ def run(module: AnsibleModule) -> dict:
     if params["inventory"] is not None:
         with open(params["src"], encoding="utf-8") as handle:
             spec_text = handle.read()
-        used = catalog.subset((m.catalog_module, m.version) for d in deployments for m in d.modules if m.version) if catalog else None
+        used = (
+            catalog.subset((m.catalog_module, m.version) for d in deployments for m in d.modules if m.version)
+            if catalog
+            else None
+        )
         records = build_records(
             spec_text, params["src"], deployments, placement, params["inventory"], options, params["field_manager"],
             params["revisions"], used,

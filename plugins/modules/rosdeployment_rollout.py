@@ -181,7 +181,12 @@ def diff_of(result: dict) -> dict:
     for robot, lines in result["per_robot"].items():
         after.append(f"{robot}:")
         after.extend(f"  {line}" for line in lines)
-    return {"before_header": "deployed", "after_header": "rollout", "before": "\n".join(before) + "\n", "after": "\n".join(after) + "\n"}
+    return {
+        "before_header": "deployed",
+        "after_header": "rollout",
+        "before": "\n".join(before) + "\n",
+        "after": "\n".join(after) + "\n",
+    }
 
 
 def main():
@@ -205,9 +210,10 @@ def main():
     if module._diff:
         result["diff"] = diff_of(result)
     if result.get("ok") is False:
+        where = "the canary" if result["failed_canary"] else f"wave {result['failed_wave']}"
         module.fail_json(
             msg=(
-                f"rollout of {result['deployment']} stopped at {'the canary' if result['failed_canary'] else 'wave ' + str(result['failed_wave'])}: "
+                f"rollout of {result['deployment']} stopped at {where}: "
                 f"{result['why']}; rolled back robots {', '.join(result['rolled_back_robots'])}"
                 + (f"; not back yet: {', '.join(result['not_back'])}" if result["not_back"] else "")
             ),

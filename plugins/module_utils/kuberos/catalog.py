@@ -363,7 +363,7 @@ class Catalog:
                 if isinstance(version, dict):
                     origins[(i, j)] = (version.pop("source", None), version.pop("line", None))
         problems: list[Problem] = []
-        declared: set[str] = set()
+        declared: dict[str, str] = {}
         doc = Document(body, where, 0, {})
         found = []
         for entry, parts in _entries_of(doc, problems, declared):
@@ -373,6 +373,7 @@ class Catalog:
             found.append((replace(entry, source=origin, line=line), doc, parts))
         problems.extend(_cross_problems(found, declared))
         if problems:
+            problems.sort(key=lambda p: p.line or 0)
             raise SpecError(problems, title=f"{where} is not a valid software catalog")
         return cls([entry for entry, _, _ in found], where, data.get("missing") is True)
 
@@ -473,9 +474,12 @@ def _entry(raw: dict, name: str, description: str, doc: Document, parts: tuple) 
     )
 
 
-def _entries_of(doc: Document, problems: list[Problem], declared: set[str]) -> list[tuple[CatalogEntry, tuple]]:
-    """The valid entries of one catalog document with their paths; its problems go to ``problems``,
-    the names of its modules (valid or not) to ``declared``."""
+def _entries_of(doc: Document, problems: list[Problem], declared: dict[str, str]) -> list[tuple[CatalogEntry, tuple]]:
+    """The valid entries of one catalog document with their paths; its problems go to ``problems``.
+
+    ``declared`` maps the module names of the documents read so far (valid or not) to where they are
+    written; a module written twice is a problem (each module is written once, with all its versions).
+    """
     found_problems = schema_problems(_VALIDATOR, doc)
     broken = {p.path for p in found_problems}
     mine: list[Problem] = list(found_problems)
@@ -484,7 +488,18 @@ def _entries_of(doc: Document, problems: list[Problem], declared: set[str]) -> l
     for i, module in enumerate(modules if isinstance(modules, list) else []):
         prefix = format_path(("modules", i))
         if isinstance(module, dict) and isinstance(module.get("name"), str):
-            declared.add(module["name"])
+            line = doc.line_of(("modules", i, "name"))
+            where = f"{doc.source}:{line}" if line else f"{doc.source} ({prefix})"
+            if module["name"] in declared:
+                mine.append(
+                    problem(
+                        doc,
+                        ("modules", i, "name"),
+                        f"'{module['name']}' is already a module of the catalog (at {declared[module['name']]}); "
+                        "expected each module once, with all of its versions",
+                    )
+                )
+            declared.setdefault(module["name"], where)
         if not isinstance(module, dict) or any(_under(path, prefix) and not _is_version_path(path, prefix) for path in broken):
             continue
         versions = module["versions"]
@@ -529,33 +544,17 @@ def _is_version_path(path: str, prefix: str) -> bool:
     return path.startswith(prefix + ".versions[")
 
 
-def _cross_problems(found: list[tuple[CatalogEntry, Document, tuple]], declared: set[str]) -> list[Problem]:
-    """Checks across the whole catalog: module names unique, dependencies known and satisfiable.
+def _cross_problems(found: list[tuple[CatalogEntry, Document, tuple]], declared: dict[str, str]) -> list[Problem]:
+    """Dependencies across the whole catalog: known, not the module itself, satisfiable.
 
     ``declared`` holds every module name written in the catalog, valid or not, so that a dependency
     on a module whose versions are all broken is not also reported as unknown.
     """
     problems: list[Problem] = []
-    owner: dict[str, tuple[Document, tuple]] = {}
     versions: dict[str, list[Version]] = {}
-    reported = set()
-    for entry, doc, parts in found:
+    for entry, _doc, _parts in found:
         versions.setdefault(entry.name, []).append(entry.semver)
-        first_doc, first_parts = owner.setdefault(entry.name, (doc, parts[:2]))
-        if (first_doc is doc and first_parts == parts[:2]) or (id(doc), parts[:2]) in reported:
-            continue
-        reported.add((id(doc), parts[:2]))
-        line = first_doc.line_of((*first_parts, "name"))
-        where = f"{first_doc.source}:{line}" if line else f"{first_doc.source} ({format_path(first_parts)})"
-        problems.append(
-            problem(
-                doc,
-                (*parts[:2], "name"),
-                f"'{entry.name}' is already a module of the catalog (at {where}); expected each module once, "
-                "with all of its versions",
-            )
-        )
-    names = sorted(declared | set(versions))
+    names = sorted(set(declared) | set(versions))
     for entry, doc, parts in found:
         for name, text in entry.dependencies:
             path = (*parts, "dependencies", name)
@@ -613,7 +612,7 @@ def load_catalog(path, display: str | None = None) -> Catalog:
         return Catalog((), display, missing=True)
     problems: list[Problem] = []
     found: list[tuple[CatalogEntry, Document, tuple]] = []
-    declared: set[str] = set()
+    declared: dict[str, str] = {}
     for file_path, file_display in _files(path, display, problems):
         text = _read(file_path, file_display, problems)
         if text is None:
@@ -629,6 +628,7 @@ def load_catalog(path, display: str | None = None) -> Catalog:
             found.extend((entry, doc, parts) for entry, parts in _entries_of(doc, problems, declared))
     problems.extend(_cross_problems(found, declared))
     if problems:
+        problems.sort(key=lambda p: (p.source, p.line or 0))  # files in the order read, each by line
         raise SpecError(problems, title=f"{display} is not a valid software catalog")
     return Catalog([entry for entry, _, _ in found], display)
 

@@ -74,9 +74,7 @@ def next_revision(dep: RosDeployment, current: dict | None) -> int:
 
 def module_versions(dep: RosDeployment) -> dict[str, str]:
     """Per module, its catalog module and version, or its image when it names no catalog module."""
-    return {
-        m.name: (f"{m.catalog_module}@{m.version}" if getattr(m, "version", "") else m.image) for m in dep.modules
-    }
+    return {m.name: (f"{m.catalog_module}@{m.version}" if getattr(m, "version", "") else m.image) for m in dep.modules}
 
 
 def _pack(data) -> str:

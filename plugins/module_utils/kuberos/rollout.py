@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from . import labels as node_labels
-from .manifests import COMPONENT, INSTANCE, MODULE, ROBOTS_ANNOTATION, VERSION
+from .manifests import COMPONENT, MODULE, ROBOTS_ANNOTATION, VERSION
 
 ROLLOUT_KEYS = ("apiVersion", "kind", "metadata", "spec", "data", "binaryData", "type")
 FAILING_REASONS = ("CrashLoopBackOff", "ErrImagePull", "ImagePullBackOff", "CreateContainerConfigError", "RunContainerError")
@@ -183,9 +183,7 @@ def plan_rollout(
     order = [r for r in robots if r in by_robot] + sorted(r for r in by_robot if r not in robots)
     chosen = [r for r in canary_robots if r in by_robot] if canary_robots else order[:canary]
     rest = [r for r in order if r not in chosen]
-    groups = ([(True, chosen)] if chosen else []) + [
-        (False, rest[i : i + wave_size]) for i in range(0, len(rest), wave_size)
-    ]
+    groups = ([(True, chosen)] if chosen else []) + [(False, rest[i : i + wave_size]) for i in range(0, len(rest), wave_size)]
     for number, (is_canary, members) in enumerate(groups, start=1):
         changes = [c for r in members for c in by_robot[r]]
         touched = tuple(sorted({r for c in changes for r in c.robot.split(",")}))

@@ -362,7 +362,12 @@ class _Scheduler:
         )
         covered = set()
         for inst in kept:
-            entry = {"kept": inst, "node": self.inventory.nodes[inst.node], "robots": list(inst.robots), "latency": inst.latency_ms}
+            entry = {
+                "kept": inst,
+                "node": self.inventory.nodes[inst.node],
+                "robots": list(inst.robots),
+                "latency": inst.latency_ms,
+            }
             open_instances.append(entry)
             covered.update(inst.robots)
             if len(inst.robots) < module.robots_per_instance:
@@ -393,7 +398,9 @@ class _Scheduler:
                 grown = len(inst["robots"]) > len(previous.robots)
                 reason = previous.reason
                 if grown:
-                    reason = f"{reason.split('; shared by ')[0]}; shared by {len(inst['robots'])}/{module.robots_per_instance} robots"
+                    reason = (
+                        f"{reason.split('; shared by ')[0]}; shared by {len(inst['robots'])}/{module.robots_per_instance} robots"
+                    )
                 out.append(_kept_instance(previous, module, tuple(inst["robots"]), reason, inst["latency"]))
                 continue
             while naming.shared_instance_name(deployment.name, module.name, index) in used_names:
@@ -569,10 +576,12 @@ def _keep_previous(scheduler: _Scheduler, deployments: list[RosDeployment], targ
 def _kept_discovery(scheduler: _Scheduler, previous: Placement | None, fleet: str) -> dict[int, DiscoveryServer]:
     """The fleet's discovery servers that stay where they run (their node is in the inventory and available)."""
     kept = {}
-    for server in (previous.discovery.get(fleet, []) if previous else []):
+    for server in previous.discovery.get(fleet, []) if previous else []:
         node = scheduler.inventory.nodes.get(server.node)
-        if node is None or scheduler.unavailable.get(node.name) or scheduler.capacity_rejection(
-            node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0
+        if (
+            node is None
+            or scheduler.unavailable.get(node.name)
+            or scheduler.capacity_rejection(node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
         ):
             continue
         scheduler.take(node.name, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
@@ -674,7 +683,9 @@ def place_modules(
         _keep_previous(scheduler, deployments, targets, previous)
     for fleet in sorted(fleets):
         count = max([d.discovery_servers for d in fleets[fleet]] + [len((previous.discovery if previous else {}).get(fleet, []))])
-        port = previous.discovery[fleet][0].port if previous and previous.discovery.get(fleet) else fleets[fleet][0].discovery_port
+        port = (
+            previous.discovery[fleet][0].port if previous and previous.discovery.get(fleet) else fleets[fleet][0].discovery_port
+        )
         placement.discovery[fleet] = scheduler.place_discovery(fleet, count, port, kept_servers[fleet])
     for fleet in sorted(fleets):
         for cluster in sorted({m.cluster for d in fleets[fleet] for m in d.modules if m.cluster}):
