@@ -9,7 +9,7 @@ export PATH := $(CURDIR)/.venv/bin:$(PATH)
 version = $(shell sed -n 's/^local_cluster_$(1)_version: *//p' roles/local_cluster/defaults/main.yml)
 BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call version,etcd) KWOK_VERSION=$(call version,kwok)
 
-.PHONY: setup binaries cluster cluster-stop demo controller controller-stop status test lint unit schema bench bench-deploy bench-controller sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo controller controller-stop status test lint unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -65,6 +65,10 @@ bench-deploy:
 ## Controller failover benchmark: node NotReady -> affected modules Running elsewhere (p50/p95).
 bench-controller: binaries
 	$(VENV)/python bench/bench_controller.py
+
+## Rollout benchmark: 100 robots, one module upgraded in waves of 10, and a broken version stopped at the canary.
+bench-rollout: binaries
+	cd bench && ../$(VENV)/python bench_rollout.py --json results/rollout.json
 
 ## The pick-and-place fleet for real on this machine: one strategy, one fleet size (as root; docs/simulation.md).
 ##   make sim STRATEGY=edge-shared ROBOTS=4 RATE=12 CYCLES=3

@@ -36,7 +36,7 @@ options:
     required: false
   previous:
     description:
-      - What runs now (C(previous) of P(kuberos.platform.node_allocations#module)): instances that still fit where
+      - What runs now (C(previous) of P(kuberos.platform.node_allocations#module)). Instances that still fit where
         they run stay there, and the fleets' discovery servers stay on their nodes (sticky placement).
     type: dict
     required: false

@@ -101,7 +101,10 @@ class Cluster:
 
     def pods(self, namespace: str, instances: set[str]) -> dict[str, list[PodState]]:
         found: dict[str, list[PodState]] = {}
-        items = self.core.list_namespaced_pod(namespace, label_selector=f"{MANAGED_BY}=kuberos").items
+        if not instances:
+            return found
+        selector = f"{MANAGED_BY}=kuberos,{INSTANCE} in ({','.join(sorted(instances))})"  # only the wave's pods
+        items = self.core.list_namespaced_pod(namespace, label_selector=selector).items
         for pod in items:
             instance = (pod.metadata.labels or {}).get(INSTANCE)
             if instance not in instances:
@@ -395,7 +398,6 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
         COMPONENT,
-        RenderOptions,
         render_deployment,
     )
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
@@ -407,6 +409,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     )
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import plan_rollout
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
+    from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
 
     started = time.monotonic()
     dep, text, source, catalog, cause = _target(clients, params, fleet_namespace)
@@ -421,11 +424,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     allocated = cluster_state.node_allocations(clients, [dep.name], [dep.fleet])
     unavailable = cluster_state.unavailable_nodes(clients, list(inventory.nodes))
     placement = place_modules([dep], inventory, allocated, unavailable, record.placement)
-    options = RenderOptions(
-        cluster_domain=params["cluster_domain"],
-        discovery_image=params["discovery_image"],
-        bridge_image=params["bridge_image"],
-    )
+    options = render_options(params)
     before = render_deployment(record.deployments, record.placement, record.options)
     after = render_deployment([dep], placement, options)
     robots = list(inventory.fleets[dep.fleet])

@@ -72,7 +72,7 @@ namespaces:
 previous:
   description:
     - What runs now for O(previous_of), as a placement (empty instances and discovery when nothing runs), and under
-      C(revisions) each one's current revision as C({name: {revision, hash}}).
+      C(revisions) each one's current revision, as C(name) to C(revision) and C(hash).
   returned: always
   type: dict
 unavailable:

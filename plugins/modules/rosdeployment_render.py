@@ -36,14 +36,6 @@ options:
         written by this module before (it carries a C(.kuberos-render) marker).
     type: path
     required: true
-  cluster_domain:
-    description: DNS domain of the cluster, used in the discovery server addresses.
-    type: str
-    default: cluster.local
-  discovery_image:
-    description: Container image that provides C(fast-discovery-server).
-    type: str
-    default: ros:jazzy-ros-base
   inventory:
     description:
       - The fleet resource model (P(kuberos.platform.fleet_inventory#filter)). When given, one record
@@ -55,10 +47,6 @@ options:
     description: The server-side apply field manager the objects are applied with; the controller applies with it too.
     type: str
     default: kuberos
-  bridge_image:
-    description: Container image of the KubeROS-Bridge (for modules in third-party clusters).
-    type: str
-    default: ghcr.io/kuberos/bridge:0.2.0
   catalog:
     description:
       - The software catalog (a directory of catalog files, or one file) that C(module) references of the spec
@@ -66,7 +54,7 @@ options:
     type: path
   revisions:
     description:
-      - Each deployment's current revision in the cluster, as C({name: {revision, hash}}) (C(previous.revisions) of
+      - Each deployment's current revision in the cluster, as C(name) to C(revision) and C(hash) (C(previous.revisions) of
         P(kuberos.platform.node_allocations#module)). A deployment whose spec asks for something new gets the next
         revision number; one whose spec is unchanged keeps its number. Without it, revisions start at 1.
     type: dict
@@ -76,6 +64,8 @@ attributes:
     support: full
   diff_mode:
     support: full
+extends_documentation_fragment:
+  - kuberos.platform.render
 author:
   - KubeROS contributors
 """
@@ -135,7 +125,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog i
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
-    RenderOptions,
     bridge_secret_name,
     object_order,
     render_deployment,
@@ -150,16 +139,15 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_fi
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement, placement_table
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
+from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS, render_options
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),
     placement=dict(type="dict", required=True),
     dest=dict(type="path", required=True),
-    cluster_domain=dict(type="str", default="cluster.local"),
-    discovery_image=dict(type="str", default="ros:jazzy-ros-base"),
     inventory=dict(type="dict"),
     field_manager=dict(type="str", default="kuberos"),
-    bridge_image=dict(type="str", default="ghcr.io/kuberos/bridge:0.2.0"),
+    **RENDER_ARGS,
     catalog=dict(type="path"),
     revisions=dict(type="dict", default={}),
 )
@@ -228,9 +216,7 @@ def run(module: AnsibleModule) -> dict:
     catalog = load_catalog(params["catalog"]) if params["catalog"] else None
     deployments = load_specs(params["src"], catalog=catalog)
     placement = Placement.from_dict(params["placement"])
-    options = RenderOptions(
-        cluster_domain=params["cluster_domain"], discovery_image=params["discovery_image"], bridge_image=params["bridge_image"]
-    )
+    options = render_options(params)
     objects = render_deployment(deployments, placement, options)
     remote = {}
     if placement.bridges:

@@ -13,8 +13,8 @@ description:
   - Moves one deployed RosDeployment to a new state (a changed spec, typically new catalog versions of its modules), or
     back to a kept revision (O(revision)), robot by robot. Only the robots whose modules change are touched; placement
     is sticky (what still fits where it runs stays there) and the fleet's discovery servers are never touched.
-  - A canary set of robots goes first, then waves of O(wave_size) robots. After each wave a health gate: every replaced
-    instance runs exactly one pod of its new state, Running and Ready on its placed node, within O(gate_timeout); no
+  - A canary set of robots goes first, then waves of O(wave_size) robots. After each wave a health gate, where every replaced
+    instance runs exactly one pod of its new state, Running and Ready on its placed node, within O(gate_timeout), no
     restart, crash loop or failed pod during the O(soak) window; then, when given, the O(ros_probe) command exits 0.
   - A failed gate stops the rollout and gives every robot touched so far its previous objects back (objects created
     for the rollout are removed); robots not yet reached are never touched, and the deployment stays at its revision.
@@ -72,18 +72,6 @@ options:
     type: list
     elements: str
     default: []
-  cluster_domain:
-    description: DNS domain of the cluster, used in the discovery server addresses.
-    type: str
-    default: cluster.local
-  discovery_image:
-    description: Container image that provides C(fast-discovery-server).
-    type: str
-    default: ros:jazzy-ros-base
-  bridge_image:
-    description: Container image of the KubeROS-Bridge.
-    type: str
-    default: ghcr.io/kuberos/bridge:0.2.0
 attributes:
   check_mode:
     support: full
@@ -92,6 +80,7 @@ attributes:
     support: full
 extends_documentation_fragment:
   - kuberos.platform.cluster
+  - kuberos.platform.render
 author:
   - KubeROS contributors
 """
@@ -153,6 +142,7 @@ from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, api_clients, explain
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
 from ansible_collections.kuberos.platform.plugins.module_utils.rollout_runner import RolloutBusy, execute
 
 ARGUMENT_SPEC = dict(
@@ -169,9 +159,7 @@ ARGUMENT_SPEC = dict(
     soak=dict(type="float", default=5.0),
     gate_timeout=dict(type="float", default=120.0),
     ros_probe=dict(type="list", elements="str", default=[]),
-    cluster_domain=dict(type="str", default="cluster.local"),
-    discovery_image=dict(type="str", default="ros:jazzy-ros-base"),
-    bridge_image=dict(type="str", default="ghcr.io/kuberos/bridge:0.2.0"),
+    **RENDER_ARGS,
 )
 
 

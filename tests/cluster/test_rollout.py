@@ -284,3 +284,34 @@ def test_a_node_failure_during_a_rollout_stops_it_and_the_controller_then_moves_
     finally:
         life.node_up(node)
     life.converge()
+
+
+def test_a_ros_probe_that_does_not_find_the_waves_nodes_fails_the_gate(life, tmp_path):
+    """The probe runs for real (rclpy, Fast DDS) after the canary's soak; with no discovery server to reach (the kwok
+    pods run no ROS node), it exits 1 and the canary is rolled back."""
+    import sys
+
+    probe = [
+        "env", f"ROS_DISCOVERY_SERVER=127.0.0.1:{_free_port()}", f"ROS_LOG_DIR={tmp_path}", "ROS_DOMAIN_ID=23",
+        f"PYTHONPATH={os.path.join(ROOT, '.collections')}", os.path.join(sys.prefix, "bin", "python3"),
+        "-m", "ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe",
+        "--expect", "/{robot}/motion_planner", "--timeout", "2",
+    ]  # fmt: skip
+    images = life.images()
+    failed = life.rollout(
+        _at(tmp_path, "^0.2"),
+        "-e",
+        json.dumps({"rosdeployment_rollout_ros_probe": probe, "rosdeployment_rollout_canary_robots": ["fetch-1"]}),
+    )
+    assert failed.returncode != 0, failed.stdout[-3000:]
+    assert "the ROS probe failed (exit 1)" in failed.stdout and "missing after 2 s: /fetch_1/motion_planner" in failed.stdout
+    assert life.images() == images and life.record().rollout is None
+    life.converge()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]

@@ -123,6 +123,13 @@ SPEC_CASES = [
     case("top-level-scalar", "just some text\n", "", ["'just some text' is not valid", "expected a mapping"], 1),
     case("top-level-number", "42\n", "", ["42 (int) is not valid", "expected a mapping"], 1),
     case(
+        "control-character",
+        "metadata:\n  name: \x1f\n",
+        "",
+        ["not valid YAML", "unacceptable character #x001f (special characters are not allowed)"],
+        2,
+    ),
+    case(
         "python-tag-is-not-constructed",
         "metadata: !!python/object/apply:os.system [echo hi]\n",
         "",

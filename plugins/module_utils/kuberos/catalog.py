@@ -37,7 +37,7 @@ from .errors import Problem, SpecError, describe, did_you_mean
 from .schema import API_VERSION, DNS_LABEL, ENV, IMAGE, LAUNCH, PREFERENCE, REQUIREMENTS, RESOURCES, ROS_PARAMETERS, UPGRADE
 from .semver import MAX_LENGTH, Version, parse_range, parse_version
 from .validation import as_tuple, env_name_problem, launch_problems, problem, schema_problems
-from .yaml_source import MAX_BYTES, Document, format_path, load_documents
+from .yaml_source import MAX_BYTES, MAX_DEPTH, MAX_NODES, Document, format_path, load_documents
 
 CATALOG_KIND = "RosModuleCatalog"
 DEFAULT_DIRECTORY = "catalog"  # inside the inventory: inventories/<site>/catalog/
@@ -350,11 +350,17 @@ class Catalog:
 
     @classmethod
     def from_dict(cls, data, source: str | None = None) -> Catalog:
-        """The catalog ``to_dict`` wrote, validated like a catalog file; ``SpecError`` if it is not one."""
-        where = source or (data.get("source") if isinstance(data, dict) and isinstance(data.get("source"), str) else "")
-        where = where or "<catalog data>"
+        """The catalog ``to_dict`` wrote, validated like a catalog file; ``SpecError`` if it is not one.
+
+        The catalog keeps the ``source`` written in ``data``; errors name ``source`` (e.g. the record read).
+        """
+        written = data.get("source") if isinstance(data, dict) and isinstance(data.get("source"), str) else None
+        where = source or written or "<catalog data>"
         if not isinstance(data, dict):
             raise SpecError([Problem(where, "", f"{describe(data)} is not a catalog; expected a mapping")])
+        too_large = _too_large(data)
+        if too_large:
+            raise SpecError([Problem(where, "", f"catalog data too large: {too_large}")])
         body = copy.deepcopy({k: v for k, v in data.items() if k not in ("source", "missing")})
         origins: dict = {}
         for i, module in enumerate(body.get("modules") if isinstance(body.get("modules"), list) else []):
@@ -368,14 +374,31 @@ class Catalog:
         found = []
         for entry, parts in _entries_of(doc, problems, declared):
             origin, line = origins.get((parts[1], parts[3]), (None, None))
-            origin = origin if isinstance(origin, str) else where
+            origin = origin if isinstance(origin, str) else (written if written is not None else where)
             line = line if isinstance(line, int) and not isinstance(line, bool) else None
             found.append((replace(entry, source=origin, line=line), doc, parts))
         problems.extend(_cross_problems(found, declared))
         if problems:
             problems.sort(key=lambda p: p.line or 0)
             raise SpecError(problems, title=f"{where} is not a valid software catalog")
-        return cls([entry for entry, _, _ in found], where, data.get("missing") is True)
+        return cls([entry for entry, _, _ in found], written if written is not None else where, data.get("missing") is True)
+
+
+def _too_large(data) -> str:
+    """Why plain data is too big or deep to validate (the bounds of YAML documents), or ''."""
+    count, stack = 0, [(data, 0)]
+    while stack:
+        node, depth = stack.pop()
+        count += 1
+        if count > MAX_NODES:
+            return f"more than {MAX_NODES} values"
+        if depth > MAX_DEPTH:
+            return f"nested deeper than {MAX_DEPTH} levels"
+        if isinstance(node, dict):
+            stack.extend((value, depth + 1) for value in node.values())
+        elif isinstance(node, (list, tuple)):
+            stack.extend((value, depth + 1) for value in node)
+    return ""
 
 
 # --------------------------------------------------------------------------------------------

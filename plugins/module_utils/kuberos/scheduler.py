@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 from . import naming, quantities
+from .catalog import catalog_problems_against_inventory
 from .errors import PlacementError, Problem, SpecError, did_you_mean
 from .inventory import Inventory, Node
 from .spec import RosDeployment, RosModule
@@ -653,7 +654,7 @@ def _check_against_inventory(deployments: list[RosDeployment], inventory: Invent
                 )
             )
         ports.setdefault(dep.fleet, (dep.discovery_port, dep.source))
-    return problems
+    return problems + catalog_problems_against_inventory(deployments, inventory)
 
 
 def place_modules(

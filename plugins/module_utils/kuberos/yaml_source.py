@@ -115,7 +115,15 @@ def load_documents(text: str, source: str) -> list[Document]:
         raise SpecError([Problem(source, "", f"file is larger than {MAX_BYTES} bytes")])
     documents: list[Document] = []
     problems: list[Problem] = []
-    loader = yaml.SafeLoader(text)
+    try:
+        loader = yaml.SafeLoader(text)
+    except yaml.reader.ReaderError as exc:  # the reader refuses control characters before parsing starts
+        position = exc.position if isinstance(exc.position, int) else 0
+        character = f"#x{exc.character:04x}" if isinstance(exc.character, int) else repr(exc.character)
+        problem = Problem(
+            source, "", f"not valid YAML: unacceptable character {character} ({exc.reason})", text.count("\n", 0, position) + 1
+        )
+        raise SpecError([problem], title=f"{source} is not valid") from None
     try:
         _check_depth(text)
         index = 0

@@ -1,0 +1,89 @@
+"""A rollout gate's ROS-level check: are the wave's ROS 2 nodes in the graph, seen through the fleet's discovery servers?
+
+Run by ``rosdeployment_rollout`` after a wave's soak (its ``ros_probe`` option, the ``rosdeployment_rollout_ros_probe``
+role variable), on a machine that reaches the discovery servers (``ROS_DISCOVERY_SERVER`` set as the modules have it):
+
+    python -m ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe \\
+        --expect '/{robot}/motion_planner' --timeout 10
+
+Every ``--expect`` is a fully qualified node name; ``{robot}`` stands for each robot of the wave (``KUBEROS_ROBOTS``,
+with ``-`` written ``_`` as ROS names need). It joins the graph as a Fast DDS *super client* (a plain discovery-server
+client only learns of the participants it shares topics with), waits up to ``--timeout`` seconds for every expected
+node, and exits 0 when all are there, 1 (naming the missing ones) when not, 2 on bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+import time
+
+_ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+
+
+def expected_nodes(patterns: list[str], robots: list[str]) -> list[str]:
+    """Fully qualified node names to look for; ``{robot}`` expands to every robot (as a ROS name)."""
+    names = []
+    for pattern in patterns:
+        targets = [r.replace("-", "_") for r in robots] if "{robot}" in pattern else [""]
+        for robot in targets:
+            name = pattern.replace("{robot}", robot)
+            if not _ROS_NAME.match(name):
+                raise ValueError(f"{name!r} is not a fully qualified ROS node name such as /fetch_1/motion_planner")
+            names.append(name)
+    return sorted(set(names))
+
+
+def graph_names(pairs) -> set[str]:
+    """Fully qualified names of ``get_node_names_and_namespaces()`` pairs."""
+    return {(namespace.rstrip("/") + "/" + name) for name, namespace in pairs}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="ros_graph_probe", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--expect", action="append", required=True, help="a node name; {robot} for each robot of the wave")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for every node (default 10)")
+    args = parser.parse_args(argv)
+    robots = [r for r in os.environ.get("KUBEROS_ROBOTS", "").split(",") if r]
+    try:
+        wanted = expected_nodes(args.expect, robots)
+    except ValueError as exc:
+        print(f"ros_graph_probe: {exc}", file=sys.stderr)
+        return 2
+    if not 0 < args.timeout <= 600:
+        print("ros_graph_probe: --timeout must be more than 0 and at most 600 s", file=sys.stderr)
+        return 2
+    if os.environ.get("ROS_DISCOVERY_SERVER"):
+        os.environ.setdefault("ROS_SUPER_CLIENT", "TRUE")  # see every participant the servers know of
+    import rclpy
+
+    rclpy.init()
+    node = rclpy.create_node("kuberos_rollout_probe")
+    seen: set[str] = set()
+    try:
+        deadline = time.monotonic() + args.timeout
+        while True:
+            seen = graph_names(node.get_node_names_and_namespaces())
+            missing = [n for n in wanted if n not in seen]
+            if not missing:
+                print(f"ros_graph_probe: all {len(wanted)} node(s) present: {', '.join(wanted)}")
+                return 0
+            if time.monotonic() >= deadline:
+                break
+            rclpy.spin_once(node, timeout_sec=0.2)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    others = sorted(seen - {"/kuberos_rollout_probe"})
+    print(
+        f"ros_graph_probe: missing after {args.timeout:g} s: {', '.join(missing)} "
+        f"(seen: {', '.join(others[:20]) or 'no other node'})",
+        file=sys.stderr,
+    )
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
