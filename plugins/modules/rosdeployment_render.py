@@ -50,7 +50,8 @@ options:
   catalog:
     description:
       - The software catalog (a directory of catalog files, or one file) that C(module) references of the spec
-        resolve against. The entries used are kept in the deployment record and its revision.
+        resolve against. The entries used are kept in the deployment record and its revision, and the whole catalog
+        in the ConfigMap C(kuberos-catalog) of each fleet namespace (for the controller and the dashboard).
     type: path
   revisions:
     description:
@@ -121,6 +122,7 @@ files:
 
 from ansible.module_utils.basic import AnsibleModule
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
@@ -131,7 +133,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     render_remote,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, catalog_configmap
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import (
     RenderDirError,
     apply_plan,
@@ -235,6 +237,8 @@ def run(module: AnsibleModule) -> dict:
             spec_text, params["src"], deployments, placement, params["inventory"], options, params["field_manager"],
             params["revisions"], used,
         )  # fmt: skip
+        if catalog is not None and not catalog.missing:
+            records += [catalog_configmap(ns, catalog) for ns in sorted({naming.fleet_namespace(d.fleet) for d in deployments})]
         objects = sorted(objects + records, key=object_order)
     table = placement_table(placement)
     plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement), remote)

@@ -132,6 +132,10 @@ max_module_downtime_s:
   description: The longest of O(downtime_s).
   returned: when not in check mode
   type: float
+summary:
+  description: What changed (or would change), per robot and per wave, as lines of text.
+  returned: always
+  type: str
 rolled_back_robots:
   description: The robots given their previous state after a failed gate.
   returned: when a gate failed
@@ -177,6 +181,21 @@ def diff_of(result: dict) -> dict:
     }
 
 
+def summary_of(result: dict, check_mode: bool) -> str:
+    """What the rollout changed (or would change), for people."""
+    lines = [
+        f"{result['deployment']}: revision {result['from_revision']} -> {result['revision']}"
+        + (" (check mode: nothing written)" if check_mode else "")
+    ]
+    lines += [f"{robot}: {'; '.join(changes)}" for robot, changes in result["per_robot"].items()] or ["nothing to change"]
+    for wave in result.get("waves", []):
+        label = "canary" if wave["canary"] else f"wave {wave['number']}"
+        lines.append(f"{label}: {len(wave['robots'])} robot(s) in {wave['seconds']} s")
+    if "max_module_downtime_s" in result:
+        lines.append(f"longest time a module had no Ready pod: {result['max_module_downtime_s']} s; total {result['total_s']} s")
+    return "\n".join(lines)
+
+
 def main():
     module = AnsibleModule(
         argument_spec=ARGUMENT_SPEC,
@@ -195,6 +214,7 @@ def main():
     except Exception as exc:  # connection and API problems: one clear line, no traceback
         module.fail_json(msg=explain(exc, module.params["kubeconfig"]), progress=progress)
     result["progress"] = progress
+    result["summary"] = summary_of(result, module.check_mode)
     if module._diff:
         result["diff"] = diff_of(result)
     if result.get("ok") is False:

@@ -29,6 +29,8 @@ from .spec import RosDeployment, load_rosdeployments
 RECORD_LABEL = "kuberos.io/record"
 STATUS_LABEL = "kuberos.io/status"
 REVISION_LABEL = "kuberos.io/revision"
+CATALOG_LABEL = "kuberos.io/catalog"
+CATALOG_NAME = "kuberos-catalog"
 RECORD_PREFIX = "kuberos-record-"
 STATUS_PREFIX = "kuberos-status-"
 REVISION_PREFIX = "kuberos-rev-"
@@ -176,6 +178,18 @@ def build_records(
             }
         )
     return records
+
+
+def catalog_configmap(namespace: str, catalog) -> dict:
+    """The whole software catalog as deploy saw it, in a fleet's namespace: what the controller and the dashboard
+    read to show which versions exist (a record keeps only the entries its deployment uses)."""
+    return {
+        "apiVersion": "v1",
+        "kind": "ConfigMap",
+        "metadata": {"name": CATALOG_NAME, "namespace": namespace, "labels": {MANAGED_BY: "kuberos", CATALOG_LABEL: "true"}},
+        "data": {"format": FORMAT, "modules": ", ".join(catalog.names())},
+        "binaryData": {"catalog.json.gz": _pack(catalog.to_dict())},
+    }
 
 
 def catalog_of(configmap: dict):
