@@ -238,7 +238,21 @@ def previous_placement(clients, targets: list[dict]) -> dict:
                 if exc.status == 404:
                     continue
                 raise
-            placements.append(record_placement(plain(configmap)))
             data = configmap.data or {}
+            if data.get("rollout.json"):
+                from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
+
+                raise SpecError(
+                    [
+                        Problem(
+                            f"ConfigMap {namespace}/{configmap.metadata.name}",
+                            "data.rollout.json",
+                            f"a rollout of {target['name']} is in progress ({data['rollout.json'][:200]}); wait for it to "
+                            "end, or remove this key if its process died (docs/software.md)",
+                        )
+                    ],
+                    title="a rollout is in progress",
+                )
+            placements.append(record_placement(plain(configmap)))
             revisions[target["name"]] = {"revision": int(data.get("revision") or 0), "hash": data.get("revision-hash", "")}
     return {**merge_previous(placements, discovery_from_deployments(objects)).to_dict(), "revisions": revisions}

@@ -178,15 +178,16 @@ class Rollout:
             self.downtime.observe(instance, ready, now)
         return observed
 
-    def gate(self, wave: Wave) -> float:
-        """Wait until the wave's instances settle, then soak; raises GateFailed. Returns the seconds it took."""
+    def gate(self, wave: Wave, old_pods: set[str] = frozenset()) -> float:
+        """Wait until the wave's instances settle, then soak; raises GateFailed. Returns the seconds it took.
+        ``old_pods`` are the wave's pods from before it was applied."""
         start = time.monotonic()
-        wanted = {c.name: _node_and_image(c.after) for c in wave.changes if c.kind == "Deployment" and c.after}
+        wanted = self.wanted(wave)
         deadline = start + self.gate_timeout
         pending = list(wanted)
         while True:
             observed = self._observe(wanted)
-            failures, pending = gate_verdict(observed, wanted)
+            failures, pending = gate_verdict(observed, wanted, old_pods)
             if failures:
                 raise GateFailed("; ".join(failures))
             if not pending:
@@ -213,6 +214,10 @@ class Rollout:
         if self.ros_probe:
             self._probe(wave, sorted(wanted))
         return time.monotonic() - start
+
+    @staticmethod
+    def wanted(wave: Wave) -> dict[str, tuple[str, str]]:
+        return {c.name: _node_and_image(c.after) for c in wave.changes if c.kind == "Deployment" and c.after}
 
     def _probe(self, wave: Wave, instances: list[str]) -> None:
         env = {
@@ -252,10 +257,12 @@ class Rollout:
                 f"{label}: {len(wave.robots)} robot(s) {', '.join(wave.robots[:5])}{' ...' if len(wave.robots) > 5 else ''}"
             )
             started = time.monotonic()
+            wanted = self.wanted(wave)
+            old_pods = {p.name for pods in self.cluster.pods(self.namespace, set(wanted)).values() for p in pods}
             try:
                 for change in wave.changes:
                     self.apply_change(change)
-                self.gate(wave)
+                self.gate(wave, old_pods)
             except GateFailed as exc:
                 touched = sorted({r for w in self.waves_done for r in w["robots"]} | set(wave.robots))
                 back = {

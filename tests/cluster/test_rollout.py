@@ -169,6 +169,22 @@ def test_a_rollout_upgrades_every_robot_canary_first_then_in_waves(life, tmp_pat
     assert "nothing to change" in again.stdout
 
 
+def test_deploy_and_a_second_rollout_refuse_while_a_rollout_is_in_progress(life, tmp_path):
+    record = "kuberos-record-pick-and-place"
+    marker = json.dumps({"revision": 9, "from": 2, "instances": [], "started": "2026-01-01T00:00:00Z"})
+    life.core.patch_namespaced_config_map(record, NAMESPACE, {"data": {"rollout.json": marker}})
+    before = life.versions()
+    try:
+        deploy = life.run("deploy.yml", "-e", f"rosdeployment_file={SPEC}", "-e", f"kuberos_render_dir={tmp_path / 'r'}")
+        assert deploy.returncode != 0 and "a rollout of pick-and-place is in progress" in deploy.stdout, deploy.stdout[-3000:]
+        again = life.rollout(_at(tmp_path, "^0.1"))
+        assert again.returncode != 0 and "in progress since 2026-01-01T00:00:00Z" in again.stdout, again.stdout[-3000:]
+        assert life.versions() == before, "nothing was written"
+    finally:
+        life.core.patch_namespaced_config_map(record, NAMESPACE, {"data": {"rollout.json": None}})
+    life.converge()
+
+
 def _broken_catalog(tmp_path) -> str:
     """The example catalog plus pnp-planner 0.2.1, whose image crash-loops."""
     folder = tmp_path / "catalog"

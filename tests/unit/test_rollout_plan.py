@@ -186,3 +186,10 @@ def test_a_catalog_deployment_records_and_revisions_read_back_alone(root, local_
     number, cause, dep, spec_text, kept = parse_revision(revision)
     assert (number, cause, spec_text) == (1, "deploy", text) and dep.modules == deployments[0].modules
     assert kept == used
+
+
+def test_the_gate_ignores_the_past_of_pods_from_before_the_wave():
+    old = _pod("a", image="img:2", restarts=4, waiting="CrashLoopBackOff", ready=False)
+    assert gate_verdict({"i": [old]}, {"i": ("n1", "img:2")}) == (["i: pod a is in CrashLoopBackOff (4 restarts)"], [])
+    assert gate_verdict({"i": [old]}, {"i": ("n1", "img:2")}, {"a"}) == ([], ["i"])
+    assert gate_verdict({"i": [_pod("a", restarts=4)]}, {"i": ("n1", "img:2")}, {"a"}) == ([], [])

@@ -112,3 +112,22 @@ def test_a_new_robot_joins_a_shared_instance_with_room_and_the_others_stay(local
     (inst,) = grown.instances
     assert inst.name == placed.instances[0].name and inst.node == placed.instances[0].node
     assert inst.robots == ("fetch-1", "fetch-2") and "shared by 2/2 robots" in inst.reason
+
+
+def test_a_spec_cannot_move_the_fleets_discovery_servers_to_another_port(root, local_inventory, first):
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
+
+    _deps, placement = first
+    second = load_specs({**_listing1_data(root), "discovery": {"port": 11999}})
+    with pytest.raises(SpecError) as raised:
+        place_modules(second, local_inventory, previous=Placement([], dict(placement.discovery)))
+    assert "discovery.port: 11999 differs from port 11811, which the discovery servers of fleet test-fleet run on" in str(
+        raised.value
+    )
+
+
+def _listing1_data(root) -> dict:
+    import yaml
+
+    with open(f"{root}/{LISTING1}", encoding="utf-8") as handle:
+        return yaml.safe_load(handle)

@@ -227,12 +227,15 @@ def instance_settled(pods: list[PodState], node: str, image: str) -> bool:
     return len(live) == 1 and live[0].node == node and live[0].phase == "Running" and live[0].ready and live[0].image == image
 
 
-def gate_verdict(observed: dict[str, list[PodState]], wanted: dict[str, tuple[str, str]]) -> tuple[list[str], list[str]]:
-    """(failures, pending) of a wave: ``wanted`` maps each instance to (node, image) of its new state."""
+def gate_verdict(
+    observed: dict[str, list[PodState]], wanted: dict[str, tuple[str, str]], old_pods: frozenset | set = frozenset()
+) -> tuple[list[str], list[str]]:
+    """(failures, pending) of a wave: ``wanted`` maps each instance to (node, image) of its new state; ``old_pods``
+    names the pods that ran before the wave was applied (their past restarts are not the new state's failures)."""
     failures, pending = [], []
     for instance, (node, image) in sorted(wanted.items()):
         pods = observed.get(instance, [])
-        new_pods = [p for p in pods if p.image == image]
+        new_pods = [p for p in pods if p.image == image and p.name not in old_pods]
         failing = [why for p in new_pods if (why := pod_failure(p)) is not None]
         if failing:
             failures.append(f"{instance}: {failing[0]}")

@@ -671,6 +671,18 @@ def place_modules(
     fits where it runs stays there (see ``_keep_previous``), and a fleet's discovery servers are the fleet's, kept
     on their nodes and never fewer than run now. ``allocated`` must then leave out what ``previous`` holds."""
     problems = _check_against_inventory(deployments, inventory)
+    running = {f: s[0].port for f, s in (previous.discovery.items() if previous else ()) if s}
+    for dep in deployments:
+        if dep.fleet in running and dep.discovery_port != running[dep.fleet]:
+            problems.append(
+                Problem(
+                    dep.source,
+                    "discovery.port",
+                    f"{dep.discovery_port} differs from port {running[dep.fleet]}, which the discovery servers of fleet "
+                    f"{dep.fleet} run on (they are the fleet's, shared by its deployments); expected {running[dep.fleet]}",
+                    dep.line_of("discovery.port"),
+                )
+            )
     if problems:
         raise SpecError(problems, title="the RosDeployment does not match the inventory")
     scheduler = _Scheduler(inventory, allocated, unavailable)
