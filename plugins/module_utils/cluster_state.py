@@ -26,7 +26,7 @@ MANAGED_KINDS = (
     ("v1", "Secret", "list_namespaced_secret", "delete_namespaced_secret", "core"),
 )
 # What a fleet shares between its deployments: removed with the fleet's last deployment, like its discovery servers.
-FLEET_COMPONENTS = ("discovery-server", "bridge-server")
+FLEET_COMPONENTS = ("discovery-server", "bridge-server", "catalog")
 
 
 START_HINT = "start the local cluster with `make cluster`, or set kuberos_kubeconfig to your cluster's kubeconfig"

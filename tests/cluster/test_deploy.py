@@ -99,6 +99,8 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
     changed = sorted(k for k in before if before[k] != after.get(k))
     # The deployment record (the spec, inventory and placement the controller reads) holds the spec too.
     assert changed == [("ConfigMap", "kuberos-record-pick-and-place"), ("ConfigMap", "pick-and-place-motion-planner-params")]
+    # The edit is the deployment's revision 2, kept beside revision 1.
+    assert sorted(set(after) - set(before)) == [("ConfigMap", "kuberos-rev-pick-and-place-2")]
 
     # Remove the perception module: its Deployments and ConfigMap are pruned, nothing else.
     text = spec.read_text()
@@ -113,7 +115,8 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
         ("Deployment", "pick-and-place-perception-fetch-1"),
         ("Deployment", "pick-and-place-perception-fetch-2"),
     ]
-    assert all(remaining[k] == after[k] for k in remaining if k != ("ConfigMap", "kuberos-record-pick-and-place"))
+    assert sorted(set(remaining) - set(after)) == [("ConfigMap", "kuberos-rev-pick-and-place-3")]
+    assert all(remaining[k] == after[k] for k in after if k in remaining and k != ("ConfigMap", "kuberos-record-pick-and-place"))
 
 
 def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
@@ -139,6 +142,7 @@ def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
     after = resource_versions(apps, core, "kuberos-test-fleet")
     assert sorted(set(before) - set(after)) == [
         ("ConfigMap", "kuberos-record-picking"),
+        ("ConfigMap", "kuberos-rev-picking-1"),
         ("Deployment", "picking-controller-fetch-1"),
         ("Deployment", "picking-controller-fetch-2"),
         ("Deployment", "picking-planner-fetch-1"),

@@ -86,6 +86,9 @@ def life(cluster, tmp_path_factory):
     state = tmp_path_factory.mktemp("lifecycle")
     fleet = Lifecycle(cluster, state)
     fleet.catalog = CATALOG
+    # From a clean fleet: earlier tests may leave pick-and-place (the same deployment name) deployed.
+    cleared = fleet.run("undeploy.yml", "-e", f"rosdeployment_file={SPEC}")
+    assert cleared.returncode == 0, cleared.stdout[-3000:]
     deployed = fleet.run("deploy.yml", "-e", f"rosdeployment_file={SPEC}", "-e", f"kuberos_render_dir={state / 'render'}")
     assert deployed.returncode == 0, deployed.stdout[-4000:]
     started = fleet.controller()

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from . import naming
 from .errors import Problem, SpecError
 from .inventory import Inventory, load_inventory
-from .manifests import DEPLOYMENT, MANAGED_BY, RenderOptions
+from .manifests import COMPONENT, DEPLOYMENT, MANAGED_BY, RenderOptions
 from .scheduler import Placement
 from .spec import RosDeployment, load_rosdeployments
 
@@ -186,7 +186,12 @@ def catalog_configmap(namespace: str, catalog) -> dict:
     return {
         "apiVersion": "v1",
         "kind": "ConfigMap",
-        "metadata": {"name": CATALOG_NAME, "namespace": namespace, "labels": {MANAGED_BY: "kuberos", CATALOG_LABEL: "true"}},
+        "metadata": {
+            "name": CATALOG_NAME,
+            "namespace": namespace,
+            # The fleet's, like its discovery servers: it goes with the fleet's last deployment.
+            "labels": {MANAGED_BY: "kuberos", CATALOG_LABEL: "true", COMPONENT: "catalog"},
+        },
         "data": {"format": FORMAT, "modules": ", ".join(catalog.names())},
         "binaryData": {"catalog.json.gz": _pack(catalog.to_dict())},
     }
