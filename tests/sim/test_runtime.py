@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import statistics
 import subprocess
 import sys
 import time
@@ -95,14 +96,16 @@ def wait_until(condition, timeout: float, what: str, runtime: Runtime) -> float:
 
 
 def ping_rtt_ms(runtime: Runtime, source: str, target: str, count: int = 20) -> float:
+    """The median round-trip time of ``count`` pings: the fabric's delay without the odd packet a busy machine held up
+    (the mean of the same pings once read 5.68 ms for a 5 ms link under load)."""
     done = run(
         "ip", "netns", "exec", runtime.hosts[source].netns,
-        "ping", "-n", "-q", "-c", str(count), "-i", "0.05", "-W", "2", runtime.host_address(target),
+        "ping", "-n", "-c", str(count), "-i", "0.05", "-W", "2", runtime.host_address(target),
         timeout=count * 0.05 + 10,
     )  # fmt: skip
-    match = re.search(r"= [\d.]+/([\d.]+)/", done.stdout)
-    assert match, done.stdout
-    return float(match.group(1))
+    times = sorted(float(t) for t in re.findall(r"time=([\d.]+) ms", done.stdout))
+    assert len(times) >= count // 2, done.stdout
+    return statistics.median(times)
 
 
 def received(process) -> list[int]:
