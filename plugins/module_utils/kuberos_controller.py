@@ -60,6 +60,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
     WRITER_CONTROLLER,
     Record,
     parse_record,
+    pin_live_discovery,
     placement_patch,
     status_name,
 )
@@ -461,9 +462,7 @@ class Controller:
         live = discovery_from_deployments(
             [d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace]
         )
-        for fleet in record.placement.discovery:
-            if live.get(fleet):
-                record.placement.discovery[fleet] = live[fleet]
+        pin_live_discovery(record, live)
         key = (record.namespace, record.name)
         self._load_history(record)
         memory = self.memory.setdefault(key, Memory())

@@ -304,7 +304,11 @@ def read_record(clients, namespace: str, deployment: str):
         COMPONENT,
         discovery_from_deployments,
     )
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import parse_record, record_name
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
+        parse_record,
+        pin_live_discovery,
+        record_name,
+    )
 
     try:
         configmap = _plain(clients["core"].read_namespaced_config_map(record_name(deployment), namespace))
@@ -323,9 +327,7 @@ def read_record(clients, namespace: str, deployment: str):
     record = parse_record(configmap)
     found = clients["apps"].list_namespaced_deployment(namespace, label_selector=f"{COMPONENT}=discovery-server").items
     live = discovery_from_deployments([_plain(d) for d in found])
-    for fleet in record.placement.discovery:
-        if live.get(fleet):
-            record.placement.discovery[fleet] = live[fleet]
+    pin_live_discovery(record, live)
     return record, configmap
 
 

@@ -87,6 +87,12 @@ class Fleet:
         self.core.patch_node(name, {"metadata": {"annotations": {KWOK: "fake"}}})
         wait_for(lambda: self.ready(name), 60, f"node {name} Ready again")
 
+    def restore_nodes(self):
+        """Leave every node as the cluster fixture made it (kwok heartbeats again, Ready)."""
+        for node in self.core.list_node().items:
+            if (node.metadata.annotations or {}).get(KWOK) != "fake":
+                self.node_up(node.metadata.name)
+
     def ready(self, name) -> bool:
         try:
             node = self.core.read_node(name)
@@ -193,9 +199,7 @@ def fleet(cluster, tmp_path_factory):
         yield fleet
     finally:
         fleet.controller("stopped")
-        for node in fleet.core.list_node().items:  # leave every node as the cluster fixture made it
-            if (node.metadata.annotations or {}).get(KWOK) != "fake":
-                fleet.node_up(node.metadata.name)
+        fleet.restore_nodes()
         restored = cluster.start()  # recreates deleted nodes from the inventory
         assert restored.returncode == 0, restored.stdout[-3000:]
         cluster.undeploy(SPEC)

@@ -98,9 +98,7 @@ def life(cluster, tmp_path_factory):
         yield fleet
     finally:
         fleet.controller("stopped")
-        for node in fleet.core.list_node().items:
-            if (node.metadata.annotations or {}).get("kwok.x-k8s.io/node") != "fake":
-                fleet.node_up(node.metadata.name)
+        fleet.restore_nodes()
         fleet.run("undeploy.yml", "-e", f"rosdeployment_file={SPEC}")
 
 

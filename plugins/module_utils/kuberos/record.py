@@ -245,6 +245,14 @@ def record_placement(configmap: dict) -> Placement:
         raise SpecError([Problem(where, "", f"not a readable KubeROS record ({exc!r})")]) from None
 
 
+def pin_live_discovery(record: Record, live: dict) -> None:
+    """A fleet's discovery servers are the fleet's: where their live Deployments pin them (``live``, fleet -> servers,
+    from ``manifests.discovery_from_deployments``) is the truth for every record of the fleet."""
+    for fleet in record.placement.discovery:
+        if live.get(fleet):
+            record.placement.discovery[fleet] = live[fleet]
+
+
 def merge_previous(records: list[Placement], discovery: dict) -> Placement:
     """What runs now, for sticky placement: the instances of the records, and the fleets' live discovery servers."""
     return Placement([i for p in records for i in p.instances], dict(discovery), [], [])
