@@ -23,6 +23,11 @@ options:
     description: Build whole kwok nodes instead of label patches.
     type: bool
     default: false
+  exclude:
+    description: Node names to leave out (the local cluster's real nodes, which register themselves).
+    type: list
+    elements: str
+    default: []
 """
 
 EXAMPLES = r"""
@@ -47,8 +52,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory
 
 
 @reports_kuberos_errors
-def cluster_nodes(inventory, simulated=False):
-    return build_nodes(load_inventory(inventory), bool(simulated))
+def cluster_nodes(inventory, simulated=False, exclude=()):
+    return build_nodes(load_inventory(inventory), bool(simulated), exclude or ())
 
 
 class FilterModule:

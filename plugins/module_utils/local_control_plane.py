@@ -26,6 +26,16 @@ COMPONENTS = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-schedul
 SERVICE_CIDR = "10.96.0.0/16"
 
 
+def _write_private_key(path: str, private) -> None:
+    from cryptography.hazmat.primitives import serialization
+
+    with open(path, "wb") as handle:
+        os.fchmod(handle.fileno(), 0o600)
+        handle.write(
+            private.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
+        )
+
+
 @dataclass
 class Ports:
     apiserver: int = 16443
@@ -58,6 +68,54 @@ class LocalControlPlane:
         return f"https://127.0.0.1:{self.ports.apiserver}"
 
     # -- certificates ----------------------------------------------------------------------------
+    def issue_certificate(self, name: str, cn: str, org: str | None = None, server: bool = False) -> None:
+        """``pki/<name>.crt`` and ``.key`` signed by the cluster CA: a client certificate (CN is the user, O the
+        group), or the API server's serving certificate."""
+        from cryptography import x509
+        from cryptography.hazmat.primitives import hashes, serialization
+        from cryptography.hazmat.primitives.asymmetric import ec
+        from cryptography.x509.oid import NameOID
+
+        pki = self.path("pki")
+        with open(os.path.join(pki, "ca.key"), "rb") as handle:
+            ca_key = serialization.load_pem_private_key(handle.read(), password=None)
+        with open(os.path.join(pki, "ca.crt"), "rb") as handle:
+            ca = x509.load_pem_x509_certificate(handle.read())
+        attrs = [x509.NameAttribute(NameOID.COMMON_NAME, cn)]
+        if org:
+            attrs.append(x509.NameAttribute(NameOID.ORGANIZATION_NAME, org))
+        now = datetime.datetime.now(datetime.UTC)
+        leaf_key = ec.generate_private_key(ec.SECP256R1())
+        builder = (
+            x509.CertificateBuilder()
+            .subject_name(x509.Name(attrs))
+            .issuer_name(ca.subject)
+            .public_key(leaf_key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=365))
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        )
+        if server:
+            sans = [x509.DNSName(n) for n in ("localhost", "kubernetes", "kubernetes.default", "kubernetes.default.svc")]
+            sans += [x509.IPAddress(ipaddress.ip_address(a)) for a in ("127.0.0.1", "10.96.0.1")]
+            builder = builder.add_extension(x509.SubjectAlternativeName(sans), critical=False).add_extension(
+                x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.SERVER_AUTH]), critical=False
+            )
+        else:
+            builder = builder.add_extension(x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
+        _write_private_key(os.path.join(pki, f"{name}.key"), leaf_key)
+        with open(os.path.join(pki, f"{name}.crt"), "wb") as handle:
+            handle.write(builder.sign(ca_key, hashes.SHA256()).public_bytes(serialization.Encoding.PEM))
+
+    def ensure_certificate(self, name: str, cn: str, org: str | None = None, server: str | None = None) -> str:
+        """A client certificate, made once, and a kubeconfig for it (``<name>.kubeconfig``, reaching the API
+        server at ``server`` when given); returns the kubeconfig's path."""
+        if not os.path.exists(self.path("pki", f"{name}.crt")):
+            self.issue_certificate(name, cn, org)
+        self._write_kubeconfig(self.path(f"{name}.kubeconfig"), name, server)
+        return self.path(f"{name}.kubeconfig")
+
     def ensure_pki(self) -> bool:
         """CA, serving and client certificates, service-account keys and kubeconfigs; True if created."""
         from cryptography import x509
@@ -75,13 +133,7 @@ class LocalControlPlane:
             return ec.generate_private_key(ec.SECP256R1())
 
         def write_key(name, private):
-            with open(os.path.join(pki, name), "wb") as handle:
-                os.fchmod(handle.fileno(), 0o600)
-                handle.write(
-                    private.private_bytes(
-                        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
-                    )
-                )
+            _write_private_key(os.path.join(pki, name), private)
 
         def write_cert(name, cert):
             with open(os.path.join(pki, name), "wb") as handle:
@@ -110,34 +162,13 @@ class LocalControlPlane:
         write_key("ca.key", ca_key)
         write_cert("ca.crt", ca)
 
-        def issue(name, cn, org=None, server=False):
-            leaf_key = key()
-            builder = (
-                x509.CertificateBuilder()
-                .subject_name(name_of(cn, org))
-                .issuer_name(ca_name)
-                .public_key(leaf_key.public_key())
-                .serial_number(x509.random_serial_number())
-                .not_valid_before(now - datetime.timedelta(minutes=5))
-                .not_valid_after(now + datetime.timedelta(days=365))
-                .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            )
-            if server:
-                sans = [x509.DNSName(n) for n in ("localhost", "kubernetes", "kubernetes.default", "kubernetes.default.svc")]
-                sans += [x509.IPAddress(ipaddress.ip_address(a)) for a in ("127.0.0.1", "10.96.0.1")]
-                builder = builder.add_extension(x509.SubjectAlternativeName(sans), critical=False).add_extension(
-                    x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.SERVER_AUTH]), critical=False
-                )
-            else:
-                builder = builder.add_extension(x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
-            write_key(f"{name}.key", leaf_key)
-            write_cert(f"{name}.crt", builder.sign(ca_key, hashes.SHA256()))
-
-        issue("apiserver", "kube-apiserver", server=True)
-        issue("admin", "kuberos-admin", "system:masters")
-        issue("controller-manager", "system:kube-controller-manager")
-        issue("scheduler", "system:kube-scheduler")
-        issue("kwok", "kwok-controller", "system:masters")
+        self.issue_certificate("apiserver", "kube-apiserver", server=True)
+        self.issue_certificate("admin", "kuberos-admin", "system:masters")
+        self.issue_certificate("controller-manager", "system:kube-controller-manager")
+        self.issue_certificate("scheduler", "system:kube-scheduler")
+        self.issue_certificate("kwok", "kwok-controller", "system:masters")
+        # The API server's client certificate towards kubelets (logs, exec, port-forward on real nodes).
+        self.issue_certificate("apiserver-kubelet-client", "kube-apiserver-kubelet-client", "system:masters")
         sa_key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
         write_key("sa.key", sa_key)
         with open(os.path.join(pki, "sa.pub"), "wb") as handle:
@@ -152,12 +183,17 @@ class LocalControlPlane:
         self.log.append("generated certificates and kubeconfigs")
         return True
 
-    def _write_kubeconfig(self, target: str, user: str) -> None:
+    def _write_kubeconfig(self, target: str, user: str, server: str | None = None) -> None:
+        """A kubeconfig for ``pki/<user>.crt``; ``server``: another address of the API server (a relay), whose
+        certificate is then checked for the name ``kubernetes``."""
         pki = self.path("pki")
+        cluster = {"server": server or self.server, "certificate-authority": f"{pki}/ca.crt"}
+        if server:
+            cluster["tls-server-name"] = "kubernetes"
         config = {
             "apiVersion": "v1",
             "kind": "Config",
-            "clusters": [{"name": "kuberos-local", "cluster": {"server": self.server, "certificate-authority": f"{pki}/ca.crt"}}],
+            "clusters": [{"name": "kuberos-local", "cluster": cluster}],
             "users": [{"name": user, "user": {"client-certificate": f"{pki}/{user}.crt", "client-key": f"{pki}/{user}.key"}}],
             "contexts": [{"name": "kuberos-local", "context": {"cluster": "kuberos-local", "user": user}}],
             "current-context": "kuberos-local",
@@ -190,6 +226,9 @@ class LocalControlPlane:
                 f"--service-cluster-ip-range={SERVICE_CIDR}", "--authorization-mode=Node,RBAC", "--anonymous-auth=false",
                 "--allow-privileged=true", "--enable-priority-and-fairness=false", "--max-requests-inflight=2000",
                 "--max-mutating-requests-inflight=1000",
+                f"--kubelet-client-certificate={pki}/apiserver-kubelet-client.crt",
+                f"--kubelet-client-key={pki}/apiserver-kubelet-client.key",
+                "--kubelet-preferred-address-types=InternalIP",
             ]  # fmt: skip
         if component == "kube-controller-manager":
             return [
@@ -331,6 +370,8 @@ class LocalControlPlane:
             raise RuntimeError(f"binaries not built: {', '.join(missing)} (run the build first)")
         os.makedirs(self.state_dir, mode=0o700, exist_ok=True)
         changed = self.ensure_pki()
+        if not os.path.exists(self.path("pki", "apiserver-kubelet-client.crt")):  # a cluster made before real nodes
+            self.issue_certificate("apiserver-kubelet-client", "kube-apiserver-kubelet-client", "system:masters")
         started = []
         try:
             for component in COMPONENTS:

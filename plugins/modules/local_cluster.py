@@ -7,13 +7,18 @@ from __future__ import annotations
 
 DOCUMENTATION = r"""
 module: local_cluster
-short_description: Run a real Kubernetes control plane on this machine, with kwok for simulated nodes
+short_description: Run a real Kubernetes control plane on this machine, with kwok for simulated nodes and real nodes beside them
 version_added: 0.1.0
 description:
   - Starts etcd, kube-apiserver, kube-controller-manager, kube-scheduler and kwok as background processes
     (pid files and logs under O(state_dir)), after generating a CA, serving and client certificates and a
     kubeconfig. TLS only, certificate authentication, anonymous access off.
   - Starting a running cluster changes nothing; a component that died is started again.
+  - With O(real_nodes), runs a real node for each of them as well, a kubelet, containerd and kube-proxy in
+    a network namespace per node, pod networks routed between them through a delay fabric that applies the
+    inventory's round-trip times, CoreDNS for Service names, and the images of O(images) imported into every
+    node (docs/real-nodes.md). Stopping removes every process, mount, cgroup, network namespace, link and
+    route they made and restores the host sysctls the kubelet changes.
   - The binaries come from the role C(kuberos.platform.local_cluster), which builds them from the Go module proxy.
 options:
   state:
@@ -26,9 +31,33 @@ options:
     type: path
     required: true
   binaries:
-    description: Path of each program, keys C(etcd), C(kube-apiserver), C(kube-controller-manager), C(kube-scheduler), C(kwok).
+    description:
+      - Path of each program, keys C(etcd), C(kube-apiserver), C(kube-controller-manager), C(kube-scheduler), C(kwok),
+        and for real nodes C(kubelet), C(kube-proxy) and C(coredns).
     type: dict
     required: true
+  real_nodes:
+    description:
+      - The real nodes, as returned by P(kuberos.platform.real_nodes#filter) (C(nodes) with name, labels and taints,
+        C(delay_ms)). Empty for none. Stopping stops the real nodes the state directory records, whatever this says.
+    type: dict
+    default: {}
+  real_nodes_base:
+    description: Second octet of the real nodes' addresses (10.B.0.0/24 control, 10.B+1.0.0/24 nodes, 10.B+2.0.0/16 pods).
+    type: int
+    default: 231
+  real_nodes_tag:
+    description: Prefix of the real nodes' network namespaces, links and cgroups (1 to 4 letters or digits).
+    type: str
+    default: kr
+  images:
+    description: Image reference to OCI archive, imported into every real node's containerd.
+    type: dict
+    default: {}
+  image_aliases:
+    description: Further names of the imported images (alias to reference), such as the names specs use.
+    type: dict
+    default: {}
   kwok_stages:
     description: kwok stage configuration files (node and pod lifecycle).
     type: list
@@ -68,7 +97,7 @@ server:
   returned: always
   type: str
 components:
-  description: Pid of each running component (null when not running).
+  description: Pid of each running component (null when not running), real nodes' as C(<node>/<component>).
   returned: always
   type: dict
 actions:
@@ -84,6 +113,7 @@ import shutil
 from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane, Ports
+from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodeError, RealNodes
 
 
 def main():
@@ -95,6 +125,11 @@ def main():
             kwok_stages=dict(type="list", elements="path", default=[]),
             ports=dict(type="dict", default={}),
             timeout=dict(type="int", default=90),
+            real_nodes=dict(type="dict", default={}),
+            real_nodes_base=dict(type="int", default=231),
+            real_nodes_tag=dict(type="str", default="kr"),
+            images=dict(type="dict", default={}),
+            image_aliases=dict(type="dict", default={}),
         ),
         supports_check_mode=True,
     )
@@ -106,28 +141,43 @@ def main():
     plane = LocalControlPlane(params["state_dir"], params["binaries"], ports, params["kwok_stages"])
     running = plane.running()
     result = {"kubeconfig": plane.kubeconfig, "server": plane.server, "actions": []}
+    real = None
     try:
+        if params["state"] == "started" and params["real_nodes"].get("nodes"):
+            real = RealNodes(
+                plane, params["real_nodes"]["nodes"], params["real_nodes"].get("delay_ms", {}), params["binaries"],
+                images=params["images"], aliases=params["image_aliases"], base=params["real_nodes_base"],
+                tag=params["real_nodes_tag"],
+            )  # fmt: skip
+        elif params["state"] != "started":
+            real = RealNodes.from_state(plane, params["binaries"])
+        if real is not None:
+            running.update({k: v for k, v in real.running().items()})
         if params["state"] == "started":
             needed = [c for c, pid in running.items() if pid is None]
             if module.check_mode:
                 result.update(changed=bool(needed), actions=[f"would start {c}" for c in needed])
             else:
                 result["changed"] = plane.start(params["timeout"])
+                if real is not None:
+                    result["changed"] = real.start(params["timeout"]) or result["changed"]
         else:
             active = [c for c, pid in running.items() if pid is not None]
             gone = params["state"] == "absent" and os.path.exists(params["state_dir"])
             if module.check_mode:
                 result.update(changed=bool(active) or gone, actions=[f"would stop {c}" for c in active])
             else:
-                result["changed"] = plane.stop()
+                result["changed"] = real.stop(remove=params["state"] == "absent") if real is not None else False
+                result["changed"] = plane.stop() or result["changed"]
                 if gone:
                     shutil.rmtree(params["state_dir"])
                     plane.log.append(f"removed {params['state_dir']}")
                     result["changed"] = True
-    except (RuntimeError, OSError) as exc:
-        module.fail_json(msg=str(exc), actions=plane.log, **{k: v for k, v in result.items() if k != "actions"})
-    result["actions"] = result["actions"] or plane.log
-    result["components"] = plane.running()
+    except (RuntimeError, OSError, RealNodeError) as exc:
+        log = plane.log + (real.log if real is not None else [])
+        module.fail_json(msg=str(exc), actions=log, **{k: v for k, v in result.items() if k != "actions"})
+    result["actions"] = result["actions"] or plane.log + (real.log if real is not None else [])
+    result["components"] = {**plane.running(), **(real.running() if real is not None else {})}
     module.exit_json(**result)
 
 

@@ -4,7 +4,9 @@ manager), and whole simulated nodes with capacity for the local cluster (kwok)."
 from __future__ import annotations
 
 from . import labels
+from .errors import Problem, SpecError, describe
 from .inventory import Inventory, Node
+from .link_delays import one_way_delays_ms
 from .quantities import format_cpu, format_memory
 
 KWOK_ANNOTATION = "kwok.x-k8s.io/node"
@@ -48,10 +50,50 @@ def simulated_node(node: Node) -> dict:
     return obj
 
 
-def cluster_nodes(inventory: Inventory, simulated: bool) -> list[dict]:
-    """One object per inventory node, sorted by name."""
+def cluster_nodes(inventory: Inventory, simulated: bool, exclude=()) -> list[dict]:
+    """One object per inventory node, sorted by name; ``exclude``: node names left out (the local cluster's
+    real nodes, which their kubelets register)."""
     build = simulated_node if simulated else node_label_patch
-    return [build(node) for node in inventory.nodes.values()]
+    return [build(node) for node in inventory.nodes.values() if node.name not in set(exclude)]
+
+
+LOCAL_NODE_VAR = "kuberos_local_node"
+LOCAL_NODE_KINDS = ("simulated", "real")
+
+
+def real_node_names(raw: dict, hostvars: dict, source: str = "inventory") -> list[str]:
+    """Node names of the hosts whose ``kuberos_local_node`` is ``real`` (the local cluster runs a kubelet for
+    each, in a network namespace); every other host is a kwok node. ``raw``: the fleet inventory's hosts."""
+    problems, names = [], []
+    for host, hv in sorted((raw.get("hosts") or {}).items()):
+        kind = (hostvars.get(host) or {}).get(LOCAL_NODE_VAR, "simulated")
+        if kind not in LOCAL_NODE_KINDS:
+            problems.append(
+                Problem(source, f"hosts.{host}.{LOCAL_NODE_VAR}", f"{describe(kind)} is not valid; expected real or simulated")
+            )
+        elif kind == "real":
+            names.append((hv or {}).get("kuberos_node_name", host))
+    if problems:
+        raise SpecError(problems)
+    return sorted(names)
+
+
+def real_nodes(inventory: Inventory, names: list[str]) -> dict:
+    """What the local cluster needs to run real nodes: each node's labels and taints (its kubelet registers with
+    them, so no pod lands before they exist), and the one-way delay between every two of them (link_delays)."""
+    nodes = [inventory.nodes[name] for name in sorted(names)]
+    return {
+        "nodes": [
+            {
+                "name": node.name,
+                "tier": node.tier,
+                "labels": labels.node_labels(node),
+                "taints": labels.node_taints(node),
+            }
+            for node in nodes
+        ],
+        "delay_ms": one_way_delays_ms(inventory, [node.name for node in nodes]),
+    }
 
 
 def robot_taints(inventory: Inventory) -> list[dict]:

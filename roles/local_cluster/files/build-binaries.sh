@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Build a local Kubernetes control plane (kube-apiserver, kube-controller-manager,
-# kube-scheduler, kubectl), etcd and kwok from their Go modules, with the ordinary
+# kube-scheduler, kubectl), etcd and kwok, and for real nodes kubelet, kube-proxy and
+# CoreDNS, from their Go modules, with the ordinary
 # `go` client and the Go module proxy only (no release downloads, no images).
 #
 # Binaries land in a cache outside the repository, keyed by version:
@@ -16,7 +17,7 @@ usage() {
 Usage: $SCRIPT_NAME [--print-paths] [--help]
 
 Build kube-apiserver, kube-controller-manager, kube-scheduler, kubectl, kubeadm,
-etcd and kwok from the Go module proxy into a version-keyed cache. Programs already in the
+etcd and kwok (and kubelet, kube-proxy and CoreDNS for real nodes) from the Go module proxy into a version-keyed cache. Programs already in the
 cache (and answering --version with the expected version) are not rebuilt.
 
 Options:
@@ -29,9 +30,12 @@ Environment (defaults in brackets):
   KUBERNETES_VERSION   k8s.io/kubernetes release              [v1.34.4]
   ETCD_VERSION         go.etcd.io/etcd/server/v3 release      [v3.5.35]
   KWOK_VERSION         sigs.k8s.io/kwok release               [v0.8.0]
+  COREDNS_VERSION      github.com/coredns/coredns release     [v1.14.7]
   SKIP_KUBECTL=1       do not build (or require) kubectl      [0]
   SKIP_KUBEADM=1       do not build (or require) kubeadm      [0]
                        (kubeadm: the cluster setup roles' config checks and tests)
+  SKIP_NODES=1         do not build (or require) kubelet, kube-proxy and CoreDNS [1]
+                       (the real-node tier of the local cluster, docs/real-nodes.md)
   KUBEROS_CACHE_DIR    cache root                  [\$HOME/.cache/kuberos]
   KUBEROS_BUILD_JOBS   go build -p value                      [2]
   GO                   go command                 [go on PATH, else /usr/local/go/bin/go]
@@ -47,6 +51,8 @@ EOF
 KUBERNETES_VERSION=${KUBERNETES_VERSION:-v1.34.4}
 ETCD_VERSION=${ETCD_VERSION:-v3.5.35}
 KWOK_VERSION=${KWOK_VERSION:-v0.8.0}
+COREDNS_VERSION=${COREDNS_VERSION:-v1.14.7}
+SKIP_NODES=${SKIP_NODES:-1}
 SKIP_KUBECTL=${SKIP_KUBECTL:-0}
 SKIP_KUBEADM=${SKIP_KUBEADM:-0}
 BUILD_JOBS=${KUBEROS_BUILD_JOBS:-2}
@@ -79,16 +85,21 @@ STAGING_VERSION="v0.${KUBERNETES_VERSION#v1.}"   # v1.34.4 -> v0.34.4
   || die "ETCD_VERSION must look like v3.5.21, got '$ETCD_VERSION'"
 [[ $KWOK_VERSION =~ ^v[0-9]+\.[0-9]+\.[0-9]+(-[0-9A-Za-z.]+)?$ ]] \
   || die "KWOK_VERSION must look like v0.7.0, got '$KWOK_VERSION'"
+[[ $COREDNS_VERSION =~ ^v1\.[0-9]+\.[0-9]+$ ]] \
+  || die "COREDNS_VERSION must look like v1.14.7, got '$COREDNS_VERSION'"
 
 K8S_PROGRAMS=(kube-apiserver kube-controller-manager kube-scheduler)
 [[ $SKIP_KUBECTL == 1 ]] || K8S_PROGRAMS+=(kubectl)
 [[ $SKIP_KUBEADM == 1 ]] || K8S_PROGRAMS+=(kubeadm)
+[[ $SKIP_NODES == 1 ]] || K8S_PROGRAMS+=(kubelet kube-proxy)
 PROGRAMS=("${K8S_PROGRAMS[@]}" etcd kwok)
+[[ $SKIP_NODES == 1 ]] || PROGRAMS+=(coredns)
 
 version_of() {
   case $1 in
     etcd) echo "$ETCD_VERSION" ;;
     kwok) echo "$KWOK_VERSION" ;;
+    coredns) echo "$COREDNS_VERSION" ;;
     *) echo "$KUBERNETES_VERSION" ;;
   esac
 }
@@ -107,6 +118,10 @@ binary_ok() {
           want="etcd Version: ${ETCD_VERSION#v}" ;;
     kwok) out=$(timeout 60 "$file" --version 2>&1) || return 1
           want="${KWOK_VERSION}" ;;
+    coredns) out=$(timeout 60 "$file" -version 2>&1) || return 1
+             # a build with another plugin set is stale too
+             [[ $(timeout 60 "$file" -plugins 2>&1) == *bind* ]] || return 1
+             want="CoreDNS-${COREDNS_VERSION#v}" ;;
     *) out=$(timeout 60 "$file" --version 2>&1) || return 1
        want="Kubernetes $KUBERNETES_VERSION" ;;
   esac
@@ -339,9 +354,65 @@ build_kwok() {
   log "built kwok $KWOK_VERSION in $(fmt_secs $((SECONDS - t0))) ($(downloads_in "$logfile"))"
 }
 
+# --- CoreDNS -------------------------------------------------------------------
+
+# The cluster DNS of the real-node tier. A wrapper main with the plugins a cluster's Corefile uses
+# (bind, errors, log, health, ready, hosts, kubernetes, cache): the full plugin set would pull in every cloud
+# provider's SDK for nothing.
+build_coredns() {
+  wanted coredns || return 0
+  local t0=$SECONDS wrap="$WORK_DIR/coredns-$COREDNS_VERSION" mod=github.com/coredns/coredns go_line
+  STEP="resolving $mod@$COREDNS_VERSION"
+  log "$STEP"
+  go_line=$("$GO" list -m -f '{{.GoVersion}}' "$mod@$COREDNS_VERSION") \
+    || die "cannot resolve $mod@$COREDNS_VERSION from ${GOPROXY:-the Go module proxy}"
+  mkdir -p "$wrap"
+  printf 'module kuberos.local/build/coredns\n\ngo %s\n\nrequire %s %s\n' \
+    "$go_line" "$mod" "$COREDNS_VERSION" >"$wrap/go.mod.new"
+  mv -f "$wrap/go.mod.new" "$wrap/go.mod"
+  cat >"$wrap/main.go" <<'GO'
+// CoreDNS with the plugins of a cluster's Corefile only.
+package main
+
+import (
+	"github.com/coredns/coredns/core/dnsserver"
+	_ "github.com/coredns/coredns/plugin/bind"
+	_ "github.com/coredns/coredns/plugin/cache"
+	_ "github.com/coredns/coredns/plugin/errors"
+	_ "github.com/coredns/coredns/plugin/health"
+	_ "github.com/coredns/coredns/plugin/hosts"
+	_ "github.com/coredns/coredns/plugin/kubernetes"
+	_ "github.com/coredns/coredns/plugin/log"
+	_ "github.com/coredns/coredns/plugin/ready"
+	"github.com/coredns/coredns/coremain"
+)
+
+func init() {
+	dnsserver.Directives = []string{"bind", "errors", "log", "health", "ready", "hosts", "kubernetes", "cache"}
+}
+
+func main() { coremain.Run() }
+GO
+  STEP="downloading modules for CoreDNS $COREDNS_VERSION"
+  log "$STEP..."
+  (cd "$wrap" && run_logged "$wrap.download.log" "$GO" mod tidy) \
+    || die "module download/resolution failed for CoreDNS $COREDNS_VERSION (log: $wrap.download.log)"
+  log "modules ready ($(downloads_in "$wrap.download.log"))"
+  local t1=$SECONDS out
+  out=$(mktemp -d "$BIN_DIR/.build-coredns.XXXXXX"); TMP_DIRS+=("$out")
+  STEP="building CoreDNS $COREDNS_VERSION"
+  log "building CoreDNS $COREDNS_VERSION ($(index_of coredns)/$TOTAL)..."
+  (cd "$wrap" && "$GO" build -mod=mod -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" -o "$out/coredns" .) \
+    || die "go build failed for CoreDNS $COREDNS_VERSION"
+  install_binary coredns "$out/coredns"
+  record_time "coredns build" $((SECONDS - t1))
+  log "built CoreDNS $COREDNS_VERSION in $(fmt_secs $((SECONDS - t1))) (plus $(fmt_secs $((t1 - t0))) resolving/downloading)"
+}
+
 build_kubernetes
 build_etcd
 build_kwok
+build_coredns
 STEP="finishing"
 
 # --- summary -------------------------------------------------------------------
@@ -357,4 +428,4 @@ if ((${#TIME_ORDER[@]})); then
 else
   log "nothing to build: all ${#PROGRAMS[@]} programs were cached"
 fi
-log "versions: kubernetes $KUBERNETES_VERSION, etcd $ETCD_VERSION, kwok $KWOK_VERSION; total wall time $(fmt_secs $((SECONDS - T_START)))"
+log "versions: kubernetes $KUBERNETES_VERSION, etcd $ETCD_VERSION, kwok $KWOK_VERSION, coredns $COREDNS_VERSION; total wall time $(fmt_secs $((SECONDS - T_START)))"

@@ -29,6 +29,7 @@ import time
 from dataclasses import dataclass, field
 
 from . import cgroups, delays, netns
+from . import fabric as fabric_script
 from ._core import COLLECTIONS_DIR, SIM_DIR, Problem, SpecError, labels, ros_wheels
 from .processes import SimProcess, VolumeMount, launch, stop_all
 from .rendered import Deployment, RenderedDir, configmap_files, load_rendered, resolve_env
@@ -194,7 +195,7 @@ class Runtime:
         with open(path, "w", encoding="utf-8") as handle:
             json.dump(config, handle, indent=1)
         self._fabric_log = os.path.join(directory, "fabric.log")
-        script = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fabric.py")
+        script = fabric_script.SCRIPT
         with open(self._fabric_log, "ab") as out:
             self.fabric = subprocess.Popen(
                 [sys.executable, script, path],

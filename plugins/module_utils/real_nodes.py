@@ -1,0 +1,811 @@
+"""Real nodes of the local cluster: a kubelet, containerd and kube-proxy per node, each node a network namespace.
+
+Next to the kwok nodes of ``local_control_plane``, the hosts an inventory marks ``kuberos_local_node: real``
+run pods for real: containers from images built from this repository (local_images.py), pod networks routed
+between the nodes, Services through kube-proxy (iptables), names through CoreDNS, and the inventory's
+round-trip times between the nodes. No Ansible imports; the ``local_cluster`` module and the tests drive it.
+
+The network, for base ``B`` (default 231; one tier per base on a machine)::
+
+    root namespace: bridge <tag>mgmt 10.B.0.1/24 -- API server relay (socat, 10.B.0.1:<apiserver port>),
+                    CoreDNS (10.B.0.1:53), routes to every node's address and pod network via its veth
+         |  veth <tag>m<i> / mgmt0 10.B.0.(10+i): control traffic, not delayed
+    node namespace <tag>n-<node>: kubelet, containerd, kube-proxy (iptables), CNI bridge cni0 for pods
+         |  TUN eth0 10.(B+1).0.(10+i) = the node's InternalIP; the other nodes' pod networks routed to it
+    delay fabric (delay_fabric.py, root namespace): node and pod traffic between nodes, delayed per pair
+    pods: 10.(B+2).<i>.0/24 per node (host-local IPAM), cluster CIDR 10.(B+2).0.0/16
+
+Every program runs in its node's network namespace only (``nsenter --net``): kubelet, containerd and runc share
+the host's mount namespace, so the volumes the kubelet mounts are the ones the containers see. Each kubelet
+has a cgroup root of its own (``/<tag>-<node>``, cgroupfs, cgroup v1) and containerd state under the cluster's
+state directory. The kubelet changes host sysctls (kernel.panic, kernel.panic_on_oops, vm.overcommit_memory):
+their values are saved before the first start and put back when the tier stops.
+
+Stopping removes everything the tier made: containers (through containerd), processes, mounts under the
+state directory, pod network namespaces, CNI state, cgroups, namespaces, links and routes, and restores the
+sysctls. ``snapshot_host()`` records what the tests compare before and after.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+import shutil
+import signal
+import ssl
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass, field
+
+from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
+from ansible_collections.kuberos.platform.plugins.module_utils import delay_fabric
+
+HOST_SYSCTLS = ("kernel/panic", "kernel/panic_on_oops", "vm/overcommit_memory", "net/ipv4/ip_forward")
+CGROUP_ROOT = "/sys/fs/cgroup"
+CNI_BIN_DIRS = ("/usr/lib/cni", "/opt/cni/bin")
+CNI_PLUGINS = ("bridge", "host-local", "loopback", "portmap")
+NODE_COMPONENTS = ("containerd", "kubelet", "kube-proxy")
+SHARED_COMPONENTS = ("fabric", "apiserver-relay", "coredns")
+CLUSTER_DOMAIN = "cluster.local"
+
+
+class RealNodeError(RuntimeError):
+    """A real node could not be set up or torn down."""
+
+
+def run(*command: str, check: bool = True, timeout: float = 60, netns: str | None = None) -> subprocess.CompletedProcess:
+    if netns:
+        command = ("nsenter", f"--net=/var/run/netns/{netns}", "--", *command)
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        raise RealNodeError(f"{' '.join(command)}: {error}") from error
+    if check and done.returncode != 0:
+        raise RealNodeError(f"{' '.join(command)} exited {done.returncode}: {(done.stderr or done.stdout).strip()[-2000:]}")
+    return done
+
+
+@dataclass(frozen=True)
+class NodeNet:
+    """One real node's names and addresses."""
+
+    name: str
+    index: int
+    tag: str
+    base: int
+
+    @property
+    def netns(self) -> str:
+        return f"{self.tag}n-{self.name}"
+
+    @property
+    def veth(self) -> str:
+        return f"{self.tag}m{self.index}"
+
+    @property
+    def mgmt_ip(self) -> str:
+        return f"10.{self.base}.0.{10 + self.index}"
+
+    @property
+    def node_ip(self) -> str:
+        return f"10.{self.base + 1}.0.{10 + self.index}"
+
+    @property
+    def pod_cidr(self) -> str:
+        return f"10.{self.base + 2}.{self.index}.0/24"
+
+    @property
+    def cgroup(self) -> str:
+        return f"{self.tag}-{self.name}"
+
+    @property
+    def cni_network(self) -> str:
+        return f"kuberos-{self.tag}-{self.name}"
+
+
+@dataclass
+class RealNodes:
+    """The real nodes of one local cluster (``plane``: its LocalControlPlane)."""
+
+    plane: object
+    nodes: list[dict]  # name, labels, taints (filter real_nodes)
+    delay_ms: dict
+    binaries: dict  # kubelet, kube-proxy, coredns (paths); containerd, runc, socat from PATH
+    images: dict = field(default_factory=dict)  # reference -> OCI archive
+    aliases: dict = field(default_factory=dict)  # alias -> reference
+    base: int = 231
+    tag: str = "kr"
+    log: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if not 1 <= len(self.tag) <= 4 or not self.tag.isalnum():
+            raise RealNodeError(f"tag {self.tag!r}: expected 1 to 4 letters or digits (interface names are short)")
+        if not 2 <= self.base <= 250:
+            raise RealNodeError(f"base {self.base}: expected 2 to 250 (addresses 10.<base>..10.<base+2>)")
+        self.nets = {
+            n["name"]: NodeNet(n["name"], i, self.tag, self.base)
+            for i, n in enumerate(sorted(self.nodes, key=lambda n: n["name"]))
+        }
+
+    @classmethod
+    def from_state(cls, plane, binaries: dict) -> RealNodes | None:
+        """The real nodes a cluster's state directory says were started (to stop them), or None."""
+        try:
+            with open(plane.path("nodes", "state.json"), encoding="utf-8") as handle:
+                state = json.load(handle)
+        except (OSError, ValueError):
+            return None
+        nodes = [{"name": name, "labels": {}, "taints": []} for name in state.get("nodes", [])]
+        return cls(plane, nodes, {}, binaries, base=state.get("base", 231), tag=state.get("tag", "kr"))
+
+    # -- paths and names ---------------------------------------------------------------------------
+    def path(self, *parts: str) -> str:
+        return self.plane.path("nodes", *parts)
+
+    @property
+    def bridge(self) -> str:
+        return f"{self.tag}mgmt"
+
+    @property
+    def host_ip(self) -> str:
+        return f"10.{self.base}.0.1"
+
+    @property
+    def cluster_cidr(self) -> str:
+        return f"10.{self.base + 2}.0.0/16"
+
+    def _pidfile(self, component: str, node: str | None = None) -> str:
+        return self.plane.path("run", f"{node}-{component}.pid" if node else f"nodes-{component}.pid")
+
+    def _logfile(self, component: str, node: str | None = None) -> str:
+        return self.plane.path("logs", f"{node}-{component}.log" if node else f"nodes-{component}.log")
+
+    def _marker(self, component: str, node: str | None = None):
+        needle = {"fabric": self.path("fabric.json"), "apiserver-relay": f"bind={self.host_ip}", "coredns": self.path("Corefile")}
+        if node:
+            needle = self.path(node)
+        else:
+            needle = needle[component]
+        return lambda argv: any(needle in part for part in argv)
+
+    def pid(self, component: str, node: str | None = None) -> int | None:
+        return bg.running_pid(self._pidfile(component, node), self._marker(component, node))
+
+    def socket(self, node: str) -> str:
+        return self.path(node, "containerd", "containerd.sock")
+
+    # -- checks --------------------------------------------------------------------------------------
+    def problems(self) -> list[str]:
+        """What this machine lacks for real nodes (empty when nothing)."""
+        found = []
+        if os.geteuid() != 0:
+            found.append("real nodes need root (network namespaces, cgroups, mounts)")
+        for program in ("containerd", "runc", "ctr", "socat", "nsenter", "ip", "iptables", "conntrack"):
+            if not shutil.which(program):
+                found.append(f"`{program}` is not installed (scripts/setup.sh installs it)")
+        cni = self.cni_bin_dir()
+        if cni is None:
+            found.append(f"the CNI plugins ({', '.join(CNI_PLUGINS)}) are not installed (package containernetworking-plugins)")
+        for component in ("kubelet", "kube-proxy", "coredns"):
+            if not os.access(self.binaries.get(component, ""), os.X_OK):
+                found.append(f"{component} is not built: {self.binaries.get(component)} (make binaries WITH_NODES=1)")
+        if not os.path.exists("/dev/net/tun"):
+            found.append("/dev/net/tun is missing (the delay fabric needs TUN devices)")
+        if not os.path.isdir(os.path.join(CGROUP_ROOT, "cpu")):
+            found.append("cgroup v1 controllers are not mounted under /sys/fs/cgroup (the kubelets use cgroupfs v1)")
+        return found
+
+    @staticmethod
+    def cni_bin_dir() -> str | None:
+        for directory in CNI_BIN_DIRS:
+            if all(os.access(os.path.join(directory, p), os.X_OK) for p in CNI_PLUGINS):
+                return directory
+        return None
+
+    def running(self) -> dict[str, int | None]:
+        status = {c: self.pid(c) for c in SHARED_COMPONENTS}
+        for node in self.nets:
+            status.update({f"{node}/{c}": self.pid(c, node) for c in NODE_COMPONENTS})
+        return status
+
+    # -- lifecycle -------------------------------------------------------------------------------------
+    def start(self, timeout: float = 120.0) -> bool:
+        """Make every real node run and be Ready; True when anything changed."""
+        problems = self.problems()
+        if problems:
+            raise RealNodeError("real nodes cannot run here: " + "; ".join(problems))
+        state = self._read_state()
+        if state and state.get("nodes") != sorted(self.nets) and any(self.running().values()):
+            raise RealNodeError(
+                f"real nodes {', '.join(state['nodes'])} run with another set of nodes than {', '.join(sorted(self.nets))}; "
+                "stop them first (local_cluster_state=stopped)"
+            )
+        os.makedirs(self.path(), exist_ok=True)
+        self._save_sysctls()
+        self._write_state()
+        changed = self._network()
+        changed = self._certificates() or changed
+        changed = self._start_shared() or changed
+        for net in self.nets.values():
+            changed = self._start_node(net) or changed
+        self._wait_ready(timeout)
+        return changed
+
+    def stop(self, remove: bool = False) -> bool:
+        """Stop every real node and leave the host as it was; ``remove``: also delete their state (images too)."""
+        changed = False
+        for net in self.nets.values():
+            changed = self._stop_node(net) or changed
+        for component in reversed(SHARED_COMPONENTS):
+            changed = self._stop(component) or changed
+        if os.path.exists(f"/sys/class/net/{self.bridge}"):
+            run("ip", "link", "delete", self.bridge, check=False)
+            self.log.append(f"removed bridge {self.bridge}")
+            changed = True
+        changed = self._restore_sysctls() or changed
+        if remove and os.path.exists(self.path()):
+            self._unmount_under(self.path())
+            shutil.rmtree(self.path(), ignore_errors=True)
+            self.log.append(f"removed {self.path()}")
+            changed = True
+        return changed
+
+    def stop_kubelet(self, node: str) -> bool:
+        """Stop one node's kubelet only (its containers keep running, as on a machine whose kubelet died)."""
+        return self._stop("kubelet", node)
+
+    # -- state -------------------------------------------------------------------------------------------
+    def _read_state(self) -> dict:
+        try:
+            with open(self.path("state.json"), encoding="utf-8") as handle:
+                return json.load(handle)
+        except (OSError, ValueError):
+            return {}
+
+    def _write_state(self) -> None:
+        _write(self.path("state.json"), json.dumps({"nodes": sorted(self.nets), "base": self.base, "tag": self.tag}))
+
+    def _save_sysctls(self) -> None:
+        saved = self.path("sysctls.json")
+        if os.path.exists(saved):
+            return  # the values from before the first start, not the kubelet's
+        _write(saved, json.dumps({key: _read(f"/proc/sys/{key}").strip() for key in HOST_SYSCTLS}))
+
+    def _restore_sysctls(self) -> bool:
+        saved = self.path("sysctls.json")
+        if not os.path.exists(saved):
+            return False
+        with open(saved, encoding="utf-8") as handle:
+            values = json.load(handle)
+        restored = []
+        for key, value in values.items():
+            if _read(f"/proc/sys/{key}").strip() != value:
+                _write(f"/proc/sys/{key}", value)
+                restored.append(f"{key.replace('/', '.')}={value}")
+        os.remove(saved)
+        if restored:
+            self.log.append("restored sysctls " + ", ".join(restored))
+        return bool(restored)
+
+    # -- network --------------------------------------------------------------------------------------------
+    def _network(self) -> bool:
+        changed = False
+        if not os.path.exists(f"/sys/class/net/{self.bridge}"):
+            run("ip", "link", "add", self.bridge, "type", "bridge")
+            run("ip", "addr", "add", f"{self.host_ip}/24", "dev", self.bridge)
+            run("ip", "link", "set", self.bridge, "up")
+            self.log.append(f"created bridge {self.bridge} ({self.host_ip}/24)")
+            changed = True
+        for net in self.nets.values():
+            if not os.path.exists(f"/var/run/netns/{net.netns}"):
+                self._create_netns(net)
+                changed = True
+            run("ip", "route", "replace", f"{net.node_ip}/32", "via", net.mgmt_ip, "dev", self.bridge)
+            run("ip", "route", "replace", net.pod_cidr, "via", net.mgmt_ip, "dev", self.bridge)
+        return changed
+
+    def _create_netns(self, net: NodeNet) -> None:
+        ns = net.netns
+        run("ip", "netns", "add", ns)
+        run("ip", "-n", ns, "link", "set", "lo", "up")
+        run("ip", "link", "add", net.veth, "type", "veth", "peer", "name", "mgmt0", "netns", ns)
+        run("ip", "link", "set", net.veth, "master", self.bridge, "up")
+        run("ip", "-n", ns, "addr", "add", f"{net.mgmt_ip}/24", "dev", "mgmt0")
+        run("ip", "-n", ns, "link", "set", "mgmt0", "up")
+        run("ip", "-n", ns, "route", "add", "default", "via", self.host_ip, "dev", "mgmt0")
+        run("ip", "-n", ns, "tuntap", "add", "dev", "eth0", "mode", "tun")
+        run("ip", "-n", ns, "addr", "add", f"{net.node_ip}/24", "dev", "eth0")
+        run("ip", "-n", ns, "link", "set", "eth0", "txqueuelen", "4096", "up")
+        for other in self.nets.values():
+            if other.name != net.name:
+                run("ip", "-n", ns, "route", "add", other.pod_cidr, "dev", "eth0")
+        settings = [
+            "net.ipv4.ip_forward=1", "net.ipv4.conf.all.rp_filter=0", "net.ipv4.conf.default.rp_filter=0",
+            "net.ipv6.conf.all.disable_ipv6=1", "net.ipv6.conf.default.disable_ipv6=1",
+        ]  # fmt: skip
+        if os.path.exists("/proc/sys/net/bridge/bridge-nf-call-iptables"):
+            settings.append("net.bridge.bridge-nf-call-iptables=1")  # Services between pods of one node's bridge
+        run("sysctl", "-qw", *settings, netns=ns)
+        self.log.append(f"created network namespace {ns} ({net.node_ip}, pods {net.pod_cidr})")
+
+    # -- certificates and configuration ------------------------------------------------------------------
+    def _certificates(self) -> bool:
+        relay = f"https://{self.host_ip}:{self.plane.ports.apiserver}"
+        for net in self.nets.values():
+            self.plane.ensure_certificate(f"kubelet-{net.name}", f"system:node:{net.name}", "system:nodes", server=relay)
+        self.plane.ensure_certificate("kube-proxy", "system:kube-proxy", None, server=relay)
+        self.plane.ensure_certificate("coredns", "system:kuberos:coredns", None)
+        return False
+
+    def _coredns_rbac(self) -> None:
+        """What CoreDNS's kubernetes plugin reads (the ClusterRole a cluster's CoreDNS has)."""
+        role = {
+            "apiVersion": "rbac.authorization.k8s.io/v1",
+            "kind": "ClusterRole",
+            "metadata": {"name": "system:kuberos:coredns", "labels": {"app.kubernetes.io/managed-by": "kuberos"}},
+            "rules": [
+                {"apiGroups": [""], "resources": ["endpoints", "services", "pods", "namespaces"], "verbs": ["list", "watch"]},
+                {"apiGroups": ["discovery.k8s.io"], "resources": ["endpointslices"], "verbs": ["list", "watch"]},
+            ],
+        }
+        binding = {
+            "apiVersion": "rbac.authorization.k8s.io/v1",
+            "kind": "ClusterRoleBinding",
+            "metadata": {"name": "system:kuberos:coredns", "labels": {"app.kubernetes.io/managed-by": "kuberos"}},
+            "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": "system:kuberos:coredns"},
+            "subjects": [{"apiGroup": "rbac.authorization.k8s.io", "kind": "User", "name": "system:kuberos:coredns"}],
+        }
+        for obj, plural in ((role, "clusterroles"), (binding, "clusterrolebindings")):
+            self.api("PATCH", f"/apis/rbac.authorization.k8s.io/v1/{plural}/{obj['metadata']['name']}", obj)
+
+    def api(self, method: str, path: str, body: dict | None = None) -> dict:
+        """One request to the API server as the administrator (server-side apply for PATCH)."""
+        if method == "PATCH":
+            path += "?fieldManager=kuberos-local-cluster&force=true"
+        request = urllib.request.Request(
+            self.plane.server + path, method=method, data=json.dumps(body).encode() if body else None
+        )
+        if body is not None:
+            request.add_header("Content-Type", "application/apply-patch+yaml")
+        context = ssl.create_default_context(cafile=self.plane.path("pki", "ca.crt"))
+        context.load_cert_chain(self.plane.path("pki", "admin.crt"), self.plane.path("pki", "admin.key"))
+        try:
+            with urllib.request.urlopen(request, timeout=10, context=context) as response:
+                return json.loads(response.read() or b"{}")
+        except urllib.error.HTTPError as error:
+            if error.code == 404 and method == "GET":
+                return {}
+            raise RealNodeError(f"{method} {path}: HTTP {error.code}: {error.read()[:500].decode(errors='replace')}") from error
+        except (urllib.error.URLError, OSError) as error:
+            raise RealNodeError(f"{method} {path}: {error}") from error
+
+    def _containerd_config(self, net: NodeNet) -> str:
+        directory = self.path(net.name, "containerd")
+        return "\n".join(
+            [
+                "version = 2",
+                f'root = "{directory}/root"',
+                f'state = "{directory}/state"',
+                "[grpc]",
+                f'  address = "{self.socket(net.name)}"',
+                "[ttrpc]",
+                f'  address = "{self.socket(net.name)}.ttrpc"',
+                '[plugins."io.containerd.internal.v1.opt"]',
+                f'  path = "{directory}/opt"',
+                '[plugins."io.containerd.grpc.v1.cri"]',
+                '  sandbox_image = "kuberos.local/pause:3.10"',
+                "  restrict_oom_score_adj = true  # root here lacks CAP_SYS_RESOURCE",
+                "  enable_selinux = false",
+                '  stream_server_address = "127.0.0.1"',
+                "  netns_mounts_under_state_dir = true  # pod network namespaces under the node's state, not /run/netns",
+                '[plugins."io.containerd.grpc.v1.cri".cni]',
+                f'  bin_dir = "{self.cni_bin_dir()}"',
+                f'  conf_dir = "{self.path(net.name, "cni", "net.d")}"',
+                '[plugins."io.containerd.grpc.v1.cri".containerd]',
+                '  snapshotter = "overlayfs"',
+                '[plugins."io.containerd.grpc.v1.cri".containerd.runtimes.runc]',
+                '  runtime_type = "io.containerd.runc.v2"',
+                '[plugins."io.containerd.grpc.v1.cri".containerd.runtimes.runc.options]',
+                "  SystemdCgroup = false",
+                "",
+            ]
+        )
+
+    def _cni_config(self, net: NodeNet) -> str:
+        return json.dumps(
+            {
+                "cniVersion": "0.4.0",
+                "name": net.cni_network,
+                "plugins": [
+                    {
+                        "type": "bridge",
+                        "bridge": "cni0",
+                        "isGateway": True,
+                        "ipMasq": False,  # pods keep their addresses across nodes; the root namespace routes back
+                        "hairpinMode": True,
+                        "ipam": {
+                            "type": "host-local",
+                            "ranges": [[{"subnet": net.pod_cidr}]],
+                            "routes": [{"dst": "0.0.0.0/0"}],
+                            "dataDir": self.path(net.name, "cni", "ipam"),
+                        },
+                    },
+                    {"type": "portmap", "capabilities": {"portMappings": True}},
+                ],
+            },
+            indent=1,
+        )
+
+    def _kubelet_config(self, net: NodeNet, node: dict) -> dict:
+        return {
+            "apiVersion": "kubelet.config.k8s.io/v1beta1",
+            "kind": "KubeletConfiguration",
+            "authentication": {
+                "anonymous": {"enabled": False},
+                "webhook": {"enabled": True},
+                "x509": {"clientCAFile": self.plane.path("pki", "ca.crt")},
+            },
+            "authorization": {"mode": "Webhook"},
+            "address": net.node_ip,
+            "healthzBindAddress": "127.0.0.1",
+            "readOnlyPort": 0,
+            "cgroupDriver": "cgroupfs",
+            "cgroupRoot": f"/{net.cgroup}",
+            "cgroupsPerQOS": True,
+            "failCgroupV1": False,
+            "failSwapOn": False,
+            "protectKernelDefaults": False,
+            "clusterDNS": [self.host_ip],
+            "clusterDomain": CLUSTER_DOMAIN,
+            "resolvConf": self.path(net.name, "resolv.conf"),
+            "containerRuntimeEndpoint": f"unix://{self.socket(net.name)}",
+            "podLogsDir": self.path(net.name, "pod-logs"),
+            "podCIDR": net.pod_cidr,
+            "registerNode": True,
+            "registerWithTaints": node.get("taints") or [],
+            "serializeImagePulls": False,
+            "rotateCertificates": False,
+            "imageGCHighThresholdPercent": 100,  # the imported images cannot be pulled again
+            "imageGCLowThresholdPercent": 99,
+            "evictionHard": {"memory.available": "100Mi", "nodefs.available": "1%", "imagefs.available": "1%"},
+            "nodeStatusUpdateFrequency": "5s",
+            "maxPods": 110,
+        }
+
+    def _kube_proxy_config(self, net: NodeNet) -> dict:
+        return {
+            "apiVersion": "kubeproxy.config.k8s.io/v1alpha1",
+            "kind": "KubeProxyConfiguration",
+            "mode": "iptables",
+            "clientConnection": {"kubeconfig": self.plane.path("kube-proxy.kubeconfig")},
+            "hostnameOverride": net.name,
+            "bindAddress": "0.0.0.0",
+            "clusterCIDR": self.cluster_cidr,
+            "healthzBindAddress": "127.0.0.1:10256",
+            "metricsBindAddress": "127.0.0.1:10249",
+            # conntrack limits are host-wide: left as they are
+            "conntrack": {"maxPerCore": 0, "min": 0, "tcpEstablishedTimeout": "0s", "tcpCloseWaitTimeout": "0s"},
+            "iptables": {"localhostNodePorts": False, "masqueradeAll": False},
+            "nodePortAddresses": ["primary"],
+        }
+
+    def _corefile(self) -> str:
+        return "\n".join(
+            [
+                ".:53 {",
+                f"    bind {self.host_ip}",
+                "    errors",
+                f"    health {self.host_ip}:8080",
+                f"    ready {self.host_ip}:8181",
+                f"    kubernetes {CLUSTER_DOMAIN} in-addr.arpa ip6.arpa {{",
+                f"        kubeconfig {self.plane.path('coredns.kubeconfig')} kuberos-local",
+                "        pods insecure",
+                "        fallthrough in-addr.arpa ip6.arpa",
+                "    }",
+                "    cache 5",
+                "}",
+                "",
+            ]
+        )
+
+    # -- processes ----------------------------------------------------------------------------------------
+    def _start(self, component: str, command: list[str], node: str | None = None, netns: str | None = None) -> bool:
+        if self.pid(component, node) is not None:
+            return False
+        if netns:
+            command = ["nsenter", f"--net=/var/run/netns/{netns}", "--", *command]
+        process = bg.start(command, self._pidfile(component, node), self._logfile(component, node))
+        self.log.append(f"started {node + '/' if node else ''}{component} (pid {process.pid})")
+        return True
+
+    def _stop(self, component: str, node: str | None = None, timeout: float = 15.0) -> bool:
+        pid = bg.stop(self._pidfile(component, node), self._marker(component, node), timeout)
+        if pid is not None:
+            self.log.append(f"stopped {node + '/' if node else ''}{component} (pid {pid})")
+        return pid is not None
+
+    def _start_shared(self) -> bool:
+        fabric = {
+            "hosts": [
+                {"node": n.name, "netns": n.netns, "tun": "eth0", "address": n.node_ip, "routes": [n.pod_cidr]}
+                for n in self.nets.values()
+            ],
+            "delay_ms": self.delay_ms,
+            "broadcasts": [f"10.{self.base + 1}.0.255"],
+            "stats_file": self.path("fabric-stats.json"),
+            "stats_interval": 5.0,
+        }
+        _write(self.path("fabric.json"), json.dumps(fabric, indent=1))
+        changed = self._start("fabric", [sys.executable, delay_fabric.__file__, self.path("fabric.json")])
+        if changed:
+            self._wait_for(lambda: "fabric ready" in _read(self._logfile("fabric")), 15, "the delay fabric", "fabric")
+        port = self.plane.ports.apiserver
+        changed = (
+            self._start(
+                "apiserver-relay",
+                ["socat", f"TCP-LISTEN:{port},bind={self.host_ip},reuseaddr,fork", f"TCP:127.0.0.1:{port}"],
+            )
+            or changed
+        )
+        self._coredns_rbac()
+        _write(self.path("Corefile"), self._corefile())
+        changed = self._start("coredns", [self.binaries["coredns"], "-conf", self.path("Corefile")]) or changed
+        return changed
+
+    def _start_node(self, net: NodeNet) -> bool:
+        node = next(n for n in self.nodes if n["name"] == net.name)
+        directory = self.path(net.name)
+        for sub in ("containerd", "cni/net.d", "cni/ipam", "kubelet", "pod-logs"):
+            os.makedirs(os.path.join(directory, sub), exist_ok=True)
+        _write(os.path.join(directory, "containerd", "config.toml"), self._containerd_config(net))
+        _write(os.path.join(directory, "cni", "net.d", "10-kuberos.conflist"), self._cni_config(net))
+        _write(os.path.join(directory, "resolv.conf"), f"nameserver {self.host_ip}\n")
+        _write(os.path.join(directory, "kubelet.json"), json.dumps(self._kubelet_config(net, node), indent=1))
+        _write(os.path.join(directory, "kube-proxy.json"), json.dumps(self._kube_proxy_config(net), indent=1))
+        self._cgroups(net)
+        changed = self._start(
+            "containerd", ["containerd", "--config", os.path.join(directory, "containerd", "config.toml")], net.name, net.netns
+        )
+        self._wait_for(lambda: os.path.exists(self.socket(net.name)), 30, f"containerd of {net.name}", "containerd", net.name)
+        if self.images:
+            from ansible_collections.kuberos.platform.plugins.module_utils.local_images import import_images
+
+            done = import_images("ctr", self.socket(net.name), self.images, self.aliases, log=lambda _m: None)
+            if done:
+                self.log.append(f"{net.name}: imported {len(done)} images")
+                changed = True
+        labels = ",".join(f"{k}={v}" for k, v in sorted(node.get("labels", {}).items()) if not k.startswith("kubernetes.io/"))
+        kubelet = [
+            self.binaries["kubelet"],
+            f"--config={os.path.join(directory, 'kubelet.json')}",
+            f"--kubeconfig={self.plane.path(f'kubelet-{net.name}.kubeconfig')}",
+            f"--hostname-override={net.name}",
+            f"--node-ip={net.node_ip}",
+            f"--root-dir={os.path.join(directory, 'kubelet')}",
+            f"--cert-dir={os.path.join(directory, 'kubelet', 'pki')}",
+            f"--node-labels={labels}",
+            "--v=1",
+        ]
+        changed = self._start("kubelet", kubelet, net.name, net.netns) or changed
+        proxy = [self.binaries["kube-proxy"], f"--config={os.path.join(directory, 'kube-proxy.json')}", "--v=1"]
+        return self._start("kube-proxy", proxy, net.name, net.netns) or changed
+
+    def _cgroups(self, net: NodeNet) -> None:
+        """The kubelet's cgroup root in every v1 hierarchy (cpuset needs the parent's cpus and mems)."""
+        for hierarchy in _hierarchies():
+            path = os.path.join(hierarchy, net.cgroup)
+            os.makedirs(path, exist_ok=True)
+            if os.path.basename(hierarchy) == "cpuset":
+                for key in ("cpuset.cpus", "cpuset.mems"):
+                    if not _read(os.path.join(path, key)).strip():
+                        _write(os.path.join(path, key), _read(os.path.join(hierarchy, key)).strip())
+
+    def _wait_for(self, check, timeout: float, what: str, component: str, node: str | None = None) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if check():
+                return
+            if self.pid(component, node) is None:
+                break
+            time.sleep(0.1)
+        raise RealNodeError(
+            f"{what} did not start; see {self._logfile(component, node)}:\n{bg.tail(self._logfile(component, node))}"
+        )
+
+    def _wait_ready(self, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        waiting = set(self.nets)
+        while waiting and time.monotonic() < deadline:
+            for name in sorted(waiting):
+                node = self.api("GET", f"/api/v1/nodes/{name}")
+                conditions = {c["type"]: c["status"] for c in node.get("status", {}).get("conditions", [])}
+                if conditions.get("Ready") == "True":
+                    waiting.discard(name)
+                elif self.pid("kubelet", name) is None:
+                    log = self._logfile("kubelet", name)
+                    raise RealNodeError(f"the kubelet of {name} exited; see {log}:\n{bg.tail(log)}")
+            time.sleep(0.5)
+        if waiting:
+            name = sorted(waiting)[0]
+            raise RealNodeError(
+                f"nodes {', '.join(sorted(waiting))} not Ready after {timeout:.0f} s; see {self._logfile('kubelet', name)}:\n"
+                + bg.tail(self._logfile("kubelet", name))
+            )
+
+    # -- teardown --------------------------------------------------------------------------------------------
+    def _stop_node(self, net: NodeNet) -> bool:
+        changed = self._stop("kubelet", net.name)
+        changed = self._stop("kube-proxy", net.name) or changed
+        pod_netns = self._pod_netns(net)
+        if self.pid("containerd", net.name) is not None:
+            self._remove_containers(net)
+        changed = self._stop("containerd", net.name) or changed
+        # whatever is left: container processes in the node's cgroups, shims of its containerd
+        changed = self._kill_leftovers(net) or changed
+        changed = self._unmount_under(self.path(net.name)) or changed
+        for name in pod_netns:
+            run("ip", "netns", "delete", name, check=False)
+            changed = True
+        for cache in glob.glob(f"/var/lib/cni/results/{net.cni_network}-*") + glob.glob(
+            f"/var/lib/cni/cache/results/{net.cni_network}-*"
+        ):
+            os.remove(cache)
+        shutil.rmtree(self.path(net.name, "cni", "ipam"), ignore_errors=True)
+        changed = self._remove_cgroups(net) or changed
+        if os.path.exists(f"/var/run/netns/{net.netns}"):
+            run("ip", "netns", "delete", net.netns, check=False)
+            self.log.append(f"removed network namespace {net.netns}")
+            changed = True
+        return changed
+
+    def _pod_netns(self, net: NodeNet) -> list[str]:
+        """The pod network namespaces (cni-...) the node's containers are in."""
+        inodes = set()
+        for pid in self._cgroup_pids(net):
+            try:
+                inodes.add(os.stat(f"/proc/{pid}/ns/net").st_ino)
+            except OSError:
+                continue
+        return [os.path.basename(p) for p in glob.glob("/var/run/netns/cni-*") if _inode(p) in inodes]
+
+    def _remove_containers(self, net: NodeNet) -> None:
+        ctr = ["ctr", "-a", self.socket(net.name), "-n", "k8s.io"]
+        tasks = run(*ctr, "tasks", "ls", "-q", check=False).stdout.split()
+        for task in tasks:
+            run(*ctr, "tasks", "kill", "-a", "-s", "SIGKILL", task, check=False)
+        for task in tasks:
+            for _ in range(50):
+                if run(*ctr, "tasks", "delete", task, check=False).returncode == 0:
+                    break
+                time.sleep(0.1)
+        for container in run(*ctr, "containers", "ls", "-q", check=False).stdout.split():
+            run(*ctr, "containers", "delete", container, check=False)
+        if tasks:
+            self.log.append(f"{net.name}: removed {len(tasks)} containers")
+
+    def _cgroup_pids(self, net: NodeNet) -> set[int]:
+        pids = set()
+        for hierarchy in _hierarchies():
+            for procs in glob.glob(os.path.join(hierarchy, net.cgroup, "**", "cgroup.procs"), recursive=True):
+                pids.update(int(p) for p in _read(procs).split())
+        return pids
+
+    def _kill_leftovers(self, net: NodeNet) -> bool:
+        killed = False
+        socket = self.socket(net.name)
+        for _ in range(50):
+            pids = self._cgroup_pids(net)
+            pids |= {
+                pid for pid in _all_pids() if "containerd-shim" in " ".join(bg.cmdline(pid)[:1]) and socket in bg.cmdline(pid)
+            }
+            if not pids:
+                break
+            for pid in pids:
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                    killed = True
+                except ProcessLookupError:
+                    pass
+            time.sleep(0.1)
+        if killed:
+            self.log.append(f"{net.name}: killed processes left behind")
+        return killed
+
+    def _unmount_under(self, directory: str) -> bool:
+        prefix = os.path.realpath(directory).rstrip("/") + "/"
+        mounts = [m for m in _mount_points() if (m + "/").startswith(prefix)]
+        for mount in sorted(mounts, key=len, reverse=True):
+            run("umount", "-l", mount, check=False)
+        return bool(mounts)
+
+    def _remove_cgroups(self, net: NodeNet) -> bool:
+        removed = False
+        for hierarchy in _hierarchies():
+            top = os.path.join(hierarchy, net.cgroup)
+            if not os.path.isdir(top):
+                continue
+            for directory in sorted((d for d, _subdirs, _files in os.walk(top)), key=len, reverse=True):
+                try:
+                    os.rmdir(directory)
+                    removed = True
+                except OSError:
+                    pass
+        return removed
+
+
+# -- host inspection -------------------------------------------------------------------------------------------
+def _read(path: str) -> str:
+    try:
+        with open(path, encoding="utf-8") as handle:
+            return handle.read()
+    except OSError:
+        return ""
+
+
+def _write(path: str, text: str) -> None:
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with open(path, "w", encoding="utf-8") as handle:
+        handle.write(text)
+
+
+def _inode(path: str) -> int | None:
+    try:
+        return os.stat(path).st_ino
+    except OSError:
+        return None
+
+
+def _is_shim_of(pid: int, socket: str) -> bool:
+    argv = bg.cmdline(pid)
+    return bool(argv) and "containerd-shim" in argv[0] and socket in argv
+
+
+def _all_pids() -> list[int]:
+    return [int(p) for p in os.listdir("/proc") if p.isdigit()]
+
+
+def _hierarchies() -> list[str]:
+    """The mounted cgroup v1 hierarchies (cpu, memory, ..., the named systemd one)."""
+    found = []
+    for line in _read("/proc/self/mounts").splitlines():
+        parts = line.split()
+        if len(parts) > 2 and parts[2] == "cgroup" and parts[1].startswith(CGROUP_ROOT + "/"):
+            found.append(parts[1])
+    return sorted(set(found))
+
+
+def _mount_points() -> list[str]:
+    points = []
+    for line in _read("/proc/self/mountinfo").splitlines():
+        parts = line.split()
+        if len(parts) > 4:
+            points.append(parts[4].replace("\\040", " "))
+    return points
+
+
+def snapshot_host() -> dict:
+    """What the real nodes may change on the host, to compare before and after: network namespaces, links,
+    mounts, cgroups, root namespace routes and iptables rules, sysctls, CNI state, processes of the tier."""
+    cgroups = sorted(
+        os.path.join(os.path.basename(h), d) for h in _hierarchies() for d in os.listdir(h) if os.path.isdir(os.path.join(h, d))
+    )
+    processes = sorted(
+        " ".join(bg.cmdline(pid)[:1])
+        for pid in _all_pids()
+        if any(word in " ".join(bg.cmdline(pid)[:1]) for word in ("containerd", "kubelet", "kube-proxy", "coredns", "pause"))
+    )
+    return {
+        "netns": sorted(os.listdir("/var/run/netns")) if os.path.isdir("/var/run/netns") else [],
+        "links": sorted(os.listdir("/sys/class/net")),
+        "mounts": sorted(_mount_points()),
+        "cgroups": cgroups,
+        "routes": run("ip", "route", "show", check=False).stdout.splitlines(),
+        "iptables": [line for line in run("iptables-save", check=False).stdout.splitlines() if not line.startswith(("#", ":"))],
+        "sysctls": {key: _read(f"/proc/sys/{key}").strip() for key in HOST_SYSCTLS},
+        "cni": sorted(glob.glob("/var/lib/cni/**", recursive=True)),
+        "processes": processes,
+    }

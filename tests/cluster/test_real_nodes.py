@@ -1,0 +1,367 @@
+"""Real pods on real kubelets: the local cluster's real-node tier (docs/real-nodes.md).
+
+One cluster for this module, started with playbooks/local_cluster.yml on inventories/real-pods (robot-1,
+edge-1, edge-2 and cloud-1 as real nodes: a kubelet, containerd and kube-proxy each, in network namespaces
+linked by the delay fabric with the inventory's round-trip times: robot-edge 5 ms, robot-cloud 40 ms), on
+ports and addresses of its own. The tests run in order:
+
+- the nodes register with the inventory's labels and taints and are Ready;
+- a listener on cloud-1 hears a talker on robot-1 through a Fast DDS discovery server pod on edge-1 reached by
+  its Service name (CoreDNS, kube-proxy); the same listener program pointed at a Service without the server
+  hears nothing (the negative control);
+- ROS 2 round trips between a pod on robot-1 and pods on edge-1 and cloud-1 show the inventory's delays;
+- playbooks/deploy.yml places and applies the pick-and-place example: every instance runs as a pod on the node
+  its placement names, and the robot's simulated hardware on robot-1 completes a pick cycle with them;
+- the kubelet of a node stopped: the controller moves its modules and they run again on another node;
+- teardown (local_cluster_state=absent) leaves the host as it was (namespaces, links, mounts, cgroups, routes,
+  iptables, sysctls, CNI state, processes).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+import pytest
+from helpers import ROOT, Cluster, playbook
+
+sys.path.insert(0, os.path.join(ROOT, ".collections"))
+from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes, snapshot_host
+
+pytestmark = [pytest.mark.cluster, pytest.mark.real_nodes]
+
+INVENTORY = "inventories/real-pods"
+REAL_PORTS = {
+    "apiserver": 28443,
+    "etcd_client": 28379,
+    "etcd_peer": 28380,
+    "controller_manager": 28257,
+    "scheduler": 28259,
+    "kwok": 28247,
+}
+BASE, TAG = 241, "kt"  # addresses 10.241-243.x, names kt...: apart from a developer's real nodes (10.231, kr)
+NODES = ["cloud-1", "edge-1", "edge-2", "robot-1"]
+ROS_IMAGE = "ghcr.io/kuberos/pnp-planner:0.1"  # any name of the collection's ROS image
+PROGRAMS = os.path.join(ROOT, "tests", "integration", "ros")
+SPEC = os.path.join(ROOT, "examples", "pick-and-place.yml")
+GRACE = 2
+
+
+def require_real_nodes() -> None:
+    problems = []  # the programs built from the Go module proxy are the role's to build
+    if os.geteuid() != 0:
+        problems.append("real nodes need root")
+    for program in ("containerd", "runc", "socat", "umoci", "debootstrap"):
+        if not any(os.access(os.path.join(d, program), os.X_OK) for d in os.environ.get("PATH", "").split(":")):
+            problems.append(f"{program} is not installed (scripts/setup.sh installs it)")
+    if RealNodes.cni_bin_dir() is None:
+        problems.append("the CNI plugins are not installed (containernetworking-plugins)")
+    if problems:
+        message = "; ".join(problems)
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+
+
+class RealCluster(Cluster):
+    def __init__(self, state_dir):
+        super().__init__(state_dir, REAL_PORTS)
+        extra = {"local_cluster_real_nodes_base": BASE, "local_cluster_real_nodes_tag": TAG}
+        self.vars += ["-e", json.dumps({**extra, "kuberos_kubeconfig": self.kubeconfig})]
+
+    def start(self):
+        return playbook("local_cluster.yml", *self.vars, inventory=INVENTORY, timeout=2400)
+
+    def stop(self, state="stopped"):
+        return playbook("local_cluster.yml", *self.vars, "-e", f"local_cluster_state={state}", inventory=INVENTORY)
+
+    def deploy(self, spec, render_dir, *extra):
+        render = ["-e", f"rosdeployment_file={spec}", "-e", f"kuberos_render_dir={render_dir}"]
+        return self.play("deploy.yml", *render, *extra)
+
+    def play(self, name, *extra, timeout=900):
+        return playbook(name, *self.vars, *extra, inventory=INVENTORY, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def real(tmp_path_factory):
+    require_real_nodes()
+    before = snapshot_host()
+    cluster = RealCluster(tmp_path_factory.mktemp("real-cluster"))
+    cluster.before = before
+    try:
+        started = time.monotonic()
+        result = cluster.start()
+        assert result.returncode == 0, result.stdout[-8000:] + result.stderr[-3000:]
+        cluster.start_seconds = time.monotonic() - started
+        core, apps, _ = cluster.clients()
+        cluster.core, cluster.apps = core, apps
+        yield cluster
+    finally:
+        cluster.stop(state="absent")
+
+
+def wait_for(check, timeout, what, interval=1.0):
+    deadline = time.monotonic() + timeout
+    value = None
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {value!r})")
+
+
+def logs(real, namespace, pod):
+    try:
+        return real.core.read_namespaced_pod_log(pod, namespace)
+    except Exception:
+        return ""
+
+
+def program_pod(name, node, namespace, args, env, robot=None):
+    tolerations = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}] if robot else []
+    return {
+        "apiVersion": "v1",
+        "kind": "Pod",
+        "metadata": {"name": name, "namespace": namespace, "labels": {"test": name}},
+        "spec": {
+            "nodeSelector": {"kubernetes.io/hostname": node},
+            "tolerations": tolerations,
+            "terminationGracePeriodSeconds": 1,
+            "containers": [
+                {
+                    "name": "main",
+                    "image": ROS_IMAGE,
+                    "imagePullPolicy": "IfNotPresent",
+                    "args": ["python3", *args],
+                    "env": [{"name": k, "value": v} for k, v in env.items()],
+                    "volumeMounts": [{"name": "programs", "mountPath": "/programs"}],
+                }
+            ],
+            "volumes": [{"name": "programs", "configMap": {"name": "programs"}}],
+        },
+    }
+
+
+@pytest.fixture(scope="module")
+def lab(real):
+    """A namespace with the test's ROS programs (a ConfigMap) and a discovery server pod on edge-1 + its Service."""
+    namespace = "real-node-test"
+    real.core.create_namespace({"metadata": {"name": namespace}})
+    data = {}
+    for name in ("talker.py", "listener.py", "node_runner.py", "ros_ping.py"):
+        with open(os.path.join(PROGRAMS, name), encoding="utf-8") as handle:
+            data[name] = handle.read()
+    real.core.create_namespaced_config_map(namespace, {"metadata": {"name": "programs"}, "data": data})
+    server = program_pod("discovery", "edge-1", namespace, [], {})
+    server["spec"]["containers"][0].update(
+        command=["fast-discovery-server", "-i", "0", "-l", "0.0.0.0", "-p", "11811"], args=[], volumeMounts=[]
+    )
+    server["spec"]["volumes"] = []
+    real.core.create_namespaced_pod(namespace, server)
+    for name, selector in (("discovery", {"test": "discovery"}), ("no-discovery", {"test": "nothing-here"})):
+        real.core.create_namespaced_service(
+            namespace,
+            {
+                "metadata": {"name": name},
+                "spec": {"selector": selector, "ports": [{"name": "dds", "port": 11811, "protocol": "UDP", "targetPort": 11811}]},
+            },
+        )
+    yield namespace
+    real.core.delete_namespace(namespace)
+
+
+def ros_env(service, namespace):
+    return {"ROS_DISCOVERY_SERVER": f"{service}.{namespace}.svc.cluster.local:11811", "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+
+
+def phase(real, namespace, pod):
+    try:
+        found = real.core.read_namespaced_pod(pod, namespace)
+    except Exception:
+        return None
+    return found.status.phase, found.spec.node_name, found.status.pod_ip
+
+
+# -- the tests, in order ---------------------------------------------------------------------------------------
+
+
+def test_real_nodes_register_with_the_inventorys_labels_and_taints(real):
+    nodes = {n.metadata.name: n for n in real.core.list_node().items}
+    assert sorted(nodes) == NODES, "every host of inventories/real-pods is a real node, none is kwok"
+    for name, node in nodes.items():
+        ready = {c.type: c.status for c in node.status.conditions}["Ready"]
+        assert ready == "True", name
+        assert node.metadata.annotations.get("kwok.x-k8s.io/node") is None
+        assert node.status.node_info.kubelet_version == "v1.34.4"
+        internal = [a.address for a in node.status.addresses if a.type == "InternalIP"]
+        assert internal and internal[0].startswith(f"10.{BASE + 1}.0."), internal
+        assert node.metadata.labels["kuberos.io/role"] in ("robot", "edge", "cloud"), node.metadata.labels
+    robot = nodes["robot-1"]
+    assert robot.metadata.labels.get("kuberos.io/fleet") == "test-fleet"
+    assert [(t.key, t.value, t.effect) for t in robot.spec.taints or []] == [("kuberos.io/robot", "robot-1", "NoSchedule")]
+    print(f"real cluster started in {real.start_seconds:.1f} s")
+
+
+def test_discovery_through_a_service_across_two_real_nodes_with_a_negative_control(real, lab):
+    wait_for(lambda: (phase(real, lab, "discovery") or ("",))[0] == "Running", 120, "the discovery server pod Running")
+    talker, listener = ["/programs/talker.py", "/kuberos_chatter"], ["/programs/listener.py", "/kuberos_chatter"]
+    pods = {
+        "talker": program_pod("talker", "robot-1", lab, talker, ros_env("discovery", lab), robot=True),
+        "listener": program_pod("listener", "cloud-1", lab, listener, ros_env("discovery", lab)),
+        # the same program on the same node, its discovery Service without endpoints: nothing may arrive
+        "lonely": program_pod("lonely", "cloud-1", lab, listener, ros_env("no-discovery", lab)),
+    }
+    for pod in pods.values():
+        real.core.create_namespaced_pod(lab, pod)
+    for name in pods:
+        wait_for(lambda name=name: (phase(real, lab, name) or ("",))[0] == "Running", 120, f"{name} Running")
+    placed = {name: phase(real, lab, name)[1] for name in ("discovery", *pods)}
+    assert placed == {"discovery": "edge-1", "talker": "robot-1", "listener": "cloud-1", "lonely": "cloud-1"}
+    wait_for(lambda: "received kuberos" in logs(real, lab, "listener"), 60, "the listener to hear the talker")
+    assert "ready" in logs(real, lab, "lonely"), "the negative control runs"
+    time.sleep(5)  # the talker keeps publishing; the control had as long as the listener and more
+    assert "received" not in logs(real, lab, "lonely"), "a listener without a discovery server heard the talker"
+    for name in pods:
+        real.core.delete_namespaced_pod(name, lab, grace_period_seconds=0)
+
+
+def test_ros_round_trips_between_real_nodes_show_the_inventorys_delays(real, lab):
+    env = ros_env("discovery", lab)
+    real.core.create_namespaced_pod(lab, program_pod("ping", "robot-1", lab, ["/programs/ros_ping.py", "ping"], env, robot=True))
+    real.core.create_namespaced_pod(lab, program_pod("echo-edge", "edge-2", lab, ["/programs/ros_ping.py", "echo"], env))
+    wait_for(lambda: "rtt_ms" in logs(real, lab, "ping"), 120, "round trips robot-1 <-> edge-2")
+
+    def samples(count):
+        return wait_for(
+            lambda: (
+                (v := [float(line.split()[1]) for line in logs(real, lab, "ping").splitlines() if line.startswith("rtt_ms")])
+                and len(v) >= count
+                and v
+            ),
+            60,
+            f"{count} round trips",
+        )
+
+    edge = statistics.median(samples(20)[-15:])
+    real.core.delete_namespaced_pod("echo-edge", lab, grace_period_seconds=0)
+    wait_for(lambda: phase(real, lab, "echo-edge") is None, 60, "the edge echo gone")
+    real.core.create_namespaced_pod(lab, program_pod("echo-cloud", "cloud-1", lab, ["/programs/ros_ping.py", "echo"], env))
+    time.sleep(3)
+    seen = len(samples(1))
+    cloud = statistics.median(samples(seen + 25)[-15:])
+    print(f"ROS round trip robot-1 <-> edge-2 {edge:.1f} ms (inventory 5 ms), <-> cloud-1 {cloud:.1f} ms (inventory 40 ms)")
+    assert 5.0 <= edge < 5.0 + 25.0, edge
+    assert 40.0 <= cloud < 40.0 + 25.0, cloud
+    for name in ("ping", "echo-cloud"):
+        real.core.delete_namespaced_pod(name, lab, grace_period_seconds=0)
+
+
+@pytest.fixture(scope="module")
+def deployed(real, tmp_path_factory):
+    render = tmp_path_factory.mktemp("render-real")
+    started = time.monotonic()
+    result = real.deploy(SPEC, render)
+    assert result.returncode == 0, result.stdout[-8000:] + result.stderr[-3000:]
+    with open(os.path.join(render, "pick-and-place", "placement.json"), encoding="utf-8") as handle:
+        placement = json.load(handle)
+    real.deploy_seconds = time.monotonic() - started
+    return placement
+
+
+def instances(placement):
+    """Deployment name -> node, for every module instance and discovery server of the placement."""
+    wanted = {inst["name"]: inst["node"] for inst in placement["instances"]}
+    wanted.update({server["name"]: server["node"] for fleet in placement["discovery"] for server in fleet["servers"]})
+    return wanted
+
+
+def running_pods(real, namespace):
+    return {
+        p.metadata.labels.get("kuberos.io/instance"): p.spec.node_name
+        for p in real.core.list_namespaced_pod(namespace).items
+        if p.status.phase == "Running"
+        and p.metadata.deletion_timestamp is None
+        and p.metadata.labels.get("kuberos.io/instance")
+        and all(s.ready for s in p.status.container_statuses or [])
+    }
+
+
+def fleet_namespace(real):
+    deployments = real.apps.list_deployment_for_all_namespaces(label_selector="kuberos.io/fleet=test-fleet").items
+    return deployments[0].metadata.namespace
+
+
+def test_deployed_instances_run_as_pods_on_the_nodes_the_placement_names(real, deployed):
+    wanted = instances(deployed)
+    assert wanted and set(wanted.values()) <= set(NODES), deployed
+    namespace = fleet_namespace(real)
+    started = time.monotonic()
+    wait_for(
+        lambda: running_pods(real, namespace) == wanted or None,
+        300,
+        f"every instance Running and Ready where placed: {wanted}",
+        2,
+    )
+    ready = time.monotonic() - started
+    print(f"deploy {real.deploy_seconds:.1f} s, then all {len(wanted)} pods Running and Ready in {ready:.1f} s")
+
+
+def test_the_robots_hardware_completes_a_pick_cycle_with_the_real_pods(real, deployed):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.path.join(ROOT, "sim"), os.path.join(ROOT, ".collections")])}
+    command = [sys.executable, "-m", "kuberos_sim.real_pods", "--kubeconfig", real.kubeconfig, "--robots", "robot-1",
+               "--cycles", "1", "--time-limit", "420"]  # fmt: skip
+    done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
+    print(done.stdout[-3000:])
+    assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-3000:]
+    summary = json.loads(done.stdout[done.stdout.rindex("\n{") :])
+    assert summary["cycles"]["robot-1"]["succeeded"] >= 1
+
+
+def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_again(real, deployed, tmp_path_factory):
+    namespace = fleet_namespace(real)
+    state = str(tmp_path_factory.mktemp("controller-real"))
+    extra = {"controller_kubeconfig": real.kubeconfig, "controller_state_dir": state, "controller_grace": GRACE}
+    assert real.play("controller.yml", "-e", json.dumps(extra)).returncode == 0
+    try:
+        before = running_pods(real, namespace)
+        victim = "edge-2"
+        moved = sorted(name for name, node in before.items() if node == victim)
+        assert moved, f"nothing runs on {victim}: {before}"
+        nodes = RealNodes.from_state(_plane(real), {})
+        assert nodes.stop_kubelet(victim)
+        started = time.monotonic()
+
+        def moved_and_running():
+            now = running_pods(real, namespace)
+            return all(now.get(name) not in (None, victim) for name in moved) and now
+
+        after = wait_for(moved_and_running, 240, f"{moved} Running off {victim}", 2)
+        took = time.monotonic() - started
+        print(f"{victim} kubelet stopped: {moved} Running on {[after[m] for m in moved]} after {took:.0f} s")
+        assert {name: node for name, node in after.items() if name not in moved} == {
+            name: node for name, node in before.items() if name not in moved
+        }, "only the stopped node's modules moved"
+    finally:
+        extra["controller_state"] = "stopped"
+        real.play("controller.yml", "-e", json.dumps(extra))
+
+
+def _plane(real):
+    from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane, Ports
+
+    return LocalControlPlane(real.state_dir, {}, Ports(**REAL_PORTS))
+
+
+def test_teardown_leaves_the_host_as_it_was(real):
+    result = real.stop(state="absent")
+    assert result.returncode == 0, result.stdout[-6000:]
+    after = snapshot_host()
+    differences = {k: (real.before[k], after[k]) for k in real.before if real.before[k] != after[k]}
+    assert not differences, json.dumps(differences, indent=1)[:6000]
+    assert not os.path.exists(real.state_dir)
