@@ -7,16 +7,21 @@ export PATH := $(CURDIR)/.venv/bin:$(PATH)
 
 # Versions of the local control plane: one place, the local_cluster role's defaults.
 version = $(shell sed -n 's/^local_cluster_$(1)_version: *//p' roles/local_cluster/defaults/main.yml)
-BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call version,etcd) KWOK_VERSION=$(call version,kwok)
+BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call version,etcd) KWOK_VERSION=$(call version,kwok) \
+	COREDNS_VERSION=$(call version,coredns)
+REAL := inventories/real-pods
+REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo controller controller-stop status test lint unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop controller controller-stop status test lint unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
 
-## Build the control plane from the Go module proxy, once (cached by version outside the repo).
+## Build the control plane from the Go module proxy, once (cached by version outside the repo); WITH_NODES=1 adds
+## kubelet, kube-proxy and CoreDNS for real nodes.
 binaries: setup
-	@$(BUILD_ENV) SKIP_KUBECTL=$(if $(WITH_KUBECTL),0,1) SKIP_KUBEADM=$(if $(WITH_KUBEADM),0,1) roles/local_cluster/files/build-binaries.sh
+	@$(BUILD_ENV) SKIP_KUBECTL=$(if $(WITH_KUBECTL),0,1) SKIP_KUBEADM=$(if $(WITH_KUBEADM),0,1) SKIP_NODES=$(if $(WITH_NODES),0,1) \
+	  roles/local_cluster/files/build-binaries.sh
 
 ## Start the local cluster (a real control plane, kwok nodes from inventories/local).
 cluster: binaries
@@ -29,6 +34,22 @@ cluster-stop: setup controller-stop
 demo: cluster
 	$(VENV)/ansible-playbook playbooks/deploy.yml -i inventories/local -e rosdeployment_file=$(SPEC)
 	$(VENV)/ansible-playbook playbooks/controller.yml -i inventories/local
+
+## The example application as real pods on real kubelets (inventories/real-pods: a robot, two edge servers and a
+## cloud VM as network-namespace nodes on this machine; as root; docs/real-nodes.md), the controller, and the
+## robot's simulated hardware until it has done CYCLES pick cycles.
+demo-real: setup
+	$(MAKE) binaries WITH_NODES=1
+	$(VENV)/ansible-playbook playbooks/local_cluster.yml -i $(REAL)
+	$(VENV)/ansible-playbook playbooks/deploy.yml -i $(REAL) -e rosdeployment_file=$(SPEC)
+	$(VENV)/ansible-playbook playbooks/controller.yml -i $(REAL)
+	PYTHONPATH=$(CURDIR)/sim:$(CURDIR)/.collections $(VENV)/python -m kuberos_sim.real_pods --kubeconfig $(REAL_KUBECONFIG) \
+	  --robots robot-1 --cycles $(CYCLES)
+
+## Stop the real-pod fleet and leave the host as it was (add STATE=absent to remove its state and images too).
+demo-real-stop: setup
+	$(VENV)/ansible-playbook playbooks/controller.yml -i $(REAL) -e controller_state=stopped
+	$(VENV)/ansible-playbook playbooks/local_cluster.yml -i $(REAL) -e local_cluster_state=$(or $(STATE),stopped)
 
 ## The controller: moves modules off failed nodes, failing pods and slow links (docs/controller.md).
 controller: setup
@@ -43,7 +64,7 @@ status: setup
 
 ## Lint and every test (the cluster tests start their own control plane; the cluster setup roles' tests need kubeadm).
 test: setup
-	$(MAKE) binaries WITH_KUBEADM=1
+	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1
 	$(VENV)/python -m pytest
 
 unit: setup

@@ -37,7 +37,8 @@ command -v ssh >/dev/null 2>&1 || missing+=(openssh-client)
 command -v wg >/dev/null 2>&1 || missing+=(wireguard-tools)
 command -v wireguard-go >/dev/null 2>&1 || missing+=(wireguard-go)
 # node_prereqs' packages: the role's test hosts have no route to package mirrors, so they are installed here.
-for package in containerd runc conntrack socat iptables ethtool gpg; do
+# The local cluster's real nodes: CNI plugins, and umoci and debootstrap to build the images they run.
+for package in containerd runc conntrack socat iptables ethtool gpg containernetworking-plugins umoci debootstrap gcc libc6-dev; do
   dpkg-query -W -f '${Status}' "$package" 2>/dev/null | grep -q 'install ok installed' || missing+=("$package")
 done
 if [ ${#missing[@]} -gt 0 ]; then

@@ -231,7 +231,10 @@ class RealNodes:
         changed = self._certificates() or changed
         changed = self._start_shared() or changed
         for net in self.nets.values():
-            changed = self._start_node(net) or changed
+            changed = self._start_runtime(net) or changed
+        changed = self._import_images() or changed
+        for net in self.nets.values():
+            changed = self._start_kubelet(net) or changed
         self._wait_ready(timeout)
         return changed
 
@@ -523,9 +526,10 @@ class RealNodes:
         return True
 
     def _stop(self, component: str, node: str | None = None, timeout: float = 15.0) -> bool:
+        started = time.monotonic()
         pid = bg.stop(self._pidfile(component, node), self._marker(component, node), timeout)
         if pid is not None:
-            self.log.append(f"stopped {node + '/' if node else ''}{component} (pid {pid})")
+            self.log.append(f"stopped {node + '/' if node else ''}{component} (pid {pid}, {time.monotonic() - started:.1f} s)")
         return pid is not None
 
     def _start_shared(self) -> bool:
@@ -537,7 +541,7 @@ class RealNodes:
             "delay_ms": self.delay_ms,
             "broadcasts": [f"10.{self.base + 1}.0.255"],
             "stats_file": self.path("fabric-stats.json"),
-            "stats_interval": 5.0,
+            "stats_interval": 1.0,
         }
         _write(self.path("fabric.json"), json.dumps(fabric, indent=1))
         changed = self._start("fabric", [sys.executable, delay_fabric.__file__, self.path("fabric.json")])
@@ -556,7 +560,7 @@ class RealNodes:
         changed = self._start("coredns", [self.binaries["coredns"], "-conf", self.path("Corefile")]) or changed
         return changed
 
-    def _start_node(self, net: NodeNet) -> bool:
+    def _start_runtime(self, net: NodeNet) -> bool:
         node = next(n for n in self.nodes if n["name"] == net.name)
         directory = self.path(net.name)
         for sub in ("containerd", "cni/net.d", "cni/ipam", "kubelet", "pod-logs"):
@@ -571,13 +575,34 @@ class RealNodes:
             "containerd", ["containerd", "--config", os.path.join(directory, "containerd", "config.toml")], net.name, net.netns
         )
         self._wait_for(lambda: os.path.exists(self.socket(net.name)), 30, f"containerd of {net.name}", "containerd", net.name)
-        if self.images:
-            from ansible_collections.kuberos.platform.plugins.module_utils.local_images import import_images
+        return changed
 
+    def _import_images(self) -> bool:
+        """The images into every node's containerd, the nodes side by side (each import unpacks every layer)."""
+        if not self.images:
+            return False
+        from concurrent.futures import ThreadPoolExecutor
+
+        from ansible_collections.kuberos.platform.plugins.module_utils.local_images import import_images
+
+        def one(net: NodeNet) -> tuple[str, list[str], float]:
+            started = time.monotonic()
             done = import_images("ctr", self.socket(net.name), self.images, self.aliases, log=lambda _m: None)
+            return net.name, done, time.monotonic() - started
+
+        with ThreadPoolExecutor(max_workers=len(self.nets)) as pool:
+            results = list(pool.map(one, self.nets.values()))
+        for name, done, seconds in results:
             if done:
-                self.log.append(f"{net.name}: imported {len(done)} images")
-                changed = True
+                imported = sum(1 for line in done if line.startswith("imported"))
+                tagged = len(done) - imported
+                self.log.append(f"{name}: {imported} images imported, {tagged} names tagged or pinned ({seconds:.1f} s)")
+        return any(done for _name, done, _seconds in results)
+
+    def _start_kubelet(self, net: NodeNet) -> bool:
+        node = next(n for n in self.nodes if n["name"] == net.name)
+        directory = self.path(net.name)
+        changed = False
         labels = ",".join(f"{k}={v}" for k, v in sorted(node.get("labels", {}).items()) if not k.startswith("kubernetes.io/"))
         kubelet = [
             self.binaries["kubelet"],
@@ -638,54 +663,39 @@ class RealNodes:
 
     # -- teardown --------------------------------------------------------------------------------------------
     def _stop_node(self, net: NodeNet) -> bool:
+        started = time.monotonic()
         changed = self._stop("kubelet", net.name)
         changed = self._stop("kube-proxy", net.name) or changed
-        pod_netns = self._pod_netns(net)
-        if self.pid("containerd", net.name) is not None:
-            self._remove_containers(net)
+        containers = self._remove_containers(net) if self.pid("containerd", net.name) is not None else []
         changed = self._stop("containerd", net.name) or changed
         # whatever is left: container processes in the node's cgroups, shims of its containerd
         changed = self._kill_leftovers(net) or changed
         changed = self._unmount_under(self.path(net.name)) or changed
-        for name in pod_netns:
-            run("ip", "netns", "delete", name, check=False)
-            changed = True
-        for cache in glob.glob(f"/var/lib/cni/results/{net.cni_network}-*") + glob.glob(
-            f"/var/lib/cni/cache/results/{net.cni_network}-*"
-        ):
-            os.remove(cache)
+        for cache in glob.glob("/var/lib/cni/**/*", recursive=True):  # libcni's results of the node's containers
+            name = os.path.basename(cache)
+            if os.path.isfile(cache) and (name.startswith(f"{net.cni_network}-") or any(f"-{c}-" in name for c in containers)):
+                os.remove(cache)
+        _remove_empty_dirs("/var/lib/cni")
         shutil.rmtree(self.path(net.name, "cni", "ipam"), ignore_errors=True)
         changed = self._remove_cgroups(net) or changed
         if os.path.exists(f"/var/run/netns/{net.netns}"):
             run("ip", "netns", "delete", net.netns, check=False)
-            self.log.append(f"removed network namespace {net.netns}")
+            self.log.append(f"removed network namespace {net.netns} ({time.monotonic() - started:.1f} s for the node)")
             changed = True
         return changed
 
-    def _pod_netns(self, net: NodeNet) -> list[str]:
-        """The pod network namespaces (cni-...) the node's containers are in."""
-        inodes = set()
-        for pid in self._cgroup_pids(net):
-            try:
-                inodes.add(os.stat(f"/proc/{pid}/ns/net").st_ino)
-            except OSError:
-                continue
-        return [os.path.basename(p) for p in glob.glob("/var/run/netns/cni-*") if _inode(p) in inodes]
-
-    def _remove_containers(self, net: NodeNet) -> None:
+    def _remove_containers(self, net: NodeNet) -> list[str]:
+        """Kill and delete every container through containerd; returns their ids (for the CNI cache)."""
         ctr = ["ctr", "-a", self.socket(net.name), "-n", "k8s.io"]
         tasks = run(*ctr, "tasks", "ls", "-q", check=False).stdout.split()
-        for task in tasks:
-            run(*ctr, "tasks", "kill", "-a", "-s", "SIGKILL", task, check=False)
-        for task in tasks:
-            for _ in range(50):
-                if run(*ctr, "tasks", "delete", task, check=False).returncode == 0:
-                    break
-                time.sleep(0.1)
-        for container in run(*ctr, "containers", "ls", "-q", check=False).stdout.split():
-            run(*ctr, "containers", "delete", container, check=False)
+        if tasks:
+            run(*ctr, "tasks", "delete", "--force", *tasks, check=False)  # kills what runs, then deletes
+        containers = run(*ctr, "containers", "ls", "-q", check=False).stdout.split()
+        if containers:
+            run(*ctr, "containers", "delete", *containers, check=False)
         if tasks:
             self.log.append(f"{net.name}: removed {len(tasks)} containers")
+        return containers
 
     def _cgroup_pids(self, net: NodeNet) -> set[int]:
         pids = set()
@@ -752,11 +762,13 @@ def _write(path: str, text: str) -> None:
         handle.write(text)
 
 
-def _inode(path: str) -> int | None:
-    try:
-        return os.stat(path).st_ino
-    except OSError:
-        return None
+def _remove_empty_dirs(top: str) -> None:
+    """Remove ``top`` and the folders under it that are empty (what libcni made for the nodes' pods)."""
+    for directory in sorted((d for d, _subdirs, _files in os.walk(top)), key=len, reverse=True):
+        try:
+            os.rmdir(directory)
+        except OSError:
+            pass
 
 
 def _is_shim_of(pid: int, socket: str) -> bool:
