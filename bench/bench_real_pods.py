@@ -119,7 +119,7 @@ def main() -> int:
             deploy = [*variables, "-e", f"rosdeployment_file={spec_file}", "-e", f"kuberos_render_dir={render}"]
             done, results["deploy_playbook_s"] = timed("deploy", lambda: playbook("deploy.yml", INVENTORY, *deploy, timeout=1800))
             check(done, "deploy.yml")
-            placement = json.loads((render / spec["metadata"]["name"] / "placement.json").read_text())
+            placement = json.loads((render / "placement.json").read_text())
             from kubernetes import client, config
 
             core = client.CoreV1Api(config.new_client_from_config(config_file=str(kubeconfig)))

@@ -55,6 +55,11 @@ def start(command: list[str], pidfile: str, logfile: str, env: dict | None = Non
         )  # fmt: skip
     with open(pidfile, "w", encoding="utf-8") as handle:
         handle.write(f"{process.pid}\n")
+    # Until the child has exec'd, its command line is ours and running_pid() would not recognise it.
+    ours = cmdline(os.getpid())
+    deadline = time.monotonic() + 5.0
+    while process.poll() is None and cmdline(process.pid) == ours and time.monotonic() < deadline:
+        time.sleep(0.005)
     return process
 
 

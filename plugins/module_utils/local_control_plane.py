@@ -338,7 +338,10 @@ class LocalControlPlane:
                 return
             child = self._children.get(component)
             code = child.poll() if child is not None else None
-            if code is not None or self.pid_of(component) is None:
+            # A child of ours is judged by its exit status: right after the fork, before the exec, its command
+            # line is still Python's, and pid_of() would take it for another program.
+            gone = code is not None if child is not None else self.pid_of(component) is None
+            if gone:
                 if not retried and child is not None:
                     # One more try: a program that dies at once (seen rarely under heavy load) usually starts.
                     self.log.append(f"{component} exited at once (status {code}); starting it again")

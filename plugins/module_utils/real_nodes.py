@@ -29,6 +29,7 @@ sysctls. ``snapshot_host()`` records what the tests compare before and after.
 from __future__ import annotations
 
 import glob
+import inspect
 import json
 import os
 import shutil
@@ -544,7 +545,10 @@ class RealNodes:
             "stats_interval": 1.0,
         }
         _write(self.path("fabric.json"), json.dumps(fabric, indent=1))
-        changed = self._start("fabric", [sys.executable, delay_fabric.__file__, self.path("fabric.json")])
+        # The fabric is a standard-library script; inside an Ansible module its file is in the module's zip
+        # payload, so its source is written beside its configuration.
+        _write(self.path("delay_fabric.py"), inspect.getsource(delay_fabric))
+        changed = self._start("fabric", [sys.executable, self.path("delay_fabric.py"), self.path("fabric.json")])
         if changed:
             self._wait_for(lambda: "fabric ready" in _read(self._logfile("fabric")), 15, "the delay fabric", "fabric")
         port = self.plane.ports.apiserver
