@@ -121,6 +121,7 @@ class RealNodes:
     base: int = 231
     tag: str = "kr"
     log: list = field(default_factory=list)
+    _children: dict = field(default_factory=dict, repr=False)  # (component, node) -> Popen, started by this object
 
     def __post_init__(self):
         if not 1 <= len(self.tag) <= 4 or not self.tag.isalnum():
@@ -523,6 +524,7 @@ class RealNodes:
         if netns:
             command = ["nsenter", f"--net=/var/run/netns/{netns}", "--", *command]
         process = bg.start(command, self._pidfile(component, node), self._logfile(component, node))
+        self._children[(component, node)] = process
         self.log.append(f"started {node + '/' if node else ''}{component} (pid {process.pid})")
         return True
 
@@ -633,12 +635,20 @@ class RealNodes:
                     if not _read(os.path.join(path, key)).strip():
                         _write(os.path.join(path, key), _read(os.path.join(hierarchy, key)).strip())
 
+    def _exited(self, component: str, node: str | None = None) -> bool:
+        """Whether a program has exited: a child of ours by its exit status (its command line is briefly empty or
+        nsenter's while it execs), another one by its pid file and command line."""
+        child = self._children.get((component, node))
+        if child is not None:
+            return child.poll() is not None
+        return self.pid(component, node) is None
+
     def _wait_for(self, check, timeout: float, what: str, component: str, node: str | None = None) -> None:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if check():
                 return
-            if self.pid(component, node) is None:
+            if self._exited(component, node):
                 break
             time.sleep(0.1)
         raise RealNodeError(
@@ -654,7 +664,7 @@ class RealNodes:
                 conditions = {c["type"]: c["status"] for c in node.get("status", {}).get("conditions", [])}
                 if conditions.get("Ready") == "True":
                     waiting.discard(name)
-                elif self.pid("kubelet", name) is None:
+                elif self._exited("kubelet", name):
                     log = self._logfile("kubelet", name)
                     raise RealNodeError(f"the kubelet of {name} exited; see {log}:\n{bg.tail(log)}")
             time.sleep(0.5)

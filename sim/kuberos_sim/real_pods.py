@@ -51,7 +51,7 @@ def hardware_pod(robot: str, namespace: str, env: dict[str, str], seed: int, obj
 
 def fleet_env(apps, fleet: str) -> tuple[str, dict[str, str]]:
     """The fleet's namespace and the ROS environment its modules get (discovery servers, domain)."""
-    deployments = apps.list_deployment_for_all_namespaces(label_selector=f"kuberos.io/fleet={fleet},kuberos.io/module").items
+    deployments = apps.list_deployment_for_all_namespaces(label_selector=f"fleet.kuberos.io/name={fleet},kuberos.io/module").items
     if not deployments:
         raise SystemExit(f"no module of fleet {fleet} is deployed (playbooks/deploy.yml first)")
     first = deployments[0]

@@ -297,15 +297,14 @@ def running_pods(real, namespace):
     }
 
 
-def fleet_namespace(real):
-    deployments = real.apps.list_deployment_for_all_namespaces(label_selector="kuberos.io/fleet=test-fleet").items
-    return deployments[0].metadata.namespace
+def fleet_namespace(placement):
+    return placement["deployments"][0]["namespace"]
 
 
 def test_deployed_instances_run_as_pods_on_the_nodes_the_placement_names(real, deployed):
     wanted = instances(deployed)
     assert wanted and set(wanted.values()) <= set(NODES), deployed
-    namespace = fleet_namespace(real)
+    namespace = fleet_namespace(deployed)
     started = time.monotonic()
     wait_for(
         lambda: running_pods(real, namespace) == wanted or None,
@@ -329,7 +328,7 @@ def test_the_robots_hardware_completes_a_pick_cycle_with_the_real_pods(real, dep
 
 
 def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_again(real, deployed, tmp_path_factory):
-    namespace = fleet_namespace(real)
+    namespace = fleet_namespace(deployed)
     state = str(tmp_path_factory.mktemp("controller-real"))
     extra = {"controller_kubeconfig": real.kubeconfig, "controller_state_dir": state, "controller_grace": GRACE}
     assert real.play("controller.yml", "-e", json.dumps(extra)).returncode == 0
