@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop controller controller-stop status test lint unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods controller controller-stop status test lint unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -90,6 +90,11 @@ bench-controller: binaries
 ## Rollout benchmark: 100 robots, one module upgraded in waves of 10, and a broken version stopped at the canary.
 bench-rollout: binaries
 	cd bench && ../$(VENV)/python bench_rollout.py --json results/rollout.json
+
+## Real nodes: image build, cold and warm start, deploy to all pods Running, pick cycles against the netns runtime.
+bench-real-pods:
+	$(MAKE) binaries WITH_NODES=1
+	cd bench && ../$(VENV)/python bench_real_pods.py --cold-images --json results/real-pods.json
 
 ## The pick-and-place fleet for real on this machine: one strategy, one fleet size (as root; docs/simulation.md).
 ##   make sim STRATEGY=edge-shared ROBOTS=4 RATE=12 CYCLES=3

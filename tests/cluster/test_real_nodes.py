@@ -5,7 +5,7 @@ edge-1, edge-2 and cloud-1 as real nodes: a kubelet, containerd and kube-proxy e
 linked by the delay fabric with the inventory's round-trip times: robot-edge 5 ms, robot-cloud 40 ms), on
 ports and addresses of its own. The tests run in order:
 
-- the nodes register with the inventory's labels and taints and are Ready;
+- the nodes register with the inventory's labels and taints and are Ready; starting again changes nothing;
 - a listener on cloud-1 hears a talker on robot-1 through a Fast DDS discovery server pod on edge-1 reached by
   its Service name (CoreDNS, kube-proxy); the same listener program pointed at a Service without the server
   hears nothing (the negative control);
@@ -13,7 +13,7 @@ ports and addresses of its own. The tests run in order:
 - playbooks/deploy.yml places and applies the pick-and-place example: every instance runs as a pod on the node
   its placement names, and the robot's simulated hardware on robot-1 completes a pick cycle with them;
 - the kubelet of a node stopped: the controller moves its modules and they run again on another node;
-- teardown (local_cluster_state=absent) leaves the host as it was (namespaces, links, mounts, cgroups, routes,
+- teardown (local_cluster_state=absent, twice: the second changes nothing) leaves the host as it was (namespaces, links, mounts, cgroups, routes,
   iptables, sysctls, CNI state, processes).
 """
 
@@ -213,6 +213,12 @@ def test_real_nodes_register_with_the_inventorys_labels_and_taints(real):
     print(f"real cluster started in {real.start_seconds:.1f} s")
 
 
+def test_starting_the_running_real_nodes_again_changes_nothing(real):
+    again = real.start()
+    assert again.returncode == 0, again.stdout[-6000:]
+    assert again.changed == 0, again.stdout[-6000:]
+
+
 def test_discovery_through_a_service_across_two_real_nodes_with_a_negative_control(real, lab):
     wait_for(lambda: (phase(real, lab, "discovery") or ("",))[0] == "Running", 120, "the discovery server pod Running")
     talker, listener = ["/programs/talker.py", "/kuberos_chatter"], ["/programs/listener.py", "/kuberos_chatter"]
@@ -365,6 +371,8 @@ def _plane(real):
 def test_teardown_leaves_the_host_as_it_was(real):
     result = real.stop(state="absent")
     assert result.returncode == 0, result.stdout[-6000:]
+    again = real.stop(state="absent")
+    assert again.returncode == 0 and again.changed == 0, again.stdout[-6000:]
     after = snapshot_host()
     differences = {k: (real.before[k], after[k]) for k in real.before if real.before[k] != after[k]}
     assert not differences, json.dumps(differences, indent=1)[:6000]
