@@ -13,8 +13,8 @@ ports and addresses of its own. The tests run in order:
 - playbooks/deploy.yml places and applies the pick-and-place example: every instance runs as a pod on the node
   its placement names, and the robot's simulated hardware on robot-1 completes a pick cycle with them;
 - the kubelet of a node stopped: the controller moves its modules and they run again on another node;
-- teardown (local_cluster_state=absent, twice: the second changes nothing) leaves the host as it was (namespaces, links, mounts, cgroups, routes,
-  iptables, sysctls, CNI state, processes).
+- teardown (local_cluster_state=absent, twice: the second changes nothing) leaves the host as it was
+  (namespaces, links, mounts, cgroups, routes, iptables, sysctls, CNI state, processes).
 """
 
 from __future__ import annotations
