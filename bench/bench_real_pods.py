@@ -9,8 +9,9 @@ addresses and state directory), each step timed from the start of its command to
 (2) the tier's cold start (no state: certificates, namespaces, containerd, the images imported into every node,
     kubelets Ready) and, after a stop, its warm start (the images are kept);
 (3) deploy of the pick-and-place app in the simulator's ``cloud`` strategy (perception and the motion planner on
-    cloud-1, the coordinator on the edge, the controller onboard): ``playbooks/deploy.yml`` until it exits, then
-    until every instance's pod is Running and Ready on the node its placement names;
+    cloud-1, the coordinator on the edge, the controller onboard; the two CPU requests lowered to 750m so that both
+    fit the 2 cores a real node reports): ``playbooks/deploy.yml`` until it exits, then until every instance's pod
+    is Running and Ready on the node its placement names;
 (4) the robot's simulated hardware (a pod on robot-1) doing ``--cycles`` pick cycles with the real pods, and the
     same strategy, fleet size and cycles in the simulator's network-namespace runtime (``kuberos_sim.evaluate``),
     side by side in one run;
@@ -114,6 +115,10 @@ def main() -> int:
 
             spec = scenario.strategy_spec("cloud", args.rate, args.cycles)
             spec["metadata"]["targetFleet"] = FLEET
+            # The real nodes have the machine's 2 cores each: perception and the planner must fit on cloud-1 together.
+            for module in spec["rosModules"]:
+                if module["name"] in ("perception", "motion-planner"):
+                    module["resources"]["cpu"] = "750m"
             spec_file = scenario.write_yaml(str(work / "pick-and-place-cloud.yml"), spec)
             render = work / "rendered"
             deploy = [*variables, "-e", f"rosdeployment_file={spec_file}", "-e", f"kuberos_render_dir={render}"]
