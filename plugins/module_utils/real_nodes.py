@@ -771,6 +771,9 @@ def _read(path: str) -> str:
 
 
 def _write(path: str, text: str) -> None:
+    """Write a file unless it already holds ``text``: kube-proxy exits when its configuration file is written."""
+    if _read(path) == text:
+        return
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     with open(path, "w", encoding="utf-8") as handle:
         handle.write(text)
