@@ -58,16 +58,13 @@ class RealNodeError(RuntimeError):
     """A real node could not be set up or torn down."""
 
 
-def run(*command: str, check: bool = True, timeout: float = 60, netns: str | None = None) -> subprocess.CompletedProcess:
-    if netns:
-        command = ("nsenter", f"--net=/var/run/netns/{netns}", "--", *command)
-    try:
-        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
-    except (OSError, subprocess.TimeoutExpired) as error:
-        raise RealNodeError(f"{' '.join(command)}: {error}") from error
-    if check and done.returncode != 0:
-        raise RealNodeError(f"{' '.join(command)} exited {done.returncode}: {(done.stderr or done.stdout).strip()[-2000:]}")
-    return done
+def in_netns(netns: str, command: list[str]) -> list[str]:
+    """``command`` in a node's network namespace only (the host's mounts stay shared)."""
+    return ["nsenter", f"--net=/var/run/netns/{netns}", "--", *command]
+
+
+def run(*command: str, check: bool = True, timeout: float = 60) -> subprocess.CompletedProcess:
+    return bg.run_checked(command, RealNodeError, check, timeout)
 
 
 @dataclass(frozen=True)
@@ -167,11 +164,12 @@ class RealNodes:
         return self.plane.path("logs", f"{node}-{component}.log" if node else f"nodes-{component}.log")
 
     def _marker(self, component: str, node: str | None = None):
-        needle = {"fabric": self.path("fabric.json"), "apiserver-relay": f"bind={self.host_ip}", "coredns": self.path("Corefile")}
         if node:
-            needle = self.path(node)
+            needle = self.path(node)  # every program of a node names a file under its directory
+        elif component == "apiserver-relay":
+            needle = f"bind={self.host_ip}"
         else:
-            needle = needle[component]
+            needle = self.path({"fabric": "fabric.json", "coredns": "Corefile"}[component])
         return lambda argv: any(needle in part for part in argv)
 
     def pid(self, component: str, node: str | None = None) -> int | None:
@@ -230,7 +228,7 @@ class RealNodes:
         self._save_sysctls()
         self._write_state()
         changed = self._network()
-        changed = self._certificates() or changed
+        self._certificates()
         changed = self._start_shared() or changed
         for net in self.nets.values():
             changed = self._start_runtime(net) or changed
@@ -334,17 +332,17 @@ class RealNodes:
         ]  # fmt: skip
         if os.path.exists("/proc/sys/net/bridge/bridge-nf-call-iptables"):
             settings.append("net.bridge.bridge-nf-call-iptables=1")  # Services between pods of one node's bridge
-        run("sysctl", "-qw", *settings, netns=ns)
+        run(*in_netns(ns, ["sysctl", "-qw", *settings]))
         self.log.append(f"created network namespace {ns} ({net.node_ip}, pods {net.pod_cidr})")
 
     # -- certificates and configuration ------------------------------------------------------------------
-    def _certificates(self) -> bool:
+    def _certificates(self) -> None:
+        """Client certificates and kubeconfigs of the kubelets, kube-proxy (through the relay) and CoreDNS."""
         relay = f"https://{self.host_ip}:{self.plane.ports.apiserver}"
         for net in self.nets.values():
             self.plane.ensure_certificate(f"kubelet-{net.name}", f"system:node:{net.name}", "system:nodes", server=relay)
         self.plane.ensure_certificate("kube-proxy", "system:kube-proxy", None, server=relay)
         self.plane.ensure_certificate("coredns", "system:kuberos:coredns", None)
-        return False
 
     def _coredns_rbac(self) -> None:
         """What CoreDNS's kubernetes plugin reads (the ClusterRole a cluster's CoreDNS has)."""
@@ -522,7 +520,7 @@ class RealNodes:
         if self.pid(component, node) is not None:
             return False
         if netns:
-            command = ["nsenter", f"--net=/var/run/netns/{netns}", "--", *command]
+            command = in_netns(netns, command)
         process = bg.start(command, self._pidfile(component, node), self._logfile(component, node))
         self._children[(component, node)] = process
         self.log.append(f"started {node + '/' if node else ''}{component} (pid {process.pid})")

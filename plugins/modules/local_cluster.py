@@ -152,7 +152,7 @@ def main():
         elif params["state"] != "started":
             real = RealNodes.from_state(plane, params["binaries"])
         if real is not None:
-            running.update({k: v for k, v in real.running().items()})
+            running.update(real.running())
         if params["state"] == "started":
             needed = [c for c, pid in running.items() if pid is None]
             if module.check_mode:

@@ -13,6 +13,8 @@ import os
 import shutil
 import subprocess
 
+from ansible_collections.kuberos.platform.plugins.module_utils.background_process import run_checked
+
 ETC_NETNS = "/etc/netns"
 TUN = "eth0"
 
@@ -23,13 +25,7 @@ class CommandError(RuntimeError):
 
 def run(*command: str, check: bool = True, timeout: float = 30) -> subprocess.CompletedProcess:
     """Run a command; ``CommandError`` with its output when it fails and ``check`` is set."""
-    try:
-        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
-    except (OSError, subprocess.TimeoutExpired) as error:
-        raise CommandError(f"{' '.join(command)}: {error}") from error
-    if check and done.returncode != 0:
-        raise CommandError(f"{' '.join(command)} exited {done.returncode}: {(done.stderr or done.stdout).strip()}")
-    return done
+    return run_checked(command, CommandError, check, timeout)
 
 
 def netns_problem() -> str | None:
