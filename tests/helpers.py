@@ -65,6 +65,15 @@ def built_kubeadm() -> str:
     return path
 
 
+# KUBEROS_TEST_PORT_SHIFT moves every test port by one number, so that a second cluster test session
+# (another checkout, a developer's second terminal) can run beside the first on its own ports.
+PORT_SHIFT = int(os.environ.get("KUBEROS_TEST_PORT_SHIFT", "0"))
+
+
+def _shifted(ports: dict) -> dict:
+    return {name: port + PORT_SHIFT for name, port in ports.items()}
+
+
 TEST_PORTS = {
     "apiserver": 26443,
     "etcd_client": 22379,
@@ -73,6 +82,7 @@ TEST_PORTS = {
     "scheduler": 26259,
     "kwok": 26247,
 }
+TEST_PORTS = _shifted(TEST_PORTS)
 # A second control plane, standing for a third-party cluster.
 PARTNER_PORTS = {
     "apiserver": 27443,
@@ -82,6 +92,7 @@ PARTNER_PORTS = {
     "scheduler": 27259,
     "kwok": 27247,
 }
+PARTNER_PORTS = _shifted(PARTNER_PORTS)
 
 
 class Cluster:

@@ -7,6 +7,7 @@ import urllib.error
 import urllib.request
 
 import pytest
+from helpers import TEST_PORTS
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import cluster_nodes
@@ -43,8 +44,9 @@ def test_anonymous_access_is_refused(cluster):
 
     plane = LocalControlPlane(cluster.state_dir, {})
     context = ssl.create_default_context(cafile=plane.path("pki", "ca.crt"))
+    server = plane.server.replace("16443", str(TEST_PORTS["apiserver"]))
     with pytest.raises(urllib.error.HTTPError) as refused:
-        urllib.request.urlopen(plane.server.replace("16443", "26443") + "/api/v1/namespaces", context=context, timeout=5)
+        urllib.request.urlopen(server + "/api/v1/namespaces", context=context, timeout=5)
     assert refused.value.code == 401
     with pytest.raises(urllib.error.URLError):
-        urllib.request.urlopen("http://127.0.0.1:26443/version", timeout=5)
+        urllib.request.urlopen(f"http://127.0.0.1:{TEST_PORTS['apiserver']}/version", timeout=5)
