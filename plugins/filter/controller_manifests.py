@@ -9,7 +9,8 @@ version_added: 0.2.0
 description:
   - Returns the Namespace, ServiceAccount, a ClusterRole to list and watch nodes, pods, Deployments and ConfigMaps,
     a ClusterRole bound in each fleet namespace only (patch Deployments, delete pods, get/create/patch ConfigMaps,
-    create Events), their bindings, and the controller's Deployment.
+    create Events), their bindings, a Role to get, create and update Leases in the controller's namespace (leader
+    election) and its binding, the controller's Deployment and, with more than one replica, a PodDisruptionBudget.
 options:
   _input:
     description: Names of the fleets whose namespaces the controller may act in.
@@ -29,6 +30,12 @@ options:
     type: list
     elements: str
     default: []
+  replicas:
+    description:
+      - How many controller replicas run; the holder of the Lease C(kuberos-controller) in O(namespace) acts.
+      - With more than one, a PodDisruptionBudget keeps one through voluntary evictions.
+    type: int
+    default: 2
 """
 
 EXAMPLES = r"""
@@ -52,8 +59,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controlle
 
 
 @reports_kuberos_errors
-def controller_manifests(fleets, image, namespace="kuberos-system", args=()):
-    return controller_objects(str(namespace), str(image), [str(f) for f in fleets], [str(a) for a in args])
+def controller_manifests(fleets, image, namespace="kuberos-system", args=(), replicas=2):
+    return controller_objects(str(namespace), str(image), [str(f) for f in fleets], [str(a) for a in args], int(replicas))
 
 
 class FilterModule:

@@ -19,6 +19,10 @@ Run it as a process: ``python -m ansible_collections.kuberos.platform.plugins.mo
 --kubeconfig FILE`` (``--once`` for a single pass; in a pod, without ``--kubeconfig``, it uses the
 ServiceAccount). Measured round-trip times come from the robot nodes' ``kuberos.io/rtt-ms``
 annotation: JSON mapping a node's inventory name to milliseconds.
+
+Several replicas run side by side: every replica watches, and only the holder of the Lease
+``kuberos-system/kuberos-controller`` acts (``leader_election``). Every write is fenced: it is made only
+while this replica's right to act lasts, with a client-side timeout of the time left.
 """
 
 from __future__ import annotations
@@ -29,10 +33,12 @@ import json
 import logging
 import os
 import signal
+import socket
 import sys
 import threading
 import time
 
+from ansible_collections.kuberos.platform.plugins.module_utils import leader_election
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
@@ -67,6 +73,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
 
 RTT_ANNOTATION = "kuberos.io/rtt-ms"
 CONTROLLER_MANAGER = "kuberos-controller"
+LEASE_NAME = "kuberos-controller"
+LEASE_NAMESPACE = "kuberos-system"
 FAILPOINT_ENV = "KUBEROS_CONTROLLER_FAILPOINT"  # tests: "after-record" exits right after a record write
 log = logging.getLogger("kuberos.controller")
 
@@ -181,7 +189,8 @@ def _pod_requests(pod: dict) -> dict:
 
 
 class Controller:
-    def __init__(self, api_client, settings: Settings | None = None, resync_s: float = 30.0, dry_run: bool = False):
+    def __init__(self, api_client, settings: Settings | None = None, resync_s: float = 30.0, dry_run: bool = False,
+                 elector: leader_election.LeaderElector | None = None, identity: str = ""):  # fmt: skip
         from kubernetes import client
 
         self.api_client = api_client
@@ -210,6 +219,25 @@ class Controller:
         self.passes = 0
         self.moves = 0
         self.last_pass: list[dict] = []  # per record: deployment, moves, stranded, waiting, table
+        self.elector = elector  # None: this replica acts alone (--once, --no-leader-elect)
+        self.identity = identity or (elector.identity if elector else "")
+        self.leading = elector is None
+        self.lead_passes = 0  # completed passes since this replica last became the leader
+
+    # -- fencing --------------------------------------------------------------------------------
+    def _may_write(self) -> dict:
+        """Before every write: NotLeader when this replica may not act; else the request's client-side timeout."""
+        if self.elector is None:
+            return {}
+        return {"_request_timeout": self.elector.check()}
+
+    def _forget(self) -> None:
+        """What a replica knew as leader is stale once another replica has acted: start again from the cluster."""
+        self.memory.clear()
+        self.history.clear()
+        self.reported.clear()
+        self.status_written.clear()
+        self.parsed.clear()
 
     # -- observing --------------------------------------------------------------------------
     def _node_names(self) -> dict[str, str]:
@@ -311,7 +339,7 @@ class Controller:
         patch = placement_patch(record.name, record.namespace, placement)
         patch["metadata"]["resourceVersion"] = record.resource_version  # refuse if deploy rewrote it meanwhile
         try:
-            self.core.patch_namespaced_config_map(record.name, record.namespace, patch)
+            self.core.patch_namespaced_config_map(record.name, record.namespace, patch, **self._may_write())
         except ApiException as exc:
             if exc.status in (404, 409):
                 log.info("record %s/%s changed while moving (%s); deciding again", record.namespace, record.name, exc.status)
@@ -327,16 +355,11 @@ class Controller:
             return
         meta = obj["metadata"]
         body = json.dumps(obj)
-        if obj["kind"] == "Deployment":
-            self.apps.patch_namespaced_deployment(
-                meta["name"], meta["namespace"], json.loads(body), field_manager=manager, force=True,
-                _content_type="application/apply-patch+yaml",
-            )  # fmt: skip
-        else:
-            self.core.patch_namespaced_config_map(
-                meta["name"], meta["namespace"], json.loads(body), field_manager=manager, force=True,
-                _content_type="application/apply-patch+yaml",
-            )  # fmt: skip
+        patch = self.apps.patch_namespaced_deployment if obj["kind"] == "Deployment" else self.core.patch_namespaced_config_map
+        patch(
+            meta["name"], meta["namespace"], json.loads(body), field_manager=manager, force=True,
+            _content_type="application/apply-patch+yaml", **self._may_write(),
+        )  # fmt: skip
 
     def converge(self, record: Record, view: ClusterView) -> int:
         """Finish the controller's own moves: re-pin every Deployment whose node differs from the record, and
@@ -373,7 +396,7 @@ class Controller:
         if self.dry_run:
             return
         try:
-            self.core.delete_namespaced_pod(pod.name, pod.namespace, grace_period_seconds=0)
+            self.core.delete_namespaced_pod(pod.name, pod.namespace, grace_period_seconds=0, **self._may_write())
             log.info("deleted pod %s/%s left on %s, which is down", pod.namespace, pod.name, pod.node)
         except ApiException as exc:
             if exc.status != 404:
@@ -391,13 +414,15 @@ class Controller:
             "reason": reason,
             "message": message[:1000],
             "type": "Warning" if warning else "Normal",
-            "source": {"component": CONTROLLER_MANAGER},
+            "source": {"component": CONTROLLER_MANAGER, **({"host": self.identity} if self.identity else {})},
+            "reportingComponent": CONTROLLER_MANAGER,
+            "reportingInstance": self.identity,
             "firstTimestamp": now,
             "lastTimestamp": now,
             "count": 1,
         }
         try:
-            self.core.create_namespaced_event(record.namespace, body)
+            self.core.create_namespaced_event(record.namespace, body, **self._may_write())
         except ApiException as exc:
             log.warning("event %s for %s not recorded: %s %s", reason, name, exc.status, exc.reason)
 
@@ -535,6 +560,8 @@ class Controller:
         for configmap in sorted(self.records.snapshot(), key=_key):
             try:
                 at = self.reconcile_record(configmap, view, now)
+            except leader_election.NotLeader:
+                raise
             except KuberosError as exc:
                 log.error("record %s/%s: %s", *_key(configmap), exc)
                 continue
@@ -550,9 +577,14 @@ class Controller:
 
     def run(self) -> None:
         threads = [threading.Thread(target=s.run, args=(self.stop_event,), name=s.name, daemon=True) for s in self.stores]
+        if self.elector is not None:
+            threads.append(threading.Thread(target=self.elector.run, args=(self.stop_event,), name="lease", daemon=True))
         for thread in threads:
             thread.start()
-        log.info("controller started (grace %.1f s, resync %.0f s)", self.settings.grace_s, self.resync_s)
+        log.info(
+            "controller started (grace %.1f s, resync %.0f s%s)", self.settings.grace_s, self.resync_s,
+            f", identity {self.identity}, lease {self.elector.namespace}/{self.elector.name}" if self.elector else "",
+        )  # fmt: skip
         wake_at = None
         while not self.stop_event.is_set():
             timeout = self.resync_s if wake_at is None else max(0.05, min(self.resync_s, wake_at - time.time() + 0.05))
@@ -560,16 +592,56 @@ class Controller:
             self.changed.clear()
             if self.stop_event.is_set():
                 break
+            if not self._lead():
+                wake_at = None
+                continue
             if not all(s.synced.is_set() for s in self.stores):
                 continue
             time.sleep(0.05)  # let a burst of events land in one pass
             self.changed.clear()
+            started = time.monotonic()
             try:
                 wake_at = self.reconcile()
+            except leader_election.NotLeader as exc:
+                log.warning("pass stopped: %s", exc)
+                continue
             except Exception as exc:  # the API server restarting, a conflict: try again shortly
                 log.warning("pass failed (%s: %s); retrying", exc.__class__.__name__, str(exc)[:300])
                 wake_at = time.time() + 1.0
+                continue
+            self.lead_passes += 1
+            if self.elector is not None and self.lead_passes == 1:
+                log.info(
+                    "first pass as leader completed at %.3f (%.3f s)", time.time(), time.monotonic() - started
+                )  # the takeover benchmark reads this line
+        if self.elector is not None:
+            for thread in threads:
+                if thread.name == "lease":
+                    thread.join(timeout=self.elector.timings.renew_deadline_s + 1)  # it releases the Lease
         log.info("controller stopped after %d passes, %d moves", self.passes, self.moves)
+
+    def _lead(self) -> bool:
+        """Whether this replica acts now; forgets what it knew when it stopped leading."""
+        leading = self.elector is None or self.elector.is_leader()
+        if leading != self.leading:
+            self.leading = leading
+            self.lead_passes = 0
+            if not leading:
+                self._forget()
+        return leading
+
+    def stand_down(self, node_name: str) -> str | None:
+        """Why this replica should not lead: its own node (in-cluster: the pod's node) is NotReady."""
+        if not node_name or not self.nodes.synced.is_set():
+            return None
+        for node in self.nodes.snapshot():
+            meta = node["metadata"]
+            if node_name not in (meta["name"], (meta.get("labels") or {}).get(node_labels.HOSTNAME)):
+                continue
+            ready = next((c for c in node.get("status", {}).get("conditions", []) if c.get("type") == "Ready"), None)
+            if not ready or ready.get("status") != "True":
+                return f"node {node_name} is NotReady"
+        return None
 
 
 def build_api_client(kubeconfig: str | None):
@@ -597,6 +669,37 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--cooldown", type=float, default=Settings.cooldown_s, help="seconds before a moved module may move again"
     )
     parser.add_argument("--resync", type=float, default=30.0, help="seconds between passes without any change")
+    election = parser.add_argument_group(
+        "leader election", "several replicas may run; only the holder of a coordination.k8s.io Lease acts (docs/controller.md)"
+    )
+    election.add_argument(
+        "--no-leader-elect", dest="leader_elect", action="store_false",
+        help="act without a Lease (one replica only; --once never takes one)",
+    )  # fmt: skip
+    election.add_argument("--lease-name", default=LEASE_NAME, help="name of the Lease (default %(default)s)")
+    election.add_argument(
+        "--lease-namespace", default=LEASE_NAMESPACE, help="namespace of the Lease, created when missing (default %(default)s)"
+    )
+    election.add_argument(
+        "--lease-duration", type=float, default=leader_election.Timings.duration_s,
+        help="whole seconds others wait after the last renewal they saw before taking the Lease (default %(default)g)",
+    )  # fmt: skip
+    election.add_argument(
+        "--renew-deadline", type=float, default=leader_election.Timings.renew_deadline_s,
+        help="seconds the leader acts after its last successful renewal; below --lease-duration (default %(default)g)",
+    )  # fmt: skip
+    election.add_argument(
+        "--retry-period", type=float, default=leader_election.Timings.retry_s,
+        help="seconds between tries to take or renew the Lease (default %(default)g)",
+    )  # fmt: skip
+    election.add_argument(
+        "--identity", default=os.environ.get("POD_NAME", ""),
+        help="this replica's name in the Lease (default: $POD_NAME, else host_pid)",
+    )  # fmt: skip
+    election.add_argument(
+        "--node-name", default=os.environ.get("KUBEROS_NODE_NAME", ""),
+        help="the node this replica runs on ($KUBEROS_NODE_NAME); while it is NotReady the replica does not lead",
+    )  # fmt: skip
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     return parser.parse_args(argv)
 
@@ -605,14 +708,25 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     settings = Settings(grace_s=args.grace, restart_threshold=args.restart_threshold, cooldown_s=args.cooldown)
+    timings = leader_election.Timings(args.lease_duration, args.renew_deadline, args.retry_period)
+    if args.leader_elect and not args.once and timings.problems():
+        print("kuberos-controller: " + "; ".join(timings.problems()), file=sys.stderr)
+        return 2
     try:
-        controller = Controller(build_api_client(args.kubeconfig), settings, args.resync)
+        api_client = build_api_client(args.kubeconfig)
     except Exception as exc:
         print(f"kuberos-controller: cannot reach the cluster: {exc}", file=sys.stderr)
         return 2
     if args.once:
-        controller.run_once()
+        Controller(api_client, settings, args.resync).run_once()
         return 0
+    controller = Controller(api_client, settings, args.resync, identity=args.identity or f"{socket.gethostname()}_{os.getpid()}")
+    if args.leader_elect:
+        controller.elector = leader_election.LeaderElector(
+            api_client, args.lease_namespace, args.lease_name, controller.identity, timings,
+            on_change=lambda leading: controller.changed.set(), stand_down=lambda: controller.stand_down(args.node_name),
+        )  # fmt: skip
+        controller.leading = False
     signal.signal(signal.SIGTERM, lambda *_: (controller.stop_event.set(), controller.changed.set()))
     signal.signal(signal.SIGINT, lambda *_: (controller.stop_event.set(), controller.changed.set()))
     controller.run()

@@ -11,9 +11,12 @@ short_description: Run the KubeROS controller as a background process on this ma
 version_added: 0.2.0
 description:
   - Starts the KubeROS controller (it watches nodes, the KubeROS pods and the deployment records and moves
-    modules off failed nodes, failing pods and links that break C(max_latency)) as a detached process with a
-    pid file and a log under O(state_dir), or stops it.
-  - Starting is idempotent. A running controller started with other settings is restarted.
+    modules off failed nodes, failing pods and links that break C(max_latency)) as O(replicas) detached
+    processes with a pid file and a log each under O(state_dir), or stops them.
+  - The replicas elect a leader on the Lease C(kuberos-system/kuberos-controller); only the leader acts, and
+    when it dies another takes over once the Lease expires (O(lease_duration)).
+  - Starting is idempotent. A running replica started with other settings is restarted; replicas beyond
+    O(replicas) are stopped.
   - For a controller inside the cluster use the C(kuberos.platform.controller) role with C(controller_mode=in_cluster).
 extends_documentation_fragment:
   - kuberos.platform.cluster
@@ -24,9 +27,34 @@ options:
     choices: [started, stopped]
     default: started
   state_dir:
-    description: Directory of the pid file (C(controller.pid)) and the log (C(controller.log)).
+    description:
+      - Directory of the pid files and logs, C(controller.pid) and C(controller.log) for the first replica,
+        C(controller-2.pid) and C(controller-2.log) for the second, and so on.
     type: path
     required: true
+  replicas:
+    description: How many controller processes run; one of them, the leader, acts.
+    type: int
+    default: 2
+  lease_duration:
+    description: Whole seconds a replica waits, after the last renewal it saw, before it takes the Lease.
+    type: int
+    default: 6
+  renew_deadline:
+    description: Seconds the leader keeps acting after its last successful renewal; below O(lease_duration).
+    type: float
+    default: 4.0
+  retry_period:
+    description: Seconds between tries to take or renew the Lease.
+    type: float
+    default: 1.0
+  node_names:
+    description:
+      - The node each replica counts as running on (by index); a replica whose node is NotReady does not lead.
+      - Empty for processes that do not run on a cluster node (the default).
+    type: list
+    elements: str
+    default: []
   pythonpath:
     description: Directories that hold C(ansible_collections/kuberos/platform), for the controller's Python.
     type: list
@@ -72,21 +100,33 @@ EXAMPLES = r"""
 
 RETURN = r"""
 pid:
-  description: Pid of the running controller (when started).
+  description: Pid of the first replica (when started).
   returned: state=started
   type: int
+pids:
+  description: Pids of every replica, in order (when started).
+  returned: state=started
+  type: list
+  elements: int
 log:
-  description: Path of the controller's log.
+  description: Path of the first replica's log.
   returned: always
   type: str
+logs:
+  description: Paths of every replica's log, in order.
+  returned: always
+  type: list
+  elements: str
 command:
-  description: The controller's command line.
+  description: The first replica's command line.
   returned: always
   type: list
   elements: str
 """
 
+import glob
 import os
+import re
 import sys
 import time
 
@@ -108,6 +148,11 @@ ARGUMENT_SPEC = dict(
     restart_threshold=dict(type="int", default=3),
     resync=dict(type="float", default=30.0),
     log_level=dict(type="str", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default="INFO"),
+    replicas=dict(type="int", default=2),
+    lease_duration=dict(type="int", default=6),
+    renew_deadline=dict(type="float", default=4.0),
+    retry_period=dict(type="float", default=1.0),
+    node_names=dict(type="list", elements="str", default=[]),
 )
 
 
@@ -115,52 +160,92 @@ def is_controller(argv: list[str]) -> bool:
     return ENTRY in argv
 
 
-def command(params: dict) -> list[str]:
+def command(params: dict, index: int = 1) -> list[str]:
+    """Replica ``index``'s command line (1-based)."""
+    node = params["node_names"][index - 1] if index <= len(params["node_names"]) else ""
     return [
         sys.executable, "-m", ENTRY, "--kubeconfig", params["kubeconfig"],
         "--grace", f"{params['grace']:g}", "--cooldown", f"{params['cooldown']:g}",
         "--restart-threshold", str(params["restart_threshold"]), "--resync", f"{params['resync']:g}",
-        "--log-level", params["log_level"],
+        "--log-level", params["log_level"], "--lease-duration", str(params["lease_duration"]),
+        "--renew-deadline", f"{params['renew_deadline']:g}", "--retry-period", f"{params['retry_period']:g}",
+        *(["--node-name", node] if node else []),
     ]  # fmt: skip
+
+
+def replica_files(state_dir: str, index: int) -> tuple[str, str]:
+    """Pid file and log of replica ``index``: controller.pid/.log for the first, controller-N.pid/.log after."""
+    stem = "controller" if index == 1 else f"controller-{index}"
+    return os.path.join(state_dir, stem + ".pid"), os.path.join(state_dir, stem + ".log")
+
+
+def replica_indexes(state_dir: str) -> list[int]:
+    """Indexes of every replica that has a pid file in ``state_dir``."""
+    found = {1} if os.path.exists(os.path.join(state_dir, "controller.pid")) else set()
+    for path in glob.glob(os.path.join(state_dir, "controller-*.pid")):
+        match = re.fullmatch(r"controller-(\d+)\.pid", os.path.basename(path))
+        if match:
+            found.add(int(match[1]))
+    return sorted(found)
 
 
 def run(module: AnsibleModule) -> dict:
     params = module.params
-    pidfile = os.path.join(params["state_dir"], "controller.pid")
-    logfile = os.path.join(params["state_dir"], "controller.log")
-    wanted = command(params)
-    pid = background_process.running_pid(pidfile, is_controller)
-    result = {"changed": False, "log": logfile, "command": wanted}
+    state_dir = params["state_dir"]
+    if params["replicas"] < 1:
+        module.fail_json(msg=f"replicas must be 1 or more, not {params['replicas']}")
+    if not params["renew_deadline"] < params["lease_duration"]:
+        module.fail_json(
+            msg=f"renew_deadline ({params['renew_deadline']:g} s) must be below lease_duration ({params['lease_duration']} s)"
+        )
+    wanted = {i: command(params, i) for i in range(1, params["replicas"] + 1)}
+    logs = [replica_files(state_dir, i)[1] for i in wanted]
+    result = {"changed": False, "log": logs[0], "logs": logs, "command": wanted[1]}
+    pids_found = {
+        i: background_process.running_pid(replica_files(state_dir, i)[0], is_controller) for i in replica_indexes(state_dir)
+    }
+    running = {i: pid for i, pid in pids_found.items() if pid is not None}
+    keep = {i: pid for i, pid in running.items() if i in wanted and background_process.cmdline(pid) == wanted[i]}
+    stale = [i for i in running if i not in keep]  # other settings, or beyond the wanted replicas
+    missing = [i for i in wanted if i not in keep]
     if params["state"] == "stopped":
-        if pid is not None:
-            result["changed"] = True
-            if not module.check_mode:
-                background_process.stop(pidfile, is_controller)
+        result["changed"] = bool(running)
+        if not module.check_mode:
+            for i in running:
+                background_process.stop(replica_files(state_dir, i)[0], is_controller)
         return result
-    if pid is not None and background_process.cmdline(pid) == wanted:
-        return {**result, "pid": pid}
+    if not stale and not missing:
+        return {**result, "pid": keep[1], "pids": [keep[i] for i in wanted]}
     result["changed"] = True
     if module.check_mode:
         return result
-    if pid is not None:
-        background_process.stop(pidfile, is_controller)
+    for i in stale:
+        background_process.stop(replica_files(state_dir, i)[0], is_controller)
     if not os.path.exists(params["kubeconfig"]):
         module.fail_json(msg=f"no kubeconfig at {params['kubeconfig']}; start the local cluster with `make cluster` first")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(params["pythonpath"]), "PYTHONUNBUFFERED": "1"}
-    start_offset = os.path.getsize(logfile) if os.path.exists(logfile) else 0
-    process = background_process.start(wanted, pidfile, logfile, env)
+    started = {}
+    for i in missing:
+        pidfile, logfile = replica_files(state_dir, i)
+        offset = os.path.getsize(logfile) if os.path.exists(logfile) else 0
+        started[i] = (background_process.start(wanted[i], pidfile, logfile, env), logfile, offset)
     deadline = time.monotonic() + 20
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            module.fail_json(
-                msg=f"the controller exited at start ({process.returncode}):\n{_since(logfile, start_offset)}", **result
-            )
-        if STARTED_LINE in _since(logfile, start_offset):
-            return {**result, "pid": process.pid}
+    waiting = dict(started)
+    while waiting and time.monotonic() < deadline:
+        for i, (process, logfile, offset) in list(waiting.items()):
+            if process.poll() is not None:
+                module.fail_json(
+                    msg=f"controller replica {i} exited at start ({process.returncode}):\n{_since(logfile, offset)}", **result
+                )
+            if STARTED_LINE in _since(logfile, offset):
+                del waiting[i]
         time.sleep(0.1)
-    module.fail_json(
-        msg=f"the controller did not report '{STARTED_LINE}' within 20 s:\n{_since(logfile, start_offset)}", **result
-    )
+    for i, (_process, logfile, offset) in waiting.items():
+        module.fail_json(
+            msg=f"controller replica {i} did not report '{STARTED_LINE}' within 20 s:\n{_since(logfile, offset)}", **result
+        )
+    pids = {**keep, **{i: entry[0].pid for i, entry in started.items()}}
+    return {**result, "pid": pids[1], "pids": [pids[i] for i in wanted]}
 
 
 def _since(path: str, offset: int) -> str:

@@ -7,6 +7,8 @@ import threading
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controller_manifests import (
     FLEET_RULES,
+    LEASE_ROLE,
+    LEASE_RULES,
     READ_RULES,
     controller_objects,
 )
@@ -62,16 +64,27 @@ def test_the_cluster_view_maps_nodes_readiness_rtt_and_pods():
 def test_the_in_cluster_rights_are_narrow():
     objects = controller_objects("kuberos-system", "img", ["a", "b"], ["--grace", "5"])
     kinds = [o["kind"] for o in objects]
-    assert kinds.count("RoleBinding") == 2 and "Role" not in kinds
-    bindings = {o["metadata"]["namespace"] for o in objects if o["kind"] == "RoleBinding"}
-    assert bindings == {"kuberos-a", "kuberos-b"}
-    for rule in READ_RULES + FLEET_RULES:
+    bindings = {(o["metadata"]["namespace"], o["roleRef"]["name"]) for o in objects if o["kind"] == "RoleBinding"}
+    assert bindings == {
+        ("kuberos-a", "kuberos-controller-fleet"),
+        ("kuberos-b", "kuberos-controller-fleet"),
+        ("kuberos-system", LEASE_ROLE),
+    }, "fleet rights in fleet namespaces only; Lease rights in the controller's own namespace only"
+    (role,) = [o for o in objects if o["kind"] == "Role"]
+    assert role["metadata"]["namespace"] == "kuberos-system" and role["rules"] == LEASE_RULES
+    for rule in READ_RULES + FLEET_RULES + LEASE_RULES:
         assert "*" not in rule["verbs"] and "*" not in rule["resources"] and "secrets" not in rule["resources"]
     assert all(set(r["verbs"]) <= {"list", "watch"} for r in READ_RULES), "cluster-wide rights are read-only"
     deployment = next(o for o in objects if o["kind"] == "Deployment")
-    container = deployment["spec"]["template"]["spec"]["containers"][0]
-    assert deployment["spec"]["replicas"] == 1 and container["securityContext"]["runAsNonRoot"]
-    assert container["args"][-2:] == ["--grace", "5"]
+    pod = deployment["spec"]["template"]["spec"]
+    container = pod["containers"][0]
+    assert deployment["spec"]["replicas"] == 2 and container["securityContext"]["runAsNonRoot"]
+    assert container["args"][-2:] == ["--grace", "5"] and "--lease-namespace" in container["args"]
+    assert {e["name"] for e in container["env"]} == {"POD_NAME", "KUBEROS_NODE_NAME"}
+    assert pod["affinity"]["podAntiAffinity"], "replicas spread over nodes where they can"
+    assert "PodDisruptionBudget" in kinds
+    single = controller_objects("kuberos-system", "img", ["a"], [], replicas=1)
+    assert "PodDisruptionBudget" not in [o["kind"] for o in single], "a budget of one replica would block every drain"
 
 
 def test_the_failover_picture_is_drawn_from_the_recorded_benchmark(root):

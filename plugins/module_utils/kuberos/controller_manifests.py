@@ -4,7 +4,13 @@ Read access is cluster-wide because the controller finds records, pods and nodes
 namespace: nodes, pods, Deployments and ConfigMaps may be listed and watched. Write access is granted
 only in the fleet namespaces, by a RoleBinding each: patch Deployments (re-pin a module), delete pods
 (left on a dead node), get/create/patch ConfigMaps (the record and the status) and create Events.
-Nothing else: no Secrets, no node changes, no creating Deployments or pods, nothing in other namespaces.
+In its own namespace it may get, create and update Leases: the replicas elect their leader on the Lease
+``kuberos-controller`` (the controller's ``leader_election``). Nothing else: no Secrets, no node changes,
+no creating Deployments or pods, nothing in other namespaces.
+
+Several replicas run (two by default), spread over nodes where possible, each knowing its pod's name (its
+identity in the Lease) and its node (a replica whose node is NotReady does not lead). A
+PodDisruptionBudget keeps one replica through voluntary evictions such as a node drain.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ from .manifests import MANAGED_BY
 NAME = "kuberos-controller"
 READ_ROLE = "kuberos-controller-read"
 FLEET_ROLE = "kuberos-controller-fleet"
+LEASE_ROLE = "kuberos-controller-lease"
 ENTRY = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller"
 
 READ_RULES = [
@@ -27,10 +34,12 @@ FLEET_RULES = [
     {"apiGroups": [""], "resources": ["events"], "verbs": ["create"]},
     {"apiGroups": ["apps"], "resources": ["deployments"], "verbs": ["patch"]},
 ]
+LEASE_RULES = [{"apiGroups": ["coordination.k8s.io"], "resources": ["leases"], "verbs": ["get", "create", "update"]}]
 
 
-def controller_objects(namespace: str, image: str, fleets: list[str], args: list[str]) -> list[dict]:
-    """Namespace, ServiceAccount, the two ClusterRoles, their bindings (one per fleet) and the Deployment."""
+def controller_objects(namespace: str, image: str, fleets: list[str], args: list[str], replicas: int = 2) -> list[dict]:
+    """Namespace, ServiceAccount, the two ClusterRoles, their bindings (one per fleet), the Lease Role and its
+    binding, the Deployment and, with more than one replica, its PodDisruptionBudget."""
     labels = {MANAGED_BY: "kuberos", "app.kubernetes.io/name": NAME}
     subject = {"kind": "ServiceAccount", "name": NAME, "namespace": namespace}
     objects = [
@@ -55,6 +64,19 @@ def controller_objects(namespace: str, image: str, fleets: list[str], args: list
             "metadata": {"name": FLEET_ROLE, "labels": labels},
             "rules": FLEET_RULES,
         },
+        {
+            "apiVersion": "rbac.authorization.k8s.io/v1",
+            "kind": "Role",
+            "metadata": {"name": LEASE_ROLE, "namespace": namespace, "labels": labels},
+            "rules": LEASE_RULES,
+        },
+        {
+            "apiVersion": "rbac.authorization.k8s.io/v1",
+            "kind": "RoleBinding",
+            "metadata": {"name": LEASE_ROLE, "namespace": namespace, "labels": labels},
+            "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "Role", "name": LEASE_ROLE},
+            "subjects": [subject],
+        },
     ]
     for fleet in sorted(set(fleets)):
         # The RoleBinding needs its namespace; deploy creates it too (both apply, each with its own field manager).
@@ -74,18 +96,34 @@ def controller_objects(namespace: str, image: str, fleets: list[str], args: list
             "kind": "Deployment",
             "metadata": {"name": NAME, "namespace": namespace, "labels": labels},
             "spec": {
-                "replicas": 1,  # one controller: a second one would decide the same moves twice
-                "strategy": {"type": "Recreate"},
+                "replicas": replicas,  # every replica watches; the holder of the Lease acts
                 "selector": {"matchLabels": {"app.kubernetes.io/name": NAME}},
                 "template": {
                     "metadata": {"labels": labels},
                     "spec": {
                         "serviceAccountName": NAME,
+                        "affinity": {
+                            "podAntiAffinity": {
+                                "preferredDuringSchedulingIgnoredDuringExecution": [
+                                    {
+                                        "weight": 100,
+                                        "podAffinityTerm": {
+                                            "topologyKey": "kubernetes.io/hostname",
+                                            "labelSelector": {"matchLabels": {"app.kubernetes.io/name": NAME}},
+                                        },
+                                    }
+                                ]
+                            }
+                        },
                         "containers": [
                             {
                                 "name": "controller",
                                 "image": image,
-                                "args": ["python", "-m", ENTRY, *args],
+                                "args": ["python", "-m", ENTRY, "--lease-namespace", namespace, *args],
+                                "env": [
+                                    {"name": "POD_NAME", "valueFrom": {"fieldRef": {"fieldPath": "metadata.name"}}},
+                                    {"name": "KUBEROS_NODE_NAME", "valueFrom": {"fieldRef": {"fieldPath": "spec.nodeName"}}},
+                                ],
                                 "resources": {"requests": {"cpu": "100m", "memory": "128Mi"}, "limits": {"memory": "512Mi"}},
                                 "securityContext": {
                                     "runAsNonRoot": True,
@@ -101,4 +139,13 @@ def controller_objects(namespace: str, image: str, fleets: list[str], args: list
             },
         }
     )
+    if replicas > 1:
+        objects.append(
+            {
+                "apiVersion": "policy/v1",
+                "kind": "PodDisruptionBudget",
+                "metadata": {"name": NAME, "namespace": namespace, "labels": labels},
+                "spec": {"minAvailable": 1, "selector": {"matchLabels": {"app.kubernetes.io/name": NAME}}},
+            }
+        )
     return objects
