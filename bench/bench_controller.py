@@ -87,12 +87,19 @@ class FailoverCluster(Cluster):
 
 
 class ControllerProcess:
-    def __init__(self, cluster: Cluster, state_dir: Path, grace: float):
+    """The controller through playbooks/controller.yml; one replica here (its log has every move of a trial)."""
+
+    def __init__(self, cluster: Cluster, state_dir: Path, grace: float, replicas: int = 1):
         self.cluster = cluster
         self.state_dir = state_dir
         self.log_file = state_dir / "controller.log"
         self.vars = json.dumps(
-            {"controller_kubeconfig": str(cluster.kubeconfig), "controller_state_dir": str(state_dir), "controller_grace": grace}
+            {
+                "controller_kubeconfig": str(cluster.kubeconfig),
+                "controller_state_dir": str(state_dir),
+                "controller_grace": grace,
+                "controller_replicas": replicas,
+            }
         )
 
     def start(self) -> int:

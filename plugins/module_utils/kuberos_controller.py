@@ -75,7 +75,9 @@ RTT_ANNOTATION = "kuberos.io/rtt-ms"
 CONTROLLER_MANAGER = "kuberos-controller"
 LEASE_NAME = "kuberos-controller"
 LEASE_NAMESPACE = "kuberos-system"
-FAILPOINT_ENV = "KUBEROS_CONTROLLER_FAILPOINT"  # tests: "after-record" exits right after a record write
+# Tests: "after-record" exits right after a record write; "after-record-once:<file>" does so only in the first
+# replica to get there (it creates the file), so that the replica taking over passes.
+FAILPOINT_ENV = "KUBEROS_CONTROLLER_FAILPOINT"
 log = logging.getLogger("kuberos.controller")
 
 
@@ -90,6 +92,19 @@ def _epoch(stamp: str | None) -> float | None:
 
 def _now_rfc3339() -> str:
     return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _failpoint(name: str) -> bool:
+    value = os.environ.get(FAILPOINT_ENV, "")
+    if value == name:
+        return True
+    if value.startswith(name + "-once:"):
+        try:
+            os.close(os.open(value.split(":", 1)[1], os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:
+            return False
+        return True
+    return False
 
 
 def _key(obj: dict) -> tuple[str, str]:
@@ -345,7 +360,7 @@ class Controller:
                 log.info("record %s/%s changed while moving (%s); deciding again", record.namespace, record.name, exc.status)
                 return False
             raise
-        if os.environ.get(FAILPOINT_ENV) == "after-record":
+        if _failpoint("after-record"):
             log.error("failpoint after-record: exiting before applying")
             os._exit(3)
         return True

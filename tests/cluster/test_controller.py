@@ -1,20 +1,25 @@
 """The controller against the real local control plane: faults injected, modules moved, nothing lost.
 
 The pick-and-place example is deployed to test-fleet with playbooks/deploy.yml and the controller is
-started with playbooks/controller.yml (grace 2 s). Each test injects one fault the way it shows in a
-real cluster (a kwok node whose heartbeats stop and whose Ready condition turns Unknown, a Node
-deleted, a pod that keeps restarting, a measured RTT above max_latency, the controller killed between
-its two writes, the API server restarted), then checks the invariant: every module instance of every
-robot runs exactly once, Running and Ready, on the node the deployment record says, and the record is
-what the scheduler keeps given the faults (``replace_modules`` moves nothing more).
+started with playbooks/controller.yml (grace 2 s; two replicas, one leads on the Lease). Each test
+injects one fault the way it shows in a real cluster (a kwok node whose heartbeats stop and whose Ready
+condition turns Unknown, a Node deleted, a pod that keeps restarting, a measured RTT above max_latency,
+the leader killed between its two writes or while a node is failing, the leader paused past its Lease,
+the leader's own node NotReady, the API server restarted), then checks the invariant: every module
+instance of every robot runs exactly once, Running and Ready, on the node the deployment record says, and
+the record is what the scheduler keeps given the faults (``replace_modules`` moves nothing more).
 """
 
 from __future__ import annotations
 
 import datetime
+import glob
 import json
 import os
 import signal
+import socket
+import subprocess
+import sys
 import time
 
 import pytest
@@ -29,6 +34,8 @@ STATUS = "kuberos-status-pick-and-place"
 GRACE = 2
 KWOK = "kwok.x-k8s.io/node"
 RTT = "kuberos.io/rtt-ms"
+LEASE = ("kuberos-controller", "kuberos-system")
+ENTRY = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller"
 
 
 def _now() -> str:
@@ -40,6 +47,9 @@ class Fleet:
         self.cluster = cluster
         self.state_dir = str(state_dir)
         self.core, self.apps, _ = cluster.clients()
+        from kubernetes import client
+
+        self.coordination = client.CoordinationV1Api(self.core.api_client)
 
     # -- the controller, through its playbook ------------------------------------------------
     def controller(self, state="started", env=None, timeout=120):
@@ -61,17 +71,50 @@ class Fleet:
                     os.environ[key] = value
 
     def log(self) -> str:
-        with open(os.path.join(self.state_dir, "controller.log"), encoding="utf-8", errors="replace") as handle:
-            return handle.read()
+        """Every replica's log, one after the other."""
+        text = ""
+        for path in sorted(glob.glob(os.path.join(self.state_dir, "*.log"))):
+            with open(path, encoding="utf-8", errors="replace") as handle:
+                text += handle.read()
+        return text
 
-    def pid(self) -> int | None:
+    def pids(self) -> list[int]:
+        """Pids of the replicas that run now."""
+        found = []
+        for path in sorted(glob.glob(os.path.join(self.state_dir, "controller*.pid"))):
+            try:
+                with open(path, encoding="utf-8") as handle:
+                    pid = int(handle.read())
+                with open(f"/proc/{pid}/cmdline", "rb") as handle:
+                    if b"kuberos_controller" in handle.read() and _state(pid) != "Z":
+                        found.append(pid)
+            except (OSError, ValueError):
+                continue
+        return found
+
+    def leader(self) -> str:
+        """The Lease's holder ('' when free or absent)."""
+        from kubernetes.client.exceptions import ApiException
+
         try:
-            with open(os.path.join(self.state_dir, "controller.pid"), encoding="utf-8") as handle:
-                pid = int(handle.read())
-            os.kill(pid, 0)
-            return pid
-        except (OSError, ValueError):
-            return None
+            lease = self.coordination.read_namespaced_lease(*LEASE)
+        except ApiException:
+            return ""
+        return lease.spec.holder_identity or ""
+
+    def leader_pid(self, timeout=30) -> int:
+        """The pid of the replica that leads (identities of local replicas are host_pid)."""
+        prefix = socket.gethostname() + "_"
+        wait_for(lambda: self.leader().startswith(prefix) and int(self.leader()[len(prefix) :]) in self.pids(), timeout,
+                 "a running replica holding the Lease", lambda: f"holder {self.leader()!r}, replicas {self.pids()}")  # fmt: skip
+        return int(self.leader()[len(prefix) :])
+
+    def moved_by(self) -> dict[str, set]:
+        """Instance -> the identities of the replicas that reported moving it (ModuleMoved events)."""
+        found: dict[str, set] = {}
+        for event in self.events("ModuleMoved"):
+            found.setdefault(event.involved_object.name, set()).add(event.reporting_instance or "")
+        return found
 
     # -- faults ------------------------------------------------------------------------------
     def node_down(self, name):
@@ -171,6 +214,14 @@ class Fleet:
         edges = [n for n in sorted(set(placed.values())) if n.startswith("edge-")]
         node = max(edges, key=lambda n: sum(1 for v in placed.values() if v == n))
         return node, sorted(i for i, n in placed.items() if n == node)
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8") as handle:
+            return handle.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return ""
 
 
 def _ready(obj) -> bool:
@@ -308,24 +359,32 @@ def test_a_pod_that_keeps_failing_moves_to_another_node(fleet):
     assert "keeps failing" in fleet.log()
 
 
-def test_a_controller_killed_between_its_writes_finishes_the_move_after_a_restart(fleet):
+def test_the_leader_killed_between_record_write_and_apply_another_replica_finishes_the_move(fleet, tmp_path):
+    """Both replicas carry a failpoint that kills the first of them to write a record, right after the write and
+    before the apply: the leader dies there; the other takes the Lease once it expires and finishes the move."""
     assert fleet.controller("stopped").returncode == 0
-    restarted = fleet.controller(env={"KUBEROS_CONTROLLER_FAILPOINT": "after-record"})
-    assert restarted.returncode == 0, restarted.stdout[-3000:]
-    node, leaving = fleet.busiest_edge()
-    fleet.node_down(node)
     try:
-        wait_for(lambda: fleet.pid() is None, 30, "the controller to die at the failpoint")
-        assert "failpoint after-record" in fleet.log()
-        # The record says where modules go, but nothing was applied: the old pods are still on the dead node.
-        assert node not in fleet.placed().values()
-        assert any(p.spec.node_name == node for i in leaving for p in fleet.pods().get(i, []))
-        started = fleet.controller()
-        assert started.returncode == 0, started.stdout[-3000:]
+        restarted = fleet.controller(env={"KUBEROS_CONTROLLER_FAILPOINT": f"after-record-once:{tmp_path / 'fired'}"})
+        assert restarted.returncode == 0, restarted.stdout[-3000:]
+        first = fleet.leader_pid()
+        node, leaving = fleet.busiest_edge()
+        fleet.node_down(node)
+        try:
+            wait_for(lambda: first not in fleet.pids(), 30, "the leader to die at the failpoint")
+            assert "failpoint after-record" in fleet.log()
+            # The record says where modules go, but the leader applied nothing: the old pods are still on the dead node.
+            assert node not in fleet.placed().values()
+            assert any(p.spec.node_name == node for i in leaving for p in fleet.pods().get(i, []))
+            second = fleet.leader_pid()
+            assert second != first and len(fleet.pids()) == 1
+            fleet.converge()
+            assert fleet.pids() == [second]
+        finally:
+            fleet.node_up(node)
         fleet.converge()
     finally:
-        fleet.node_up(node)
-    fleet.converge()
+        assert fleet.controller("stopped").returncode == 0  # the survivor was started with the failpoint set
+        assert fleet.controller().returncode == 0
 
 
 def test_the_controller_survives_an_api_server_restart(fleet):
@@ -334,7 +393,7 @@ def test_the_controller_survives_an_api_server_restart(fleet):
     time.sleep(2)
     restarted = fleet.cluster.start()
     assert restarted.returncode == 0, restarted.stdout[-3000:]
-    assert fleet.pid() is not None, "the controller kept running"
+    assert len(fleet.pids()) == 2, "both replicas kept running"
     node, _ = fleet.busiest_edge()
     fleet.node_down(node)
     try:
@@ -387,8 +446,14 @@ FORBIDDEN = [
     ("patch", "apps", "deployments", "default"),
     ("create", "", "pods/exec", "kuberos-test-fleet"),
     ("patch", "", "nodes/status", ""),
+    ("update", "coordination.k8s.io", "leases", "kube-system"),
+    ("update", "coordination.k8s.io", "leases", "kube-node-lease"),
+    ("delete", "coordination.k8s.io", "leases", "kuberos-system"),
 ]
 ALLOWED = [
+    ("get", "coordination.k8s.io", "leases", "kuberos-system"),
+    ("update", "coordination.k8s.io", "leases", "kuberos-system"),
+    ("create", "coordination.k8s.io", "leases", "kuberos-system"),
     ("watch", "", "nodes", ""),
     ("list", "", "pods", ""),
     ("watch", "apps", "deployments", ""),
@@ -481,3 +546,100 @@ def test_deploying_again_while_a_node_is_down_places_nothing_there(fleet, tmp_pa
     finally:
         fleet.node_up(node)
         assert fleet.controller().returncode == 0
+
+
+# -- the redundant controller ----------------------------------------------------------------------
+def test_two_replicas_run_and_exactly_one_leads(fleet):
+    assert len(fleet.pids()) == 2
+    leader = fleet.leader_pid()
+    assert f"{socket.gethostname()}_{leader} is the leader" in fleet.log()
+    follower = next(p for p in fleet.pids() if p != leader)
+    assert f"{socket.gethostname()}_{follower} is the leader" not in fleet.log() or fleet.leader_pid() == leader
+
+
+def test_the_leader_killed_while_a_node_is_failing_hands_over_and_the_new_leader_moves(fleet):
+    first = fleet.leader_pid()
+    node, leaving = fleet.busiest_edge()
+    before = fleet.moved_by()
+    fleet.node_down(node)
+    os.kill(first, signal.SIGKILL)  # inside the grace period: the dead leader has moved nothing yet
+    try:
+        fleet.converge(timeout=90)
+        second = fleet.leader_pid()
+        assert second != first
+        assert node not in fleet.placed().values()
+        now = fleet.moved_by()
+        movers = set().union(*(now[i] - before.get(i, set()) for i in leaving))
+        assert movers == {f"{socket.gethostname()}_{second}"}, "only the new leader moved the modules"
+    finally:
+        fleet.node_up(node)
+        assert fleet.controller().returncode == 0  # the role starts the missing replica again
+    assert len(fleet.pids()) == 2
+    fleet.converge()
+
+
+def test_a_paused_leader_stops_acting_before_its_lease_can_be_taken(fleet):
+    """A leader frozen past its Lease (SIGSTOP: what a long pause or a partition from the API server looks like
+    to the others) wakes up with a fault it was about to act on, and does nothing: the new leader acted."""
+    first = fleet.leader_pid()
+    identity = f"{socket.gethostname()}_{first}"
+    node, leaving = fleet.busiest_edge()
+    before = fleet.moved_by()
+    fleet.node_down(node)
+    os.kill(first, signal.SIGSTOP)
+    try:
+        second = fleet.leader_pid(timeout=60)
+        assert second != first
+        fleet.converge(timeout=90)
+        assert node not in fleet.placed().values()
+        os.kill(first, signal.SIGCONT)
+        wait_for(lambda: f"{identity} is not the leader" in fleet.log(), 20, "the woken replica to see it does not lead")
+        time.sleep(GRACE + 2)  # its grace timer for the failed node ran out while it was frozen
+        now = fleet.moved_by()
+        assert all(identity not in now.get(i, set()) - before.get(i, set()) for i in leaving), "the paused leader moved nothing"
+        assert fleet.leader_pid() == second
+        fleet.converge()
+    finally:
+        os.kill(first, signal.SIGCONT)
+        fleet.node_up(node)
+    fleet.converge()
+
+
+def test_a_leader_whose_own_node_is_not_ready_hands_over_at_once(fleet, tmp_path):
+    """Replicas told the node they run on (in a cluster: the pod's node, from the downward API)."""
+    assert fleet.controller("stopped").returncode == 0
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p.endswith(".collections"))}
+    processes = []
+
+    def replica(node_name):
+        command = [sys.executable, "-m", ENTRY, "--kubeconfig", fleet.cluster.kubeconfig, "--grace", str(GRACE)]
+        with open(tmp_path / f"on-{node_name}.log", "wb") as out:
+            process = subprocess.Popen([*command, "--node-name", node_name], stdout=out, stderr=subprocess.STDOUT, env=env)
+        processes.append(process)
+        return f"{socket.gethostname()}_{process.pid}"
+
+    node, _ = fleet.busiest_edge()
+    other = next(n for n in ("edge-1", "edge-2", "edge-3") if n != node)
+    try:
+        first = replica(node)
+        wait_for(lambda: fleet.leader() == first, 30, "the replica on the busiest edge node to lead")
+        second = replica(other)
+        wait_for(lambda: "controller started" in (tmp_path / f"on-{other}.log").read_text(), 30, "the second replica")
+        time.sleep(1)
+        down_at = time.monotonic()
+        fleet.node_down(node)
+        wait_for(lambda: fleet.leader() == second, 30, "the healthy replica to take the Lease")
+        handover = time.monotonic() - down_at
+        assert "own node is NotReady" in (tmp_path / f"on-{node}.log").read_text()
+        # Released, not expired: the healthy replica did not wait out the Lease (6 s after the last renewal).
+        assert handover < 5.5, f"handover took {handover:.1f} s"
+        fleet.converge()
+        assert node not in fleet.placed().values()
+    finally:
+        for process in processes:
+            process.send_signal(signal.SIGTERM)
+        for process in processes:
+            process.wait(timeout=30)
+        fleet.node_up(node)
+        assert fleet.controller().returncode == 0
+    fleet.converge()
