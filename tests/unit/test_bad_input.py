@@ -125,8 +125,8 @@ SPEC_CASES = [
     case(
         "control-character",
         "metadata:\n  name: \x1f\n",
-        "",
-        ["not valid YAML", "unacceptable character #x001f (special characters are not allowed)"],
+        "metadata.name",
+        ["control character U+001F in column 9", "expected printable text"],
         2,
     ),
     case(

@@ -542,7 +542,7 @@ CATALOG_CASES = [
         14,
     ),
     case("not-yaml", BASE + "  - [unclosed\n", "", ["not valid YAML"], None),
-    case("control-character", BASE + "x: \x1f\n", "", ["not valid YAML: unacceptable character #x001f"], 14),
+    case("control-character", BASE + "x: \x1f\n", "x", ["control character U+001F in column 4"], 14),
     case("python-tag", BASE + "x: !!python/object/apply:os.system [echo]\n", "", ["not valid YAML"], 14),
 ]
 

@@ -26,18 +26,24 @@ from __future__ import annotations
 
 import copy
 import os
-import re
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
-
-import jsonschema
 
 from . import quantities
 from .errors import Problem, SpecError, describe, did_you_mean
 from .schema import API_VERSION, DNS_LABEL, ENV, IMAGE, LAUNCH, PREFERENCE, REQUIREMENTS, RESOURCES, ROS_PARAMETERS, UPGRADE
 from .semver import MAX_LENGTH, Version, parse_range, parse_version
-from .validation import as_tuple, env_name_problem, launch_problems, problem, schema_problems
-from .yaml_source import MAX_BYTES, MAX_DEPTH, MAX_NODES, Document, format_path, load_documents
+from .validation import (
+    as_tuple,
+    env_name_problem,
+    image_reference_problem,
+    launch_problems,
+    problem,
+    ros_parameter_problems,
+    schema_problems,
+    strict_validator,
+)
+from .yaml_source import MAX_DEPTH, MAX_NODES, Document, format_path, load_documents, read_text
 
 CATALOG_KIND = "RosModuleCatalog"
 DEFAULT_DIRECTORY = "catalog"  # inside the inventory: inventories/<site>/catalog/
@@ -48,12 +54,6 @@ ROS_DISTRO = r"^[a-z][a-z0-9_-]*$"
 ARCH = r"^[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?$"
 INTERFACE = r"^[A-Za-z][A-Za-z0-9_]*$"
 
-# [registry[:port]/]path[:tag]: the first component may be a registry host; the path is lowercase.
-_REGISTRY = r"[A-Za-z0-9](?:[-A-Za-z0-9]*[A-Za-z0-9])?(?:\.[A-Za-z0-9](?:[-A-Za-z0-9]*[A-Za-z0-9])?)*(?::[0-9]+)?"
-_PATH_COMPONENT = r"[a-z0-9]+(?:(?:[._]|__|-+)[a-z0-9]+)*"
-_IMAGE_REFERENCE = re.compile(
-    rf"^(?:{_REGISTRY}/)?{_PATH_COMPONENT}(?:/{_PATH_COMPONENT})*(?::[A-Za-z0-9_][A-Za-z0-9_.-]{{0,127}})?\Z"
-)
 _MAX_IMAGE = 255 + 1 + 128
 
 VERSION_SCHEMA = {
@@ -183,7 +183,7 @@ CATALOG_SCHEMA = {
     },
 }
 
-_VALIDATOR = jsonschema.Draft202012Validator(CATALOG_SCHEMA)
+_VALIDATOR = strict_validator(CATALOG_SCHEMA)
 
 
 @dataclass(frozen=True)
@@ -412,12 +412,7 @@ def _image_problem(image: str) -> str | None:
             f"{describe(image)} has a digest; put the digest (sha256:...) in 'digest' and keep the image as "
             "name:tag, such as 'ghcr.io/kuberos/pnp-planner:0.2.0'"
         )
-    if not _IMAGE_REFERENCE.match(image):
-        return (
-            f"{describe(image)} is not a valid image reference; expected [registry/]path[:tag] with a lowercase path, "
-            "such as 'ghcr.io/kuberos/pnp-planner:0.2.0'"
-        )
-    return None
+    return image_reference_problem(image, digest_allowed=False)
 
 
 def _version_problems(raw: dict, doc: Document, base: tuple, problems: list[Problem]) -> None:
@@ -445,6 +440,9 @@ def _version_problems(raw: dict, doc: Document, base: tuple, problems: list[Prob
                 continue
             if key == "memory" and amount == 0:
                 add((name, key), "must be more than zero; expected e.g. '128Mi'")
+            if key == "max_latency" and amount <= 0:
+                add((name, key), f"{describe(section[key])} is not more than zero; expected a latency such as '200 ms'")
+    problems.extend(ros_parameter_problems(raw.get("rosParameters") or {}, doc, (*base, "rosParameters")))
     for key in raw.get("env") or {}:
         why = env_name_problem(key)
         if why:
@@ -593,18 +591,9 @@ def _cross_problems(found: list[tuple[CatalogEntry, Document, tuple]], declared:
 
 def _read(path: str, display: str, problems: list[Problem]) -> str | None:
     try:
-        with open(path, "rb") as handle:
-            raw = handle.read(MAX_BYTES + 1)
-    except OSError as exc:
-        problems.append(Problem(display, "", f"cannot read the file: {exc.strerror or exc}"))
-        return None
-    if len(raw) > MAX_BYTES:
-        problems.append(Problem(display, "", f"file is larger than {MAX_BYTES} bytes"))
-        return None
-    try:
-        return raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        problems.append(Problem(display, "", f"not UTF-8 text (byte {exc.start})"))
+        return read_text(path, display)
+    except SpecError as exc:
+        problems.extend(exc.problems)
         return None
 
 

@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import hashlib
 import re
+from dataclasses import dataclass
 
 _INVALID = re.compile(r"[^a-z0-9-]+")
 DISCOVERY_PREFIX = "kuberos-discovery"
+# KubeROS's own objects in a fleet namespace (discovery servers, bridges, deployment records, revisions, status,
+# the catalog) are named kuberos-...; a deployment may not take that prefix, so that its objects never clash with them.
+RESERVED_PREFIX = "kuberos"
 
 
 def dns_label(*parts: str, max_len: int = 63) -> str:
@@ -34,6 +38,60 @@ def dedicated_instance_name(deployment: str, module: str, robot: str) -> str:
 
 def shared_instance_name(deployment: str, module: str, index: int) -> str:
     return dns_label(deployment, module, f"shared-{index}", max_len=52)
+
+
+def parameters_configmap_name(deployment: str, module: str) -> str:
+    """The ConfigMap of a module's ROS parameters (one per module of a deployment)."""
+    return dns_label(deployment, module, "params")
+
+
+def reserved_name_problem(deployment: str) -> str | None:
+    """Why ``deployment`` may not be a deployment's name (it would share KubeROS's own names), or None."""
+    if deployment == RESERVED_PREFIX or deployment.startswith(RESERVED_PREFIX + "-"):
+        return (
+            f"'{deployment}' starts with '{RESERVED_PREFIX}', the prefix of KubeROS's own objects in a fleet namespace "
+            "(discovery servers, bridges, records); expected another name"
+        )
+    return None
+
+
+@dataclass(frozen=True)
+class PlannedName:
+    """The name one object of a module of a deployment will get, and what it is for."""
+
+    kind: str  # Deployment or ConfigMap
+    namespace: str
+    name: str
+    deployment: str
+    module: str
+    what: str  # "the instance of robot fetch-1", "shared instance 0", "the ROS parameters"
+
+
+def module_object_names(fleet: str, deployment: str, module: str, shared: bool, robots, parameters: bool) -> list[PlannedName]:
+    """The names a module's objects will get in its fleet's namespace: a Deployment per robot (dedicated) or up to
+    one per robot (shared, numbered from 0), and its parameter ConfigMap when it has ``rosParameters``. With
+    ``robots`` None (all robots of the fleet, not known here) one symbolic name ``<deployment>-<module>-<robot>``
+    stands for the instances: equal for two modules exactly when their instances would clash for every robot."""
+    namespace = fleet_namespace(fleet)
+    names = []
+    if robots is None:  # the fleet's robots, not known here: one symbolic name stands for them all
+        stem = dns_label(deployment, module)
+        name, what = (f"{stem}-shared-<n>", "its shared instances") if shared else (f"{stem}-<robot>", "each robot's instance")
+        names.append(PlannedName("Deployment", namespace, name, deployment, module, what))
+        robots = ()
+    for index, robot in enumerate(robots):
+        if shared:
+            name, what = shared_instance_name(deployment, module, index), f"shared instance {index}"
+        else:
+            name, what = dedicated_instance_name(deployment, module, robot), f"the instance of robot {robot}"
+        names.append(PlannedName("Deployment", namespace, name, deployment, module, what))
+    if parameters:
+        names.append(
+            PlannedName(
+                "ConfigMap", namespace, parameters_configmap_name(deployment, module), deployment, module, "ROS parameters"
+            )
+        )
+    return names
 
 
 def discovery_server_name(server_id: int) -> str:

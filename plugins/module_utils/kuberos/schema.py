@@ -13,6 +13,9 @@ TIERS = ("onboard", "edge", "cloud")
 STRATEGIES = ("dedicated", "shared")
 
 DNS_LABEL = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
+# Fleet, robot and device names as the inventory writes them (docs/inventory.md).
+INVENTORY_NAME = r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?$"
+ARCH_NAME = r"^[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?$"
 ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
 LABEL_KEY = r"^([a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*/)?[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?$"
 LABEL_VALUE = r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?$"
@@ -76,14 +79,22 @@ REQUIREMENTS = {
             "x-expected": "a latency such as '200 ms', '0.5 s' or a number of milliseconds",
         },
         "arch": {
-            **_ONE_OR_MORE_STRINGS,
+            "anyOf": [
+                {"type": "string", "pattern": ARCH_NAME, "maxLength": 63},
+                {"type": "array", "minItems": 1, "items": {"type": "string", "pattern": ARCH_NAME, "maxLength": 63}},
+            ],
             "description": "CPU architecture(s) the image runs on, e.g. amd64 or [amd64, arm64].",
             "x-expected": "an architecture such as 'amd64' or a list of them",
         },
         "devices": {
             "type": "array",
             "uniqueItems": True,
-            "items": {"type": "string", "minLength": 1},
+            "items": {
+                "type": "string",
+                "pattern": INVENTORY_NAME,
+                "maxLength": 63,
+                "x-expected": "a device name of lowercase letters, digits, '-' and '.', such as 'camera'",
+            },
             "description": "Devices the node must carry, e.g. [camera, lidar].",
             "x-expected": "a list of distinct device names",
         },
@@ -177,9 +188,10 @@ SCHEMA = {
                 },
                 "targetFleet": {
                     "type": "string",
-                    "minLength": 1,
+                    "pattern": INVENTORY_NAME,
+                    "maxLength": 63,
                     "description": "The fleet (from the inventory) whose robots this deployment serves.",
-                    "x-expected": "the name of a fleet in the inventory",
+                    "x-expected": "the name of a fleet in the inventory (lowercase letters, digits, '-' and '.')",
                 },
                 "robotSelector": {
                     "type": "object",
@@ -190,7 +202,7 @@ SCHEMA = {
                             "type": "array",
                             "minItems": 1,
                             "uniqueItems": True,
-                            "items": {"type": "string", "minLength": 1, "x-expected": "a robot name"},
+                            "items": {"type": "string", "pattern": INVENTORY_NAME, "maxLength": 63, "x-expected": "a robot name"},
                             "description": "Robots of the fleet to deploy to; all robots of the fleet when absent.",
                             "x-expected": "a non-empty list of distinct robot names",
                         }

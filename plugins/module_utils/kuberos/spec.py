@@ -11,15 +11,23 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, field, replace
 
-import jsonschema
-
-from . import quantities
+from . import naming, quantities
 from .catalog import Catalog, CatalogEntry
 from .errors import Problem, SpecError, describe
 from .schema import API_VERSION, KIND, SCHEMA, TIERS
 from .semver import parse_range
-from .validation import as_tuple, env_name_problem, launch_problems, problem, schema_problems
-from .yaml_source import Document, format_path, load_documents
+from .validation import (
+    as_tuple,
+    env_name_problem,
+    image_reference_problem,
+    label_key_problem,
+    launch_problems,
+    problem,
+    ros_parameter_problems,
+    schema_problems,
+    strict_validator,
+)
+from .yaml_source import Document, format_path, load_documents, read_text
 
 # A single preferred tier falls back to the others in this order.
 FALLBACK_ORDER = {
@@ -31,12 +39,14 @@ DEFAULT_PREFERENCE = "edge"
 DEFAULT_CPU = "100m"
 DEFAULT_MEMORY = "128Mi"
 DEFAULT_ROBOTS_PER_INSTANCE = 4
+MAX_QUANTITY = 2**63 - 1  # Kubernetes keeps quantities in 64-bit integers (cpu in millicores)
+_UNITS = {"cpu": "millicores", "memory": "bytes", "max_latency": "milliseconds"}
 NO_CATALOG = (
     "no catalog given; set kuberos_catalog to the software catalog (a directory of RosModuleCatalog files, "
     "by default the inventory's catalog/ directory), or give image and launch instead"
 )
 
-_VALIDATOR = jsonschema.Draft202012Validator(SCHEMA)
+_VALIDATOR = strict_validator(SCHEMA)
 
 
 @dataclass(frozen=True)
@@ -162,16 +172,32 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
         problems.append(_problem(doc, base + parts, message))
 
     def quantity(section, key, parser, default):
+        section_name = "requirements" if section is requirements else "resources"
         try:
-            return parser(section.get(key, default))
+            amount = parser(section.get(key, default))
         except ValueError as exc:
-            section_name = "requirements" if section is requirements else "resources"
             problem((section_name, key), f"{describe(section.get(key))} is not valid; {exc}")
             return 0
+        if amount > MAX_QUANTITY:
+            problem(
+                (section_name, key),
+                f"{describe(section.get(key))} is too large for Kubernetes; expected at most {MAX_QUANTITY} {_UNITS[key]}",
+            )
+            return 0
+        return amount
 
     max_latency = None
     if "max_latency" in requirements:
         max_latency = quantity(requirements, "max_latency", quantities.parse_latency_ms, None)
+        if max_latency <= 0 and not any(p.path == format_path((*base, "requirements", "max_latency")) for p in problems):
+            problem(
+                ("requirements", "max_latency"),
+                f"{describe(requirements['max_latency'])} is not more than zero; expected a latency such as '200 ms'",
+            )
+    why = image_reference_problem(module["image"])
+    if why:
+        problem(("image",), why)
+    problems.extend(ros_parameter_problems(module.get("rosParameters") or {}, doc, (*base, "rosParameters")))
     cpu = quantity(resources, "cpu", quantities.parse_cpu, DEFAULT_CPU)
     memory = quantity(resources, "memory", quantities.parse_memory, DEFAULT_MEMORY)
     if memory == 0 and "memory" in resources:
@@ -355,6 +381,25 @@ def _catalog_problems(doc: Document, resolved: list[tuple[RosModule, CatalogEntr
     return problems
 
 
+def _metadata_problems(doc: Document, broken: set[str]) -> list[Problem]:
+    """Labels the collection owns, and a name KubeROS keeps for its own objects."""
+    metadata = doc.data.get("metadata") if isinstance(doc.data, dict) else None
+    if not isinstance(metadata, dict):
+        return []
+    problems = []
+    name = metadata.get("name")
+    if isinstance(name, str) and "metadata.name" not in broken:
+        why = naming.reserved_name_problem(name)
+        if why:
+            problems.append(_problem(doc, ("metadata", "name"), why))
+    labels = metadata.get("labels")
+    for key in labels if isinstance(labels, dict) else ():
+        why = label_key_problem(key)
+        if why and f"metadata.labels.{key}" not in broken:
+            problems.append(_problem(doc, ("metadata", "labels", key), f"{describe(key)} {why}"))
+    return problems
+
+
 def _parse_document(doc: Document, catalog: Catalog | None = None) -> RosDeployment:
     if catalog is not None and not isinstance(catalog, Catalog):
         raise TypeError(f"catalog must be a Catalog or None, not {type(catalog).__name__}")
@@ -398,6 +443,7 @@ def _parse_document(doc: Document, catalog: Catalog | None = None) -> RosDeploym
         modules.append(resolved_module)
         resolved.append((resolved_module, entry))
     problems.extend(_catalog_problems(doc, resolved, unresolved))
+    problems.extend(_metadata_problems(doc, {p.path for p in problems}))
     if problems:
         raise SpecError(sorted(problems, key=lambda p: (p.line or 0, p.path)), title=f"{doc.source} is not a valid RosDeployment")
     metadata = data["metadata"]
@@ -451,25 +497,90 @@ def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | No
                 )
             )
         names.setdefault(deployment.name, deployment.source)
+    if not problems:
+        problems.extend(name_clash_problems(deployments, lambda dep: dep.robots))
     if problems:
         raise SpecError(problems, title=f"{source} is not a valid RosDeployment")
     return deployments
 
 
+def _module_names(dep: RosDeployment, robots) -> list[tuple[naming.PlannedName, RosModule]]:
+    return [
+        (planned, module)
+        for module in dep.modules
+        for planned in naming.module_object_names(
+            dep.fleet, dep.name, module.name, module.strategy == "shared", robots, bool(module.ros_parameters)
+        )
+    ]
+
+
+def name_clash_problems(deployments: list[RosDeployment], robots_of, live=()) -> list[Problem]:
+    """Objects that would get the same name: two modules of the deployments (``robots_of(deployment)`` gives the
+    robots each one serves, or None for all robots of its fleet when they are not known; see
+    ``naming.module_object_names``), or a
+    module and an object already in the cluster (``live``: mappings with kind, namespace, name and the deployment
+    and module that own it, '' when none) that is not this deployment's own. Modules of third-party clusters are
+    compared among themselves only.
+
+    Names join deployment, module and robot with '-' (``naming.py``), so that deployment ``a-b`` with module ``c``
+    and deployment ``a`` with module ``b-c`` name their instances alike; the problem is reported at the module
+    named second, naming the first.
+    """
+    problems: list[Problem] = []
+    first: dict[tuple, tuple[RosDeployment, RosModule, naming.PlannedName]] = {}
+    reported = set()
+    for dep in deployments:
+        robots = robots_of(dep)
+        for planned, module in _module_names(dep, robots):
+            key = (module.cluster, planned.kind, planned.namespace, planned.name)
+            other = first.setdefault(key, (dep, module, planned))
+            if other[2] is planned or (dep.name, module.name) in reported:
+                continue
+            other_dep, other_module, _ = other
+            path = f"{module.path}.name"
+            where = f"{other_dep.source}:{other_dep.line_of(other_module.path + '.name')}"
+            problems.append(
+                Problem(
+                    dep.source,
+                    path,
+                    f"'{module.name}' of deployment {dep.name} would name a {planned.kind} {planned.name} ({planned.what}), "
+                    f"the name {other_module.path}.name '{other_module.name}' of deployment {other_dep.name} ({where}) gets; "
+                    "names join deployment, module and robot with '-'; expected module or deployment names that do not "
+                    "join to the same name (rename one of the two)",
+                    dep.line_of(path),
+                )
+            )
+            reported.add((dep.name, module.name))
+    mine = {(dep.name) for dep in deployments}
+    owners = {(obj["kind"], obj["namespace"], obj["name"]): obj for obj in live}
+    for (cluster, kind, namespace, name), (dep, module, planned) in first.items():
+        obj = owners.get((kind, namespace, name))
+        if cluster or obj is None or "<" in name or obj.get("deployment") in mine or (dep.name, module.name) in reported:
+            continue
+        owner = (
+            f"deployment {obj['deployment']} (module {obj.get('module') or '?'})"
+            if obj.get("deployment")
+            else "no KubeROS deployment"
+        )
+        path = f"{module.path}.name"
+        problems.append(
+            Problem(
+                dep.source,
+                path,
+                f"'{module.name}' of deployment {dep.name} would name a {kind} {name} ({planned.what}) in namespace "
+                f"{namespace}, but a {kind} of that name is already there and belongs to {owner}; names join deployment, "
+                "module and robot with '-'; expected module or deployment names that give other names",
+                dep.line_of(path),
+            )
+        )
+        reported.add((dep.name, module.name))
+    return problems
+
+
 def load_rosdeployment_file(path: str, display: str | None = None, catalog: Catalog | None = None) -> list[RosDeployment]:
     """Read ``path`` and validate it; errors name ``display`` (the path as the user wrote it)."""
     display = display or path
-    try:
-        with open(path, "rb") as handle:
-            raw = handle.read(2 * 1024 * 1024)
-    except OSError as exc:
-        raise SpecError(
-            [Problem(display, "", f"cannot read the file: {exc.strerror or exc}")], title="cannot read the spec"
-        ) from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise SpecError([Problem(display, "", f"not UTF-8 text (byte {exc.start})")], title=f"{display} is not valid") from None
+    text = read_text(path, display)
     return load_rosdeployments(text, display, catalog)
 
 
@@ -483,5 +594,6 @@ __all__ = [
     "RosModule",
     "load_rosdeployment_file",
     "load_rosdeployments",
+    "name_clash_problems",
     "parse_rosdeployment",
 ]

@@ -8,6 +8,9 @@ field ``x-field``).
 
 from __future__ import annotations
 
+import datetime
+import functools
+import re
 import shlex
 
 import jsonschema
@@ -16,6 +19,26 @@ from .errors import Problem, describe, did_you_mean
 from .yaml_source import Document, format_path
 
 RESERVED_ENV = ("ROS_DISCOVERY_SERVER", "RMW_IMPLEMENTATION", "ROS_DOMAIN_ID")
+
+
+@functools.lru_cache(maxsize=256)
+def _anchored(pattern: str) -> re.Pattern:
+    """``pattern`` with a final ``$`` meaning the end of the text, as in JSON Schema (ECMA-262), not before a final
+    line feed as in Python: ``'demo\\n'`` does not match ``^[a-z]+$``."""
+    if pattern.endswith("$") and not pattern.endswith("\\$"):
+        pattern = pattern[:-1] + "\\Z"
+    return re.compile(pattern)
+
+
+def _pattern(validator, pattern, instance, schema):
+    if validator.is_type(instance, "string") and not _anchored(pattern).search(instance):
+        yield jsonschema.ValidationError(f"{instance!r} does not match {pattern!r}")
+
+
+def strict_validator(schema: dict) -> jsonschema.protocols.Validator:
+    """A Draft 2020-12 validator of ``schema`` whose patterns end where the text ends (see ``_anchored``)."""
+    cls = jsonschema.validators.extend(jsonschema.Draft202012Validator, {"pattern": _pattern})
+    return cls(schema)
 
 
 def path_parts(data, parts) -> tuple:
@@ -111,4 +134,191 @@ def env_name_problem(name) -> str | None:
         return "is set by KubeROS (use rosDomainId and discovery instead); remove it"
     if name.startswith("KUBEROS_"):
         return "names starting with KUBEROS_ are reserved for KubeROS; rename it"
+    return None
+
+
+# --------------------------------------------------------------------------------------------
+# Container image references (github.com/distribution/reference)
+# --------------------------------------------------------------------------------------------
+
+_DOMAIN_COMPONENT = r"(?:[A-Za-z0-9]|[A-Za-z0-9][A-Za-z0-9-]*[A-Za-z0-9])"
+_HOST = rf"(?:{_DOMAIN_COMPONENT}(?:\.{_DOMAIN_COMPONENT})*|\[[0-9A-Fa-f:.]+\])"
+_DOMAIN = re.compile(rf"{_HOST}(?::[0-9]+)?")
+_PATH_COMPONENT = re.compile(r"[a-z0-9]+(?:(?:[_.]|__|-+)[a-z0-9]+)*")
+_TAG = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
+_DIGEST_HEX = {"sha256": 64, "sha384": 96, "sha512": 128}
+MAX_IMAGE_NAME = 255
+IMAGE_EXPECTED = (
+    "expected [registry/]path[:tag][@digest] with a lowercase path (a registry may have a :port; a digest is "
+    "sha256: and 64 hex digits), such as 'ghcr.io/example/planner:1.0'"
+)
+
+
+def _split_image(image: str) -> tuple[str, str, str | None, str]:
+    """``[domain/]path[:tag][@digest]`` -> (domain, path, tag, digest); the tag is None without a ':'."""
+    name, _, digest = image.partition("@")
+    domain, path = "", name
+    first, slash, rest = name.partition("/")
+    # The first component is a registry when it looks like a host: a dot, a port, 'localhost' or capitals.
+    if slash and ("." in first or ":" in first or first == "localhost" or first != first.lower()):
+        domain, path = first, rest
+    tag = None
+    if ":" in path.rsplit("/", 1)[-1]:
+        path, _, tag = path.rpartition(":")
+    return domain, path, tag, digest
+
+
+def _image_reason(image: str, digest_allowed: bool) -> str | None:
+    if any(character.isspace() for character in image):
+        return "white space"
+    if image.count("@") > 1:
+        return "more than one '@'"
+    domain, path, tag, digest = _split_image(image)
+    if domain and not _DOMAIN.fullmatch(domain):
+        return f"the registry {describe(domain)} is not a host name or address with an optional :port"
+    for component in path.split("/"):
+        if not _PATH_COMPONENT.fullmatch(component):
+            return (
+                f"the path component {describe(component)} is not lowercase letters and digits separated by '.', '_', '__' or '-'"
+            )
+    if len(domain) + 1 + len(path) > MAX_IMAGE_NAME:
+        return f"the name is longer than {MAX_IMAGE_NAME} characters"
+    if tag is not None and not _TAG.fullmatch(tag):
+        return f"the tag {describe(tag)} is not 1 to 128 letters, digits, '_', '.' and '-' starting with a letter, digit or '_'"
+    if "@" in image and digest_allowed:
+        algorithm, _, encoded = digest.partition(":")
+        length = _DIGEST_HEX.get(algorithm)
+        if length is None:
+            return f"the digest algorithm {describe(algorithm)} is not sha256, sha384 or sha512"
+        if len(encoded) != length or not re.fullmatch(r"[0-9a-f]+", encoded):
+            return f"the {algorithm} digest is not {length} lowercase hex digits"
+    return None
+
+
+def image_reference_problem(image, digest_allowed: bool = True) -> str | None:
+    """Why ``image`` is not a valid container image reference (the distribution/reference grammar), or None.
+
+    With ``digest_allowed`` false, a digest is not judged (the caller says where a digest goes instead).
+    """
+    if not isinstance(image, str) or not image:
+        return None  # the schema reports the type
+    reason = _image_reason(image, digest_allowed)
+    return f"{describe(image)} is not a valid image reference ({reason}); {IMAGE_EXPECTED}" if reason else None
+
+
+# --------------------------------------------------------------------------------------------
+# ROS 2 parameters
+# --------------------------------------------------------------------------------------------
+
+INT64 = (-(2**63), 2**63 - 1)
+_ROS_SCALARS = {bool: "a bool", int: "an integer", float: "a double", str: "a string"}
+ROS_TYPES = "bool, integer (64-bit), double, string, or a non-empty list of one of these"
+
+
+def _ros_scalar_problem(value) -> str | None:
+    kind = type(value)
+    if kind is bool or kind is float or kind is str:
+        return None
+    if kind is int:
+        if not INT64[0] <= value <= INT64[1]:
+            return f"{describe(value)} does not fit a 64-bit integer; expected an integer from {INT64[0]} to {INT64[1]}"
+        return None
+    if value is None:
+        return "has no value; ROS 2 parameters have no null (give a value or leave the parameter out)"
+    if isinstance(value, (datetime.date, datetime.datetime)):
+        return f"is a YAML timestamp ({value.isoformat()}); ROS 2 has no date type; quote it to make it a string"
+    if isinstance(value, (bytes, bytearray)):
+        return "is a YAML !!binary value; ROS 2 parameters have no binary type; expected a list of integers or a string"
+    if isinstance(value, (set, frozenset)):
+        return "is a YAML !!set; ROS 2 parameters have no set type; expected a list"
+    return f"{describe(value)} has no ROS 2 parameter type; expected {ROS_TYPES}"
+
+
+def ros_parameter_problems(value, doc: Document, base: tuple, limit: int = 20) -> list[Problem]:
+    """Each value of a ``rosParameters`` mapping that ROS 2's parameter file parser cannot read, at its path.
+
+    Mappings are namespaces (string keys); values are bool, 64-bit integer, double, string, or a non-empty
+    list of one of these (all of the same type; ROS 2 has no mixed, nested or empty arrays: an empty list has
+    no type). ``!!binary``, ``!!set``, timestamps, nulls and non-string keys have no ROS 2 counterpart.
+    """
+    problems: list[Problem] = []
+    stack = [(value, base)]
+    while stack and len(problems) < limit:
+        node, parts = stack.pop()
+        if isinstance(node, dict):
+            for key in reversed(list(node)):
+                if not isinstance(key, str):
+                    problems.append(
+                        problem(doc, (*parts, str(key)), f"{describe(key)} is not a valid parameter name; expected a string")
+                    )
+                elif not key or any(character.isspace() for character in key):
+                    problems.append(
+                        problem(
+                            doc, (*parts, key), f"{describe(key)} is not a valid parameter name; expected a name without spaces"
+                        )
+                    )
+                else:
+                    stack.append((node[key], (*parts, key)))
+            continue
+        if isinstance(node, list):
+            problems.extend(_ros_array_problems(node, doc, parts))
+            continue
+        why = _ros_scalar_problem(node)
+        if why:
+            problems.append(problem(doc, parts, why))
+    return problems[:limit]
+
+
+def _ros_array_problems(items: list, doc: Document, parts: tuple) -> list[Problem]:
+    if not items:
+        why = "is an empty list, which has no ROS 2 type (bool, integer, double or string array)"
+        return [problem(doc, parts, f"{why}; give at least one value or leave the parameter out")]
+    first = type(items[0])
+    for position, item in enumerate(items):
+        if isinstance(item, (dict, list)):
+            kind = "mapping" if isinstance(item, dict) else "list"
+            return [
+                problem(
+                    doc,
+                    (*parts, position),
+                    f"is a {kind} inside a list; ROS 2 arrays hold bool, integer, double or string values only",
+                )
+            ]
+        why = _ros_scalar_problem(item)
+        if why:
+            return [problem(doc, (*parts, position), why)]
+        if type(item) is not first:
+            hint = "; write 1.0 for a double" if {first, type(item)} == {int, float} else ""
+            return [
+                problem(
+                    doc,
+                    (*parts, position),
+                    f"{describe(item)} is {_ROS_SCALARS[type(item)]}, but {format_path(parts)}[0] is {_ROS_SCALARS[first]}; "
+                    f"ROS 2 arrays hold values of one type{hint}",
+                )
+            ]
+    return []
+
+
+# --------------------------------------------------------------------------------------------
+# Labels
+# --------------------------------------------------------------------------------------------
+
+OWNED_LABEL_DOMAIN = "kuberos.io"
+OWNED_LABELS = ("app.kubernetes.io/managed-by",)
+MAX_LABEL_PREFIX = 253
+
+
+def label_key_problem(key) -> str | None:
+    """Why a spec may not set the label ``key`` (its syntax is the schema's), or None."""
+    if not isinstance(key, str):
+        return None
+    prefix, slash, _name = key.rpartition("/")
+    if slash and len(prefix) > MAX_LABEL_PREFIX:
+        return f"has a prefix longer than {MAX_LABEL_PREFIX} characters; expected a DNS subdomain before the '/'"
+    if key in OWNED_LABELS or (slash and (prefix == OWNED_LABEL_DOMAIN or prefix.endswith("." + OWNED_LABEL_DOMAIN))):
+        return (
+            "is a label KubeROS sets itself (kuberos.io/..., *.kuberos.io/... and app.kubernetes.io/managed-by are "
+            "KubeROS's); expected a label of your own, such as 'example.com/team'"
+        )
     return None

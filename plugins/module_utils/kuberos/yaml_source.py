@@ -1,11 +1,14 @@
 """Strict YAML loading that remembers where every field was written.
 
-Specs are user input, possibly hostile: duplicate keys are errors, documents are bounded in
-size, node count and depth, and every failure becomes a ``Problem`` naming file and line.
+Specs are user input, possibly hostile: duplicate keys are errors, files are bounded in size (checked
+on the bytes, before decoding) and number of documents, documents in node count and depth, control
+characters are refused (``CONTROL_CHARACTERS``), and every failure becomes a ``Problem`` naming file and line.
 """
 
 from __future__ import annotations
 
+import bisect
+import re
 from dataclasses import dataclass, field
 
 import yaml
@@ -15,6 +18,14 @@ from .errors import Problem, SpecError
 MAX_BYTES = 1024 * 1024
 MAX_NODES = 100_000
 MAX_DEPTH = 64
+MAX_DOCUMENTS = 200
+# Refused anywhere in a file and in any value (also when written as an escape such as "\\x00"): the C0 controls but
+# tab, line feed and carriage return; DEL; the C1 controls (YAML reads U+0085 as a line break); the Unicode line
+# and paragraph separators (line breaks to YAML, not to most editors); and the bidirectional controls, which make
+# text display in another order than it is read ("Trojan Source").
+CONTROL_CHARACTERS = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u061c\u200e\u200f\u2028-\u202e\u2066-\u2069]")
+_MAX_REPORTED = 10
+_LINE_BREAK = re.compile("\r\n|\r|\n")
 
 
 def format_path(parts) -> str:
@@ -52,6 +63,7 @@ class _Walker:
         self.lines: dict = {}
         self.problems: list[Problem] = []
         self.count = 0
+        self.escapes = 0  # control characters written as escapes, reported up to _MAX_REPORTED
 
     def walk(self, node, path, depth):
         self.count += 1
@@ -60,10 +72,15 @@ class _Walker:
         if depth > MAX_DEPTH:
             raise _TooLarge(f"nested deeper than {MAX_DEPTH} levels")
         self.lines.setdefault(path, node.start_mark.line + 1)
+        if isinstance(node, yaml.ScalarNode):
+            self._check_characters(node, path)
         if isinstance(node, yaml.MappingNode):
             seen = {}
             for key_node, value_node in node.value:
                 key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                if key is not None and CONTROL_CHARACTERS.search(key):
+                    self._check_characters(key_node, (*path, ascii(key)[1:-1]))
+                    key = ascii(key)[1:-1]
                 if key in seen:
                     self.problems.append(
                         Problem(
@@ -81,9 +98,19 @@ class _Walker:
             for index, item in enumerate(node.value):
                 self.walk(item, (*path, index), depth + 1)
 
+    def _check_characters(self, node, path):
+        """A control character written as an escape ("\\x00", "\\u2028") in a quoted scalar."""
+        found = CONTROL_CHARACTERS.search(node.value)
+        if found and self.escapes < _MAX_REPORTED:
+            self.escapes += 1
+            reason = control_character_reason(found.group(), " (written as an escape)")
+            self.problems.append(Problem(self.source, format_path(path), f"{reason}", node.start_mark.line + 1))
+
 
 class _TooLarge(Exception):
-    pass
+    def __init__(self, message: str, what: str = "document too large"):
+        super().__init__(message)
+        self.what = what
 
 
 _OPENING = (yaml.FlowSequenceStartToken, yaml.FlowMappingStartToken, yaml.BlockSequenceStartToken, yaml.BlockMappingStartToken)
@@ -109,10 +136,88 @@ def _check_depth(text: str) -> None:
         scanner.dispose()
 
 
+def character_name(character: str) -> str:
+    """``U+0000`` and, for the characters people know by name, the name: ``U+0000 (NUL)``."""
+    names = {"\x00": "NUL", "\x1b": "ESC", "\x7f": "DEL", "\x85": "NEL", "\u2028": "LINE SEPARATOR"}
+    names.update({"\u2029": "PARAGRAPH SEPARATOR", "\u202e": "RIGHT-TO-LEFT OVERRIDE", "\u202d": "LEFT-TO-RIGHT OVERRIDE"})
+    code = f"U+{ord(character):04X}"
+    return f"{code} ({names[character]})" if character in names else code
+
+
+def control_character_reason(character: str, where: str = "") -> str:
+    """Why a control character is refused; ``where`` says where it is (" in column 7")."""
+    expected = "expected printable text (of the controls, only tab and line breaks)"
+    return f"control character {character_name(character)}{where}; {expected}"
+
+
+def read_text(path: str, display: str, what: str = "file") -> str:
+    """The UTF-8 text of ``path``, its size checked on the bytes before decoding; ``SpecError`` naming ``display``."""
+    try:
+        with open(path, "rb") as handle:
+            raw = handle.read(MAX_BYTES + 1)
+    except OSError as exc:
+        raise SpecError(
+            [Problem(display, "", f"cannot read the {what}: {exc.strerror or exc}")], title=f"cannot read {display}"
+        ) from None
+    if len(raw) > MAX_BYTES:
+        raise SpecError([Problem(display, "", f"file is larger than {MAX_BYTES} bytes")], title=f"{display} is not valid")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise SpecError(
+            [Problem(display, "", f"not UTF-8 text (byte {exc.start})", line)], title=f"{display} is not valid"
+        ) from None
+
+
+def _line_of(starts: list[int], position: int) -> int:
+    return bisect.bisect_right(starts, position)
+
+
+def _fields_by_line(text: str, source: str) -> dict[int, tuple[str, str]]:
+    """For each line of ``text`` (its control characters replaced), the source and the deepest field written on
+    it or above it; empty when the text does not parse."""
+    try:
+        documents = load_documents(CONTROL_CHARACTERS.sub("x", text), source)
+    except SpecError:
+        return {}
+    by_line: dict[int, tuple[str, str]] = {}
+    for doc in documents:
+        where = f"{source} (document {doc.index + 1})" if len(documents) > 1 else source
+        for parts, line in doc.lines.items():
+            if parts and (line not in by_line or len(by_line[line][2]) < len(parts)):
+                by_line[line] = (where, format_path(parts), parts)
+    return {line: (where, path) for line, (where, path, _parts) in sorted(by_line.items())}
+
+
+def _control_character_problems(text: str, source: str) -> list[Problem]:
+    """The first refused control character of each line that has one, at most ``_MAX_REPORTED`` lines."""
+    starts = [0] + [match.end() for match in _LINE_BREAK.finditer(text)]
+    first: dict[int, tuple[int, str]] = {}
+    for match in CONTROL_CHARACTERS.finditer(text):
+        first.setdefault(_line_of(starts, match.start()), (match.start(), match.group()))
+    if not first:
+        return []
+    fields = _fields_by_line(text, source)
+    lines_with_fields = sorted(fields)
+    problems = []
+    for line, (position, character) in sorted(first.items())[:_MAX_REPORTED]:
+        index = bisect.bisect_right(lines_with_fields, line) - 1
+        where, path = fields[lines_with_fields[index]] if index >= 0 else (source, "")
+        column = position - starts[line - 1] + 1
+        problems.append(Problem(where, path, control_character_reason(character, f" in column {column}"), line))
+    if len(first) > _MAX_REPORTED:
+        problems.append(Problem(source, "", f"... and control characters on {len(first) - _MAX_REPORTED} more lines"))
+    return problems
+
+
 def load_documents(text: str, source: str) -> list[Document]:
     """Parse every YAML document in ``text``; raise ``SpecError`` naming ``source`` on failure."""
-    if len(text.encode("utf-8", "surrogatepass")) > MAX_BYTES:
-        raise SpecError([Problem(source, "", f"file is larger than {MAX_BYTES} bytes")])
+    if len(text) > MAX_BYTES or len(text.encode("utf-8", "surrogatepass")) > MAX_BYTES:
+        raise SpecError([Problem(source, "", f"file is larger than {MAX_BYTES} bytes")], title=f"{source} is not valid")
+    control = _control_character_problems(text, source)
+    if control:
+        raise SpecError(control, title=f"{source} is not valid")
     documents: list[Document] = []
     problems: list[Problem] = []
     try:
@@ -131,6 +236,8 @@ def load_documents(text: str, source: str) -> list[Document]:
             node = loader.get_node()
             if node is None:
                 continue
+            if index >= MAX_DOCUMENTS:
+                raise _TooLarge(f"more than {MAX_DOCUMENTS} documents (line {node.start_mark.line + 1})", "file too large")
             walker = _Walker(source)
             walker.walk(node, (), 0)
             problems.extend(walker.problems)
@@ -145,7 +252,7 @@ def load_documents(text: str, source: str) -> list[Document]:
     except yaml.YAMLError as exc:
         problems.append(Problem(source, "", f"not valid YAML: {exc}"))
     except _TooLarge as exc:
-        problems.append(Problem(source, "", f"document too large: {exc}"))
+        problems.append(Problem(source, "", f"{exc.what}: {exc}"))
     except RecursionError:
         problems.append(Problem(source, "", f"document too large: nested deeper than {MAX_DEPTH} levels"))
     finally:
