@@ -15,7 +15,7 @@ import yaml
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     RenderOptions,
-    container_args,
+    container_argvs,
     render_deployment,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
@@ -136,8 +136,11 @@ def test_gpu_parameters_and_multi_command_launch(local_inventory, root):
     lidar = next(
         o for o in objects if o["kind"] == "Deployment" and o["metadata"]["name"].startswith("inventory-scan-lidar-driver")
     )
-    args = lidar["spec"]["template"]["spec"]["containers"][0]["args"]
-    assert args[:2] == ["/bin/bash", "-c"] and args[2].endswith("& wait -n")
+    containers = lidar["spec"]["template"]["spec"]["containers"]
+    assert [(c["name"], c["args"]) for c in containers] == [
+        ("lidar-driver", ["ros2", "run", "lidar_driver", "driver_node"]),
+        ("lidar-driver-1", ["ros2", "run", "lidar_driver", "filter_node"]),
+    ]
     _deployments, _placement, objects = render_example(root, local_inventory, "pick-and-place")
     params = next(o for o in objects if o["kind"] == "ConfigMap" and o["metadata"]["name"] == "pick-and-place-perception-params")
     document = yaml.safe_load(params["data"]["params.yaml"])
@@ -145,15 +148,20 @@ def test_gpu_parameters_and_multi_command_launch(local_inventory, root):
 
 
 @pytest.mark.parametrize(
-    ("launch", "args"),
+    ("launch", "argvs"),
     [
-        (("ros2 launch pkg file.launch.py",), ["ros2", "launch", "pkg", "file.launch.py"]),
-        (("ros2 run pkg node --ros-args -p 'name:=a b'",), ["ros2", "run", "pkg", "node", "--ros-args", "-p", "name:=a b"]),
-        (("a", "b"), ["/bin/bash", "-c", "a & b & wait -n"]),
+        (("ros2 launch pkg file.launch.py",), [["ros2", "launch", "pkg", "file.launch.py"]]),
+        (("ros2 run pkg node --ros-args -p 'name:=a b'",), [["ros2", "run", "pkg", "node", "--ros-args", "-p", "name:=a b"]]),
+        (("a", "b --x"), [["a"], ["b", "--x"]]),
+        (
+            ("a $(touch x) `id` $HOME; b && c | d > e # f",),
+            [["a", "$(touch", "x)", "`id`", "$HOME;", "b", "&&", "c", "|", "d", ">", "e", "#", "f"]],
+        ),
+        (("a '#' \\$x *",), [["a", "#", "$x", "*"]]),
     ],
 )
-def test_container_args(launch, args):
-    assert container_args(launch) == args
+def test_container_argvs(launch, argvs):
+    assert container_argvs(launch) == argvs
 
 
 @pytest.mark.parametrize("name", EXAMPLES)

@@ -21,7 +21,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile
     status_rows,
     status_table,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, parse_record
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, pack_text, parse_record
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import replace_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_and_place
 
@@ -159,19 +159,21 @@ def test_a_record_round_trips(record, placed, local_raw):
 @pytest.mark.parametrize(
     "damage, expected",
     [
-        (lambda cm: cm["data"].pop("spec.yaml"), "spec.yaml"),
+        (lambda cm: cm["binaryData"].pop("spec.yaml.gz"), "spec.yaml.gz"),
+        (lambda cm: cm["binaryData"].update({"spec.yaml.gz": "bm90IGd6aXA="}), "not a readable KubeROS record"),
         (lambda cm: cm["binaryData"].update({"placement.json.gz": "bm90IGd6aXA="}), "not a readable KubeROS record"),
         (lambda cm: cm["data"].update({"format": "9"}), "format '9'"),
         (lambda cm: cm["data"].update({"deployment": "other"}), "no RosDeployment named 'other'"),
-        (lambda cm: cm["data"].update({"spec.yaml": "kind: [unclosed"}), "kuberos-record-pick-and-place"),
+        (lambda cm: cm["binaryData"].update({"spec.yaml.gz": pack_text("kind: [unclosed")}), "kuberos-record-pick-and-place"),
+        (lambda cm: cm["data"].update({"format": "1"}), "KeyError('spec.yaml')"),
     ],
 )
-def test_a_damaged_record_names_itself_and_the_problem(placed, local_raw, damage, expected):
+def test_a_damaged_record_names_itself_and_the_problem(placed, local_raw, root, damage, expected):
     deployments, placement = placed
-    _revision, configmap = build_records("", SPEC, deployments, placement, local_raw, RenderOptions(), "kuberos")
+    with open(f"{root}/{SPEC}", encoding="utf-8") as handle:
+        text = handle.read()
+    _revision, configmap = build_records(text, SPEC, deployments, placement, local_raw, RenderOptions(), "kuberos")
     configmap = copy.deepcopy(configmap)
-    with open(SPEC, encoding="utf-8") as handle:
-        configmap["data"]["spec.yaml"] = handle.read()
     damage(configmap)
     with pytest.raises(SpecError) as raised:
         parse_record(configmap)

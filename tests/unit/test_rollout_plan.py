@@ -184,7 +184,9 @@ def test_a_catalog_deployment_records_and_revisions_read_back_alone(root, local_
     parsed = parse_record(record)
     assert parsed.revision == 1 and {m.version for m in parsed.spec.modules} == {"0.1.0"}
     number, cause, dep, spec_text, kept = parse_revision(revision)
-    assert (number, cause, spec_text) == (1, "deploy", text) and dep.modules == deployments[0].modules
+    assert (number, cause) == (1, "deploy") and dep.modules == deployments[0].modules
+    # the deployment's own document, its lines where they are in the file
+    assert text.endswith(spec_text.lstrip("\n")) and spec_text.count("\n") == text.count("\n")
     assert kept == used
 
 

@@ -2,19 +2,21 @@
 
 Per fleet: a namespace and its redundant Fast DDS discovery servers (a Deployment and a UDP
 Service each). Per module instance: a Deployment pinned to its node by the unique hostname
-label, with ROS_DISCOVERY_SERVER, RMW_IMPLEMENTATION and ROS_DOMAIN_ID set, resources, the
-launch command, and a ConfigMap for ROS parameters.
+label, with ROS_DISCOVERY_SERVER, RMW_IMPLEMENTATION and ROS_DOMAIN_ID set, resources, one
+container per launch line (each a literal argv, no shell: ``launch.py``), and a ConfigMap for
+ROS parameters.
 """
 
 from __future__ import annotations
 
-import shlex
+import copy
 from dataclasses import dataclass
 
 import yaml
 
 from . import labels as node_labels
 from . import naming
+from .launch import container_name, launch_argv, split_amount
 from .quantities import format_cpu, format_memory
 from .scheduler import (
     BRIDGE_CPU_MILLIS,
@@ -204,11 +206,41 @@ def _params_configmap(dep: RosDeployment, module: RosModule, namespace: str, bas
     }
 
 
-def container_args(launch: tuple[str, ...]) -> list[str]:
-    """One command line runs as it is; several run side by side and the module ends when one ends."""
-    if len(launch) == 1:
-        return shlex.split(launch[0])
-    return ["/bin/bash", "-c", " & ".join(launch) + " & wait -n"]
+def container_argvs(launch: tuple[str, ...]) -> list[list[str]]:
+    """Each launch line's argv, literal and without a shell (``launch.launch_argv``): one container each."""
+    return [launch_argv(line) for line in launch]
+
+
+def _module_containers(module: RosModule, inst: Instance, env: list[dict], options: RenderOptions) -> list[dict]:
+    """One container per launch line, all of the module's image, environment and volumes. The placement counted
+    the instance's cpu and memory once: the containers' requests add up to exactly that (divided evenly, the
+    first container taking the remainder), each container's memory limit is its memory request, and GPUs go to
+    the first container (a GPU serves one container)."""
+    argvs = container_argvs(module.launch)
+    cpu = split_amount(inst.cpu_millis, len(argvs))
+    memory = split_amount(inst.memory_bytes, len(argvs))
+    containers = []
+    for number, argv in enumerate(argvs):
+        resources = {
+            "requests": {"cpu": format_cpu(cpu[number]), "memory": format_memory(memory[number])},
+            "limits": {"memory": format_memory(memory[number])},
+        }
+        if inst.gpu and number == 0:
+            resources["requests"]["nvidia.com/gpu"] = str(inst.gpu)
+            resources["limits"]["nvidia.com/gpu"] = str(inst.gpu)
+        container = {
+            "name": container_name(module.name, number),
+            "image": module.image,
+            "imagePullPolicy": options.image_pull_policy,
+            # args, not command: the image's entrypoint stays (ROS images source their setup there)
+            "args": argv,
+            "env": copy.deepcopy(env),
+            "resources": resources,
+        }
+        if module.ros_parameters:
+            container["volumeMounts"] = [{"name": "ros-parameters", "mountPath": PARAMS_DIR, "readOnly": True}]
+        containers.append(container)
+    return containers
 
 
 def _module_deployment(
@@ -231,26 +263,15 @@ def _module_deployment(
     ]
     if not inst.shared:
         env.append({"name": "KUBEROS_ROBOT_NAME", "value": inst.robots[0]})
-    container = {
-        "name": module.name,
-        "image": module.image,
-        "imagePullPolicy": options.image_pull_policy,
-        "args": container_args(module.launch),
-        "env": env,
-        "resources": {
-            "requests": {"cpu": format_cpu(inst.cpu_millis), "memory": format_memory(inst.memory_bytes)},
-            "limits": {"memory": format_memory(inst.memory_bytes)},
-        },
-    }
-    if inst.gpu:
-        container["resources"]["requests"]["nvidia.com/gpu"] = str(inst.gpu)
-        container["resources"]["limits"]["nvidia.com/gpu"] = str(inst.gpu)
-    pod_spec = {**_selector_and_tolerations(inst.node, inst.tier, inst.robots[0]), "containers": [container]}
     if module.ros_parameters:
         env.append({"name": "KUBEROS_PARAMS_FILE", "value": f"{PARAMS_DIR}/{PARAMS_FILE}"})
-        container["volumeMounts"] = [{"name": "ros-parameters", "mountPath": PARAMS_DIR, "readOnly": True}]
-        pod_spec["volumes"] = [{"name": "ros-parameters", "configMap": {"name": params_configmap_name(dep.name, module.name)}}]
     env.extend({"name": name, "value": value} for name, value in sorted(module.env))
+    pod_spec = {
+        **_selector_and_tolerations(inst.node, inst.tier, inst.robots[0]),
+        "containers": _module_containers(module, inst, env, options),
+    }
+    if module.ros_parameters:
+        pod_spec["volumes"] = [{"name": "ros-parameters", "configMap": {"name": params_configmap_name(dep.name, module.name)}}]
     return {
         "apiVersion": "apps/v1",
         "kind": "Deployment",

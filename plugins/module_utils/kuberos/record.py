@@ -1,11 +1,18 @@
 """The deployment record: what deploy decided, kept in the cluster for the controller.
 
 Deploy writes one ConfigMap per RosDeployment into the fleet's namespace (``kuberos-record-<name>``)
-holding the spec text, the fleet resource model, the render options and the placement. The
-controller reads it back, re-places instances when nodes fail or links degrade, and writes the
-new placement into it, so a restarted controller (or a second one) continues from the truth in the
-cluster rather than from memory. Placement and inventory are gzip-compressed JSON (binaryData):
-a 1,000-robot placement is about 1 MB as plain JSON, the size limit of a ConfigMap.
+holding that deployment's own document of the spec file, the fleet resource model, the render options
+and the placement. The controller reads it back, re-places instances when nodes fail or links degrade,
+and writes the new placement into it, so a restarted controller (or a second one) continues from the
+truth in the cluster rather than from memory.
+
+Bounded (format 2): the document (not the whole file: a file of 40 documents gives 40 records of one
+document each), the placement, the inventory and the catalog entries are gzip-compressed (binaryData);
+a 1,000-robot placement is about 1 MB as plain JSON, the size limit of a ConfigMap. The document is kept
+as written, preceded by blank lines, so that line numbers in problems read back from a record are those
+of the spec file it was deployed from. A record or revision that would hold more than ``RECORD_BUDGET``
+bytes is refused with a ``SpecError`` naming the file, the document's line and the deployment, before
+anything is written. Records of format 1 (the whole file as text in ``data``) are still read.
 
 Pure: plain dicts in, plain dicts out.
 """
@@ -18,6 +25,8 @@ import gzip
 import hashlib
 import json
 from dataclasses import dataclass
+
+import yaml
 
 from . import naming
 from .errors import Problem, SpecError
@@ -35,7 +44,16 @@ RECORD_PREFIX = "kuberos-record-"
 STATUS_PREFIX = "kuberos-status-"
 REVISION_PREFIX = "kuberos-rev-"
 REVISION_HISTORY = 10  # revisions kept per deployment (older ones are removed by the prune)
-FORMAT = "1"
+FORMAT = "2"  # the document compressed in binaryData (spec.yaml.gz); format 1 kept the whole file in data
+FORMATS_READ = ("1", "2")
+CATALOG_FORMAT = "1"
+SPEC_KEY = "spec.yaml.gz"
+LEGACY_SPEC_KEY = "spec.yaml"
+# Kubernetes refuses a ConfigMap whose data and binaryData values hold more than 1 MiB together. Deploy fills at
+# most RECORD_BUDGET of it; the rest is room for what others add later: the controller's placements (an
+# instance moved keeps its size, within a few bytes) and a rollout's marker (rollout.json, plain JSON).
+CONFIGMAP_LIMIT = 1024 * 1024
+RECORD_BUDGET = 768 * 1024
 # Who wrote the placement last. The controller re-pins Deployments only to finish its own moves: while
 # deploy is applying a placement it wrote, the Deployments are deploy's to change.
 WRITER_DEPLOY = "deploy"
@@ -88,6 +106,105 @@ def _unpack(text: str):
     return json.loads(gzip.decompress(base64.b64decode(text)))
 
 
+def configmap_bytes(configmap: dict) -> int:
+    """What Kubernetes counts against a ConfigMap's 1 MiB: the bytes of every data value and binaryData value."""
+    data = configmap.get("data") or {}
+    binary = configmap.get("binaryData") or {}
+    return sum(len(str(v).encode("utf-8")) for v in data.values()) + sum(len(base64.b64decode(v)) for v in binary.values())
+
+
+@dataclass(frozen=True)
+class SpecDocument:
+    """One RosDeployment document of a spec file: the line it starts on, and its text as written, preceded by
+    blank lines so that every line keeps its number in the file."""
+
+    line: int
+    text: str
+    data: object
+
+
+def _root_name(node) -> str | None:
+    """``metadata.name`` of a composed document, when it is a plain scalar there."""
+    if not isinstance(node, yaml.MappingNode):
+        return None
+    for key, value in node.value:
+        if isinstance(key, yaml.ScalarNode) and key.value == "metadata" and isinstance(value, yaml.MappingNode):
+            for inner_key, inner_value in value.value:
+                if isinstance(inner_key, yaml.ScalarNode) and inner_key.value == "name":
+                    return inner_value.value if isinstance(inner_value, yaml.ScalarNode) else None
+    return None
+
+
+def spec_documents(spec_text: str) -> dict[str, SpecDocument]:
+    """Each document of a (validated) spec file's text, by its ``metadata.name`` (the first one of a name)."""
+    found: dict[str, SpecDocument] = {}
+    loader = _loader()(spec_text)
+    try:
+        while loader.check_node():
+            node = loader.get_node()
+            if node is None:
+                continue
+            data = loader.construct_document(node)
+            name = _root_name(node)
+            if name is None or name in found:
+                continue
+            start = node.start_mark.index - node.start_mark.column  # from the start of its line: indentation stays
+            text = spec_text[start : node.end_mark.index]
+            text += "" if text.endswith("\n") else "\n"
+            found[name] = SpecDocument(node.start_mark.line + 1, "\n" * node.start_mark.line + text, data)
+    finally:
+        loader.dispose()
+    return found
+
+
+def _loader():
+    # libyaml's loader when there is one: its marks count characters too, and it is many times faster
+    return getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def _same_document(text: str, data) -> bool:
+    """Whether ``text`` alone loads as ``data`` (a NaN is equal to itself here)."""
+    try:
+        loaded = yaml.load(text, Loader=_loader())
+    except yaml.YAMLError:
+        return False
+    return loaded == data or repr(loaded) == repr(data)
+
+
+def _document(dep: RosDeployment, documents: dict[str, SpecDocument]) -> SpecDocument:
+    document = documents.get(dep.name)
+    if document is None:
+        raise SpecError([Problem(dep.source, "metadata.name", f"the spec text has no RosDeployment named {dep.name!r}")])
+    return document
+
+
+def document_of(dep: RosDeployment, documents: dict[str, SpecDocument]) -> str:
+    """The text a record keeps of ``dep``: its document as written when that alone loads as the same data (it does
+    unless it leans on a YAML directive above it), else the document's data written out again, its first line still
+    where it was. Raises ``SpecError`` when the spec text has no such document."""
+    document = _document(dep, documents)
+    if _same_document(document.text, document.data):
+        return document.text
+    return "\n" * (document.line - 1) + yaml.safe_dump(document.data, sort_keys=False, default_flow_style=False)
+
+
+def _too_large(dep: RosDeployment, line: int, configmap: dict, parts: dict[str, int]) -> Problem | None:
+    size = configmap_bytes(configmap)
+    if size <= RECORD_BUDGET:
+        return None
+    name = configmap["metadata"]["name"]
+    detail = ", ".join(f"{key} {value:,}" for key, value in sorted(parts.items(), key=lambda kv: -kv[1]) if value)
+    return Problem(
+        dep.source,
+        "",
+        f"the deployment {dep.name!r} needs a ConfigMap {name} of {size:,} bytes ({detail}), over the {RECORD_BUDGET:,} "
+        f"a record may hold (a ConfigMap holds at most {CONFIGMAP_LIMIT:,}; the rest is kept for the controller and "
+        "rollouts); make its document smaller (comments count too) or, when the placement is the larger part, spread "
+        "its robots over more deployments",
+        line,
+    )
+
+
 def restrict_placement(placement: Placement, deployment: str) -> Placement:
     """The part of a placement that belongs to one deployment, with its fleet's discovery servers."""
     deps = [d for d in placement.deployments if d["name"] == deployment]
@@ -114,70 +231,117 @@ def build_records(
 ) -> list[dict]:
     """One record ConfigMap per deployment, and one ConfigMap of its revision, ready for server-side apply.
 
-    ``revisions`` maps a deployment to its record's ``{"revision", "hash"}`` in the cluster; ``catalog`` (a
-    ``Catalog``) holds the catalog entries the spec resolved, kept with the record so that it reads back alone."""
-    records = []
+    ``spec_text`` is the text of the spec file (or of a revision) the deployments were read from; each record keeps
+    only its own deployment's document of it. ``revisions`` maps a deployment to its record's ``{"revision",
+    "hash"}`` in the cluster; ``catalog`` (a ``Catalog``) holds the catalog entries the spec resolved: each record
+    keeps those its deployment uses, so that it reads back alone. Raises ``SpecError`` (every deployment's problem
+    at once) when a record or revision would not fit in a ConfigMap."""
+    documents = spec_documents(spec_text)
+    inventory_packed = _pack(inventory_raw)
+    records, problems = [], []
     for dep in deployments:
-        namespace = naming.fleet_namespace(dep.fleet)
+        line = _document(dep, documents).line
+        spec_packed = pack_text(document_of(dep, documents))
         number = next_revision(dep, (revisions or {}).get(dep.name))
-        used = catalog.to_dict() if catalog is not None else None
-        revision = {
-            "apiVersion": "v1",
-            "kind": "ConfigMap",
-            "metadata": {
-                "name": revision_name(dep.name, number),
-                "namespace": namespace,
-                "labels": {MANAGED_BY: "kuberos", REVISION_LABEL: str(number), DEPLOYMENT: dep.name},
-            },
-            "data": {
-                "format": FORMAT,
-                "deployment": dep.name,
-                "revision": str(number),
-                "hash": fingerprint(dep),
-                "cause": cause,
-                "source": source,
-                "spec.yaml": spec_text,
-                "versions.json": json.dumps(module_versions(dep), sort_keys=True),
-            },
+        placement_packed = _pack(restrict_placement(placement, dep.name).to_dict())
+        revision, record = _record_pair(dep, number, cause, source, line, spec_packed, options, field_manager, catalog)
+        record["binaryData"].update({"inventory.json.gz": inventory_packed, "placement.json.gz": placement_packed})
+        parts = {
+            "spec document (gzip)": _packed_size(spec_packed),
+            "inventory (gzip)": _packed_size(inventory_packed),
+            "placement (gzip)": _packed_size(placement_packed),
+            "catalog entries (gzip)": _packed_size(record["binaryData"].get("catalog.json.gz", "")),
         }
-        if used:
-            revision["binaryData"] = {"catalog.json.gz": _pack(used)}
-        records.append(revision)
-        records.append(
-            {
-                "apiVersion": "v1",
-                "kind": "ConfigMap",
-                "metadata": {
-                    "name": record_name(dep.name),
-                    "namespace": namespace,
-                    "labels": {MANAGED_BY: "kuberos", RECORD_LABEL: "true", DEPLOYMENT: dep.name},
-                },
-                "data": {
-                    "format": FORMAT,
-                    "writer": WRITER_DEPLOY,
-                    "deployment": dep.name,
-                    "revision": str(number),
-                    "revision-hash": fingerprint(dep),
-                    "source": source,
-                    "spec.yaml": spec_text,
-                    "options.json": json.dumps(
-                        {
-                            "cluster_domain": options.cluster_domain,
-                            "discovery_image": options.discovery_image,
-                            "image_pull_policy": options.image_pull_policy,
-                            "field_manager": field_manager,
-                        },
-                        sort_keys=True,
-                    ),
-                },
-                "binaryData": {
-                    "inventory.json.gz": _pack(inventory_raw),
-                    "placement.json.gz": _pack(restrict_placement(placement, dep.name).to_dict()),
-                    **({"catalog.json.gz": _pack(used)} if used else {}),
-                },
-            }
-        )
+        problem = _too_large(dep, line, record, parts) or _too_large(dep, line, revision, parts)
+        if problem:
+            problems.append(problem)
+        records.extend([revision, record])
+    if problems:
+        raise SpecError(problems, title=f"{source}: a deployment record would not fit in a ConfigMap")
     return records
+
+
+def _record_pair(dep, number, cause, source, line, spec_packed, options, field_manager, catalog) -> tuple[dict, dict]:
+    """A deployment's revision and record (without inventory and placement)."""
+    namespace = naming.fleet_namespace(dep.fleet)
+    used = _catalog_for(dep, catalog)
+    catalog_packed = {"catalog.json.gz": _pack(used.to_dict())} if used is not None else {}
+    revision = {
+        "apiVersion": "v1",
+        "kind": "ConfigMap",
+        "metadata": {
+            "name": revision_name(dep.name, number),
+            "namespace": namespace,
+            "labels": {MANAGED_BY: "kuberos", REVISION_LABEL: str(number), DEPLOYMENT: dep.name},
+        },
+        "data": {
+            "format": FORMAT,
+            "deployment": dep.name,
+            "revision": str(number),
+            "hash": fingerprint(dep),
+            "cause": cause,
+            "source": source,
+            "spec-line": str(line),
+            "versions.json": json.dumps(module_versions(dep), sort_keys=True),
+        },
+        "binaryData": {SPEC_KEY: spec_packed, **catalog_packed},
+    }
+    record = {
+        "apiVersion": "v1",
+        "kind": "ConfigMap",
+        "metadata": {
+            "name": record_name(dep.name),
+            "namespace": namespace,
+            "labels": {MANAGED_BY: "kuberos", RECORD_LABEL: "true", DEPLOYMENT: dep.name},
+        },
+        "data": {
+            "format": FORMAT,
+            "writer": WRITER_DEPLOY,
+            "deployment": dep.name,
+            "revision": str(number),
+            "revision-hash": fingerprint(dep),
+            "source": source,
+            "spec-line": str(line),
+            "options.json": json.dumps(
+                {
+                    "cluster_domain": options.cluster_domain,
+                    "discovery_image": options.discovery_image,
+                    "image_pull_policy": options.image_pull_policy,
+                    "field_manager": field_manager,
+                },
+                sort_keys=True,
+            ),
+        },
+        "binaryData": {SPEC_KEY: spec_packed, **catalog_packed},
+    }
+    return revision, record
+
+
+def _catalog_for(dep: RosDeployment, catalog):
+    """The catalog entries ``dep``'s modules resolved to (None when it names no catalog module)."""
+    refs = [(m.catalog_module, m.version) for m in dep.modules if getattr(m, "version", "")]
+    if catalog is None or not refs:
+        return None
+    return catalog.subset(refs)
+
+
+def pack_text(text: str) -> str:
+    return base64.b64encode(gzip.compress(text.encode("utf-8"), mtime=0)).decode()
+
+
+def unpack_text(packed: str) -> str:
+    return gzip.decompress(base64.b64decode(packed)).decode("utf-8")
+
+
+def _packed_size(packed: str) -> int:
+    return len(base64.b64decode(packed))
+
+
+def spec_text_of(configmap: dict) -> str:
+    """The spec text a record or revision keeps: its deployment's document (format 2), or the whole file (format 1)."""
+    if (configmap.get("data") or {}).get("format") == "1":
+        return configmap["data"][LEGACY_SPEC_KEY]
+    return unpack_text((configmap.get("binaryData") or {})[SPEC_KEY])
 
 
 def catalog_configmap(namespace: str, catalog) -> dict:
@@ -192,7 +356,7 @@ def catalog_configmap(namespace: str, catalog) -> dict:
             # The fleet's, like its discovery servers: it goes with the fleet's last deployment.
             "labels": {MANAGED_BY: "kuberos", CATALOG_LABEL: "true", COMPONENT: "catalog"},
         },
-        "data": {"format": FORMAT, "modules": ", ".join(catalog.names())},
+        "data": {"format": CATALOG_FORMAT, "modules": ", ".join(catalog.names())},
         "binaryData": {"catalog.json.gz": _pack(catalog.to_dict())},
     }
 
@@ -215,9 +379,10 @@ def parse_revision(configmap: dict):
     try:
         name = data["deployment"]
         catalog = catalog_of(configmap)
-        found = [d for d in load_rosdeployments(data["spec.yaml"], f"{where} (revision {data.get('revision')})", catalog=catalog)]
+        text = spec_text_of(configmap)
+        found = [d for d in load_rosdeployments(text, f"{where} (revision {data.get('revision')})", catalog=catalog)]
         dep = next(d for d in found if d.name == name)
-        return int(data["revision"]), data.get("cause", ""), dep, data["spec.yaml"], catalog
+        return int(data["revision"]), data.get("cause", ""), dep, text, catalog
     except SpecError:
         raise
     except (KeyError, ValueError, TypeError, OSError, EOFError, StopIteration) as exc:
@@ -287,11 +452,11 @@ def parse_record(configmap: dict) -> Record:
     data = configmap.get("data") or {}
     binary = configmap.get("binaryData") or {}
     try:
-        if data.get("format") != FORMAT:
-            raise ValueError(f"format {data.get('format')!r}, expected {FORMAT!r}")
+        if data.get("format") not in FORMATS_READ:
+            raise ValueError(f"format {data.get('format')!r}, expected one of {', '.join(FORMATS_READ)}")
         name = data["deployment"]
         deployments = load_rosdeployments(
-            data["spec.yaml"], f"{where} (spec of {data.get('source', '?')})", catalog=catalog_of(configmap)
+            spec_text_of(configmap), f"{where} (spec of {data.get('source', '?')})", catalog=catalog_of(configmap)
         )
         ordered = [d for d in deployments if d.name == name] + [d for d in deployments if d.name != name]
         if not ordered or ordered[0].name != name:
