@@ -7,6 +7,7 @@ Every problem names where it was found (a file or an inventory), the path to the
 from __future__ import annotations
 
 import difflib
+import re
 from dataclasses import dataclass
 
 
@@ -22,8 +23,18 @@ class Problem:
     def __str__(self) -> str:
         where = self.source if self.line is None else f"{self.source}:{self.line}"
         if self.path:
-            return f"{where}: {self.path}: {self.message}"
-        return f"{where}: {self.message}"
+            return printable(f"{where}: {self.path}: {self.message}")
+        return printable(f"{where}: {self.message}")
+
+
+# Line breaks and other controls that a file name, a key or a message may hold, shown escaped so that a problem
+# stays one line of plain text (yaml_source.CONTROL_CHARACTERS, with line breaks and tab).
+_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u2028-\u202e\u2066-\u2069]")
+
+
+def printable(text: str) -> str:
+    """``text`` with its control characters escaped (``\\n``, ``\\x00``, ``\\u202e``)."""
+    return _UNPRINTABLE.sub(lambda match: ascii(match.group())[1:-1], text)
 
 
 class KuberosError(Exception):

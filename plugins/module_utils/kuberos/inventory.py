@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 from . import naming, quantities
 from .errors import Problem, SpecError, describe, did_you_mean
+from .yaml_source import CONTROL_CHARACTERS, control_character_reason
 
 TIER_GROUPS = {"robots": "onboard", "edge": "edge", "cloud": "cloud"}
 CLUSTERS_GROUP = "clusters"  # third-party clusters, reached through the KubeROS-Bridge
@@ -217,11 +218,38 @@ def _tier_of(host, groups, source, problems):
     return TIER_GROUPS[names[0]]
 
 
+def _control_character_problems(raw: dict, source: str, limit: int = 20) -> list[Problem]:
+    """Host names, group members and variable values (keys and strings at any depth) holding a control character
+    (``yaml_source.CONTROL_CHARACTERS``; Ansible reads an escape such as "\\x00" in a quoted YAML string)."""
+    problems: list[Problem] = []
+    stack = [
+        (raw.get("hosts"), "hosts"),
+        (raw.get("groups"), "groups"),
+        (raw.get("default_latency_ms"), "kuberos_default_latency_ms"),
+    ]
+    while stack and len(problems) < limit:
+        node, path = stack.pop()
+        items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, (list, tuple)) else ()
+        for key, value in items:
+            where = f"{path}[{key}]" if isinstance(key, int) else f"{path}.{ascii(key)[1:-1] if isinstance(key, str) else key}"
+            for text in (key, value):
+                found = CONTROL_CHARACTERS.search(text) if isinstance(text, str) else None
+                if found:
+                    problems.append(Problem(source, where, control_character_reason(found.group())))
+                    break
+            else:
+                stack.append((value, where))
+    return problems
+
+
 def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
     """Build the resource model from inventory data; every problem at once."""
     problems: list[Problem] = []
     if not isinstance(raw, dict):
         raise SpecError([Problem(source, "", f"{describe(raw)} is not an inventory; expected a mapping with hosts and groups")])
+    control = _control_character_problems(raw, source)
+    if control:
+        raise SpecError(control, title=f"{source} is not a valid KubeROS inventory")
     hosts = raw.get("hosts") or {}
     if not isinstance(hosts, dict):
         problems.append(

@@ -200,7 +200,7 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
     problems.extend(ros_parameter_problems(module.get("rosParameters") or {}, doc, (*base, "rosParameters")))
     cpu = quantity(resources, "cpu", quantities.parse_cpu, DEFAULT_CPU)
     memory = quantity(resources, "memory", quantities.parse_memory, DEFAULT_MEMORY)
-    if memory == 0 and "memory" in resources:
+    if memory == 0 and "memory" in resources and not any(p.path == format_path((*base, "resources", "memory")) for p in problems):
         problem(("resources", "memory"), "must be more than zero; expected e.g. '128Mi'")
 
     strategy = module.get("strategy", "dedicated")

@@ -57,9 +57,13 @@ class Document:
         return self.lines.get(())
 
 
+_STR_TAG = "tag:yaml.org,2002:str"
+
+
 class _Walker:
-    def __init__(self, source: str):
+    def __init__(self, source: str, loader=None):
         self.source = source
+        self.loader = loader
         self.lines: dict = {}
         self.problems: list[Problem] = []
         self.count = 0
@@ -93,6 +97,10 @@ class _Walker:
                 seen[key] = key_node.start_mark.line + 1
                 # A field's line is where its key is written, even when its value starts below.
                 self.lines.setdefault((*path, str(key)), key_node.start_mark.line + 1)
+                if self.loader is not None and isinstance(key_node, yaml.ScalarNode) and key_node.tag != _STR_TAG:
+                    # A key YAML reads as another type (yes -> True, ~ -> None) is named by its value in messages.
+                    constructed = str(self.loader.construct_object(key_node))
+                    self.lines.setdefault((*path, constructed), key_node.start_mark.line + 1)
                 self.walk(value_node, (*path, str(key)), depth + 1)
         elif isinstance(node, yaml.SequenceNode):
             for index, item in enumerate(node.value):
@@ -108,9 +116,7 @@ class _Walker:
 
 
 class _TooLarge(Exception):
-    def __init__(self, message: str, what: str = "document too large"):
-        super().__init__(message)
-        self.what = what
+    pass
 
 
 _OPENING = (yaml.FlowSequenceStartToken, yaml.FlowMappingStartToken, yaml.BlockSequenceStartToken, yaml.BlockMappingStartToken)
@@ -237,8 +243,10 @@ def load_documents(text: str, source: str) -> list[Document]:
             if node is None:
                 continue
             if index >= MAX_DOCUMENTS:
-                raise _TooLarge(f"more than {MAX_DOCUMENTS} documents (line {node.start_mark.line + 1})", "file too large")
-            walker = _Walker(source)
+                message = f"file too large: more than {MAX_DOCUMENTS} documents; expected at most {MAX_DOCUMENTS} in one file"
+                problems.append(Problem(source, "", message, node.start_mark.line + 1))
+                break
+            walker = _Walker(source, loader)
             walker.walk(node, (), 0)
             problems.extend(walker.problems)
             data = loader.construct_document(node)
@@ -252,7 +260,7 @@ def load_documents(text: str, source: str) -> list[Document]:
     except yaml.YAMLError as exc:
         problems.append(Problem(source, "", f"not valid YAML: {exc}"))
     except _TooLarge as exc:
-        problems.append(Problem(source, "", f"{exc.what}: {exc}"))
+        problems.append(Problem(source, "", f"document too large: {exc}"))
     except RecursionError:
         problems.append(Problem(source, "", f"document too large: nested deeper than {MAX_DEPTH} levels"))
     finally:
