@@ -63,6 +63,8 @@ from bench_controller import (  # bench/ is on sys.path when a benchmark runs
 from bench_deploy import REPO, check, log, machine, playbook
 from workload import pick_and_place
 
+sys.path[:0] = [str(REPO / ".collections")]  # the record's reader
+
 SPEC_NAME = "bench-takeover"
 PORTS = {
     "apiserver": 47443,
@@ -242,12 +244,13 @@ def summary(trials: list[dict]) -> dict:
 
 
 def markdown(data: dict) -> str:
-    s = data["summary"]
+    s, m = data["summary"], data["machine"]
     lines = [
-        f"### Controller takeover ({data['date']}, commit {data['commit']})",
+        f"### Controller takeover ({data['date']})",
         "",
         f"- Command: `{data['command']}`",
-        f"- Machine: {data['machine']}; load before {data['load_before']}, after {data.get('load_after')}",
+        f"- Machine: {m['nproc']} cores ({m['cpu']}), memory {m['memory']}, Python {m['python']}, kernel {m['kernel']};"
+        f" commit {m['commit']}; load before {data['load_before']}, after {data.get('load_after')}",
         f"- Fleet: {data.get('instances', '?')} instances (modules and discovery servers) on {data.get('nodes', '?')} kwok nodes;"
         f" 2 replicas, lease 6 s, renew deadline 4 s, retry 1 s, grace {data['args']['grace']:g} s",
         "",

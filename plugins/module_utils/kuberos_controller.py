@@ -28,6 +28,7 @@ while this replica's right to act lasts, with a client-side timeout of the time 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import datetime
 import json
 import logging
@@ -72,6 +73,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
 )
 
 RTT_ANNOTATION = "kuberos.io/rtt-ms"
+WRITERS = 4  # parallel requests when a pass re-pins, deletes or reports several things
 CONTROLLER_MANAGER = "kuberos-controller"
 LEASE_NAME = "kuberos-controller"
 LEASE_NAMESPACE = "kuberos-system"
@@ -383,7 +385,7 @@ class Controller:
             return 0
         wanted = render_deployment(record.deployments, record.placement, record.options)
         live = {_key(d): d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace}
-        applied = 0
+        calls = []
         for obj in wanted:
             if obj["kind"] != "Deployment":
                 continue
@@ -393,8 +395,8 @@ class Controller:
             want = obj["spec"]["template"]["spec"]["nodeSelector"]
             have = current.get("spec", {}).get("template", {}).get("spec", {}).get("nodeSelector")
             if want != have:
-                self._apply(obj, record.field_manager)
-                applied += 1
+                calls.append(lambda obj=obj: self._apply(obj, record.field_manager))
+        applied = len(calls)
         placed = {i.name: i.node for i in record.placement.instances}
         placed.update({s.name: s.node for servers in record.placement.discovery.values() for s in servers})
         for instance, pods in view.pods.items():
@@ -402,8 +404,22 @@ class Controller:
                 target = placed.get(instance)
                 down = view.nodes.get(pod.node) is None or not view.nodes[pod.node].ready
                 if target and pod.node and pod.node != target and down:
-                    self._force_delete(pod)
+                    calls.append(lambda pod=pod: self._force_delete(pod))
+        self._in_parallel(calls)
         return applied
+
+    @staticmethod
+    def _in_parallel(calls: list) -> None:
+        """Run independent writes side by side; the first error (NotLeader included) is raised once all ended."""
+        if len(calls) <= 1:
+            for call in calls:
+                call()
+            return
+        with concurrent.futures.ThreadPoolExecutor(max_workers=min(WRITERS, len(calls))) as pool:
+            futures = [pool.submit(call) for call in calls]
+        errors = [f.exception() for f in futures if f.exception() is not None]
+        if errors:
+            raise errors[0]
 
     def _force_delete(self, pod: PodView) -> None:
         from kubernetes.client.exceptions import ApiException
@@ -514,6 +530,7 @@ class Controller:
         else:
             decision = decide(record, rview, memory, self.settings, now, self._allocated(record))
         stranded = dict(self.reported.get(key, {}))
+        events = []  # sent after the moves are applied: reporting never delays a module's new pod
         if decision.replacement is not None:
             replacement = decision.replacement
             stranded = {s.instance: s.why for s in replacement.stranded}
@@ -534,12 +551,12 @@ class Controller:
                         "to": move.to_node,
                         "why": move.why,
                     }
-                    self._event(record, move.instance, "ModuleMoved", message, warning=False)
+                    events.append((move.instance, "ModuleMoved", message, False))
                     self.moves += 1
             for inst, why in stranded.items():
                 if self.reported.get(key, {}).get(inst) != why:
                     log.warning("%s/%s: %s stays on its node: %s", record.namespace, record.deployment, inst, why)
-                    self._event(record, inst, "ModuleStranded", why, warning=True)
+                    events.append((inst, "ModuleStranded", why, True))
         else:
             # Still stranded while its node is down; once the node is back it runs where it was.
             where = {i.name: i.node for i in record.placement.instances}
@@ -550,6 +567,7 @@ class Controller:
         for line in decision.waiting:
             log.debug("%s/%s waits: %s", record.namespace, record.deployment, line)
         applied = 0 if record.rollout else self.converge(record, rview)
+        self._in_parallel([lambda e=e: self._event(record, *e) for e in events])
         table = self._write_status(record, rview, stranded, decision.waiting)
         moves = decision.replacement.moves if decision.replacement is not None else []
         self.last_pass.append(

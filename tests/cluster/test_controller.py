@@ -568,6 +568,7 @@ def test_the_leader_killed_while_a_node_is_failing_hands_over_and_the_new_leader
         second = fleet.leader_pid()
         assert second != first
         assert node not in fleet.placed().values()
+        wait_for(lambda: all(fleet.moved_by().get(i, set()) - before.get(i, set()) for i in leaving), 20, "the move Events")
         now = fleet.moved_by()
         movers = set().union(*(now[i] - before.get(i, set()) for i in leaving))
         assert movers == {f"{socket.gethostname()}_{second}"}, "only the new leader moved the modules"
@@ -588,7 +589,8 @@ def test_a_paused_leader_stops_acting_before_its_lease_can_be_taken(fleet):
     fleet.node_down(node)
     os.kill(first, signal.SIGSTOP)
     try:
-        second = fleet.leader_pid(timeout=60)
+        wait_for(lambda: fleet.leader() not in ("", identity), 60, "another replica to take the Lease of the frozen one")
+        second = fleet.leader_pid()
         assert second != first
         fleet.converge(timeout=90)
         assert node not in fleet.placed().values()
