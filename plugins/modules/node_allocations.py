@@ -34,6 +34,17 @@ options:
         names each of its nodes that is NotReady or not in the cluster, with why, for the
         P(kuberos.platform.place_modules#filter) filter to leave out.
     type: dict
+  spec:
+    description:
+      - Path of the RosDeployment file about to be deployed. When given, the module fails, with one line per module,
+        if a module of the file would name a Deployment or ConfigMap like an object already in its fleet's namespace
+        that is not its own (another deployment's, or not KubeROS's). Names join deployment, module and robot with
+        a dash, so deployment C(a-b) with module C(c) and deployment C(a) with module C(b-c) name their instances
+        alike. The robots come from O(inventory).
+    type: path
+  catalog:
+    description: The software catalog that the O(spec)'s C(module) references resolve against (a directory or one file).
+    type: path
   previous_of:
     description:
       - RosDeployments about to be placed again, as C([{name, fleet}]). The result's C(previous) holds what runs now
@@ -92,8 +103,56 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     previous_placement,
     unavailable_nodes,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import DEPLOYMENT, MODULE
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file, name_clash_problems
+
+# The kinds of object a module's names are given to (naming.module_object_names), and how to list them.
+NAMED_KINDS = (("Deployment", "apps", "list_namespaced_deployment"), ("ConfigMap", "core", "list_namespaced_config_map"))
+
+
+def live_names(clients, namespaces) -> list[dict]:
+    """Every Deployment and ConfigMap of ``namespaces`` with the deployment and module that own it ('' when none)."""
+    from kubernetes.client.exceptions import ApiException
+
+    found = []
+    for namespace in sorted(set(namespaces)):
+        for kind, api, method in NAMED_KINDS:
+            try:
+                items = getattr(clients[api], method)(namespace).items
+            except ApiException as exc:
+                if exc.status == 404:
+                    continue
+                raise
+            for item in items:
+                labels = item.metadata.labels or {}
+                found.append(
+                    {
+                        "kind": kind,
+                        "namespace": namespace,
+                        "name": item.metadata.name,
+                        "deployment": labels.get(DEPLOYMENT, ""),
+                        "module": labels.get(MODULE, ""),
+                    }
+                )
+    return found
+
+
+def check_names(clients, spec: str, catalog: str | None, inventory) -> None:
+    """Raise ``SpecError`` when a module of ``spec`` would take the name of an object that is not its own."""
+    deployments = load_rosdeployment_file(spec, catalog=load_catalog(catalog) if catalog else None)
+    fleets = inventory.fleets if inventory is not None else {}
+
+    def robots_of(dep):
+        return dep.robots or fleets.get(dep.fleet)
+
+    live = live_names(clients, [fleet_namespace(dep.fleet) for dep in deployments])
+    problems = name_clash_problems(deployments, robots_of, live)
+    if problems:
+        raise SpecError(problems, title=f"{spec} would take the names of objects in the cluster")
 
 
 def main():
@@ -104,6 +163,8 @@ def main():
             exclude_discovery_of_fleets=dict(type="list", elements="str", default=[]),
             inventory=dict(type="dict"),
             previous_of=dict(type="list", elements="dict", default=[]),
+            spec=dict(type="path"),
+            catalog=dict(type="path"),
         ),
         supports_check_mode=True,
     )
@@ -111,7 +172,10 @@ def main():
         clients = api_clients(module.params["kubeconfig"])
         allocated = node_allocations(clients, module.params["exclude_deployments"], module.params["exclude_discovery_of_fleets"])
         namespaces = namespace_names(clients)
-        wanted = list(load_inventory(module.params["inventory"]).nodes) if module.params["inventory"] else []
+        inventory = load_inventory(module.params["inventory"]) if module.params["inventory"] else None
+        if module.params["spec"]:
+            check_names(clients, module.params["spec"], module.params["catalog"], inventory)
+        wanted = list(inventory.nodes) if inventory is not None else []
         unavailable = unavailable_nodes(clients, wanted)
         previous = previous_placement(clients, module.params["previous_of"])
     except KuberosError as exc:

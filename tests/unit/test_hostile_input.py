@@ -427,6 +427,25 @@ ROWS = [
         1602,
         "file too large: more than 200 documents",
     ),
+    row(
+        "modules-past-100",
+        BASE + "".join(f"- {{name: m{i}, image: r/i:1, launch: run}}\n" for i in range(100)),
+        "rosModules",
+        4,
+        "has 101 modules; expected at most 100 in one RosDeployment",
+    ),
+    row(
+        "modules-past-1000-in-a-file",
+        "".join(
+            f"---\nmetadata: {{name: d{d}, targetFleet: f}}\nrosModules:\n"
+            + "".join(f"- {{name: m{i}, image: r/i:1, launch: run}}\n" for i in range(100))
+            for d in range(11)
+        ),
+        "rosModules",
+        1033,  # 10 documents of 103 lines before it
+        "brings the file past 1000 modules; expected at most 1000 in one file",
+        source="spec.yml (document 11)",
+    ),
     row("python-object-tag", "metadata: !!python/object/apply:os.system [echo hi]\n", "", 1, "could not determine a constructor"),
 ]
 

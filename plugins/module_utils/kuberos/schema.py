@@ -11,6 +11,8 @@ API_VERSION = "kuberos.io/v1alpha1"
 KIND = "RosDeployment"
 TIERS = ("onboard", "edge", "cloud")
 STRATEGIES = ("dedicated", "shared")
+MAX_MODULES = 100  # modules of one RosDeployment
+MAX_MODULES_PER_FILE = 1000  # modules of all documents of one file: bounds the time a refusal takes
 
 DNS_LABEL = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
 # Fleet, robot and device names as the inventory writes them (docs/inventory.md).
@@ -259,7 +261,8 @@ SCHEMA = {
         "rosModules": {
             "type": "array",
             "minItems": 1,
-            "x-expected": "a non-empty list of modules",
+            "maxItems": MAX_MODULES,
+            "x-expected": f"a non-empty list of at most {MAX_MODULES} modules",
             "items": {
                 "type": "object",
                 "x-expected": "a mapping with name, image and launch",

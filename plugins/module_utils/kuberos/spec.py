@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 from . import naming, quantities
 from .catalog import Catalog, CatalogEntry
 from .errors import Problem, SpecError, describe
-from .schema import API_VERSION, KIND, SCHEMA, TIERS
+from .schema import API_VERSION, KIND, MAX_MODULES, MAX_MODULES_PER_FILE, SCHEMA, TIERS
 from .semver import parse_range
 from .validation import (
     as_tuple,
@@ -472,6 +472,24 @@ def parse_rosdeployment(data, source: str = "<spec>", lines: dict | None = None,
     return _parse_document(Document(data, source, 0, lines or {}), catalog)
 
 
+def _module_count_problems(documents: list[Document]) -> list[Problem]:
+    """More modules than a deployment (``MAX_MODULES``) or a file (``MAX_MODULES_PER_FILE``) may hold: refused
+    before the schema looks at them, so that the time a refusal takes stays bounded."""
+    total = 0
+    for doc in documents:
+        modules = doc.data.get("rosModules") if isinstance(doc.data, dict) else None
+        if not isinstance(modules, list):
+            continue
+        if len(modules) > MAX_MODULES:
+            message = f"has {len(modules)} modules; expected at most {MAX_MODULES} in one RosDeployment"
+            return [_problem(doc, ("rosModules",), message)]
+        total += len(modules)
+        if total > MAX_MODULES_PER_FILE:
+            message = f"brings the file past {MAX_MODULES_PER_FILE} modules; expected at most {MAX_MODULES_PER_FILE} in one file"
+            return [_problem(doc, ("rosModules",), message)]
+    return []
+
+
 def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | None = None) -> list[RosDeployment]:
     """Parse and validate every document of a spec file; all problems of all documents at once."""
     documents = [doc for doc in load_documents(text, source) if doc.data is not None]
@@ -481,6 +499,10 @@ def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | No
     for doc in documents:
         if len(documents) > 1:
             doc.source = f"{source} (document {doc.index + 1})"
+    too_many = _module_count_problems(documents)
+    if too_many:
+        raise SpecError(too_many, title=f"{source} is not a valid RosDeployment")
+    for doc in documents:
         try:
             deployments.append(_parse_document(doc, catalog))
         except SpecError as exc:
