@@ -207,14 +207,25 @@ def _too_large(dep: RosDeployment, line: int, configmap: dict, parts: dict[str, 
 
 def restrict_placement(placement: Placement, deployment: str) -> Placement:
     """The part of a placement that belongs to one deployment, with its fleet's discovery servers."""
-    deps = [d for d in placement.deployments if d["name"] == deployment]
-    fleets = {d["fleet"] for d in deps}
-    return Placement(
-        [i for i in placement.instances if i.deployment == deployment],
-        {f: s for f, s in placement.discovery.items() if f in fleets},
-        deps,
-        [],
-    )
+    return split_placement(placement, [deployment])[deployment]
+
+
+def split_placement(placement: Placement, deployments: list[str]) -> dict[str, Placement]:
+    """``restrict_placement`` for each of ``deployments``, in one pass over the placement (a file of many
+    documents gives many records)."""
+    instances: dict[str, list] = {name: [] for name in deployments}
+    described: dict[str, list[dict]] = {name: [] for name in deployments}
+    for inst in placement.instances:
+        if inst.deployment in instances:
+            instances[inst.deployment].append(inst)
+    for dep in placement.deployments:
+        if dep["name"] in described:
+            described[dep["name"]].append(dep)
+    out = {}
+    for name in deployments:
+        fleets = {d["fleet"] for d in described[name]}
+        out[name] = Placement(instances[name], {f: s for f, s in placement.discovery.items() if f in fleets}, described[name], [])
+    return out
 
 
 def build_records(
@@ -238,12 +249,13 @@ def build_records(
     at once) when a record or revision would not fit in a ConfigMap."""
     documents = spec_documents(spec_text)
     inventory_packed = _pack(inventory_raw)
+    placements = split_placement(placement, [d.name for d in deployments])
     records, problems = [], []
     for dep in deployments:
         line = _document(dep, documents).line
         spec_packed = pack_text(document_of(dep, documents))
         number = next_revision(dep, (revisions or {}).get(dep.name))
-        placement_packed = _pack(restrict_placement(placement, dep.name).to_dict())
+        placement_packed = _pack(placements[dep.name].to_dict())
         revision, record = _record_pair(dep, number, cause, source, line, spec_packed, options, field_manager, catalog)
         record["binaryData"].update({"inventory.json.gz": inventory_packed, "placement.json.gz": placement_packed})
         parts = {
