@@ -39,9 +39,11 @@ options:
   inventory:
     description:
       - The fleet resource model (P(kuberos.platform.fleet_inventory#filter)). When given, one record
-        ConfigMap per RosDeployment (C(kuberos-record-<name>) in the fleet namespace) is rendered too, with the spec,
-        the inventory, the render options and the placement, which the KubeROS controller reads to move modules
-        when nodes fail or links degrade.
+        ConfigMap per RosDeployment (C(kuberos-record-<name>) in the fleet namespace) is rendered too, with that
+        deployment's own document of the spec, the inventory and the placement (gzip-compressed) and the render
+        options, which the KubeROS controller reads to move modules when nodes fail or links degrade.
+      - A spec whose record or revision would not fit in a ConfigMap (more than 768 KiB) fails the task before
+        anything is written, naming the file, the document's line and the deployment.
     type: dict
   field_manager:
     description: The server-side apply field manager the objects are applied with; the controller applies with it too.

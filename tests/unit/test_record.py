@@ -258,3 +258,19 @@ def test_the_render_module_refuses_it_before_writing_anything(tmp_path, local_in
     with pytest.raises(SpecError, match=expected):
         rosdeployment_render.run(Module())
     assert not dest.exists()
+
+
+def test_a_rollback_records_the_kept_document_again_unchanged(root, local_inventory, local_raw):
+    """A rollback builds the new record from a revision's text: the same document, at the same line."""
+    path = f"{root}/examples/two-fleets.yml"
+    with open(path, encoding="utf-8") as handle:
+        text = handle.read()
+    objects = records_of(text, "examples/two-fleets.yml", local_inventory, local_raw)
+    revision = next(o for o in objects if o["metadata"]["name"] == "kuberos-rev-inventory-scan-1")
+    _number, _cause, dep, kept, _catalog = parse_revision(revision)
+    placement = place_modules([dep], local_inventory)
+    again = build_records(
+        kept, "examples/two-fleets.yml", [dep], placement, local_raw, RenderOptions(), "kuberos", {}, None, "rollback to 1"
+    )
+    record = only_records(again)["inventory-scan"]
+    assert spec_text_of(record) == kept and record["data"]["spec-line"] == revision["data"]["spec-line"] != "1"
