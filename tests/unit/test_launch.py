@@ -157,3 +157,20 @@ def test_container_names_and_shares():
     assert split_amount(1000, 3) == [334, 333, 333] and split_amount(5, 1) == [5] and split_amount(1, 2) == [1, 0]
     with pytest.raises(ValueError):
         split_amount(1, 0)
+
+
+@pytest.mark.parametrize("name", ["listing1", "pick-and-place", "two-fleets"])
+def test_no_rendered_module_starts_a_shell(root, local_inventory, name):
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file
+
+    deployments = load_rosdeployment_file(f"{root}/examples/{name}.yml", f"examples/{name}.yml")
+    objects = render_deployment(deployments, place_modules(deployments, local_inventory), RenderOptions())
+    modules = [o for o in objects if o["kind"] == "Deployment" and o["metadata"]["labels"].get("kuberos.io/module")]
+    assert modules
+    for obj in modules:
+        module = next(m for d in deployments for m in d.modules if m.name == obj["metadata"]["labels"]["kuberos.io/module"])
+        containers = obj["spec"]["template"]["spec"]["containers"]
+        assert [c["args"] for c in containers] == [launch_argv(line) for line in module.launch]
+        for container in containers:
+            argv = [*container.get("command", []), *container.get("args", [])]
+            assert os.path.basename(argv[0]) not in ("sh", "bash", "dash", "zsh") and "-c" not in argv[:2], argv
