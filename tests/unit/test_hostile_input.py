@@ -561,3 +561,45 @@ def test_deploy_playbook_refuses_and_renders_nothing(item, tmp_path):
     assert located and item.reason.replace(SPEC_NAME, str(path)) in located[0], output[-4000:]
     assert "Traceback" not in output
     assert not render.exists() or not os.listdir(render)
+
+
+# -- names against what the cluster holds (the check node_allocations runs with the live objects) ------------------
+
+CLASHING = renamed(BASE, "a", "b-c")  # deployment a, module b-c: its instances are named a-b-c-<robot>
+
+
+def live(name, deployment="a-b", module="c", kind="Deployment"):
+    return {"kind": kind, "namespace": "kuberos-test-fleet", "name": name, "deployment": deployment, "module": module}
+
+
+@pytest.mark.parametrize(
+    ("objects", "expected"),
+    [
+        pytest.param(
+            [live("a-b-c-fetch-1")],
+            "spec.yml:5: rosModules[0].name: 'b-c' of deployment a would name a Deployment a-b-c-fetch-1 (the instance of "
+            "robot fetch-1) in namespace kuberos-test-fleet, but a Deployment of that name is already there and belongs to "
+            "deployment a-b (module c)",
+            id="another-deployments-instance",
+        ),
+        pytest.param(
+            [live("a-b-c-fetch-2", deployment="", module="")],
+            "but a Deployment of that name is already there and belongs to no KubeROS deployment",
+            id="an-object-kuberos-does-not-manage",
+        ),
+        pytest.param([live("a-b-c-fetch-1", deployment="a", module="b-c")], None, id="its-own-instance"),
+        pytest.param([live("a-b-c-fetch-1", kind="ConfigMap")], None, id="another-kind"),
+        pytest.param([live("a-b-c-tiago-1")], None, id="a-robot-of-another-fleet"),
+    ],
+)
+def test_names_against_the_objects_in_the_cluster(objects, expected, local_inventory):
+    deployments = spec.load_rosdeployments(CLASHING, SPEC_NAME)
+
+    def robots_of(dep):
+        return dep.robots or local_inventory.fleets.get(dep.fleet)
+
+    problems = spec.name_clash_problems(deployments, robots_of, objects)
+    if expected is None:
+        assert problems == []
+    else:
+        assert len(problems) == 1 and expected in str(problems[0]), problems
