@@ -446,6 +446,13 @@ ROWS = [
         "brings the file past 1000 modules; expected at most 1000 in one file",
         source="spec.yml (document 11)",
     ),
+    row(
+        "half-a-million-scalars",
+        "a: [" + "0," * 520_000 + "0]\n",
+        "",
+        None,
+        "document too large: more than 50000 YAML nodes in the file (line 1)",
+    ),
     row("python-object-tag", "metadata: !!python/object/apply:os.system [echo hi]\n", "", 1, "could not determine a constructor"),
 ]
 

@@ -16,7 +16,8 @@ import yaml
 from .errors import Problem, SpecError
 
 MAX_BYTES = 1024 * 1024
-MAX_NODES = 100_000
+MAX_NODES = 100_000  # nodes of one document, each alias counted again as the nodes it stands for
+MAX_FILE_NODES = 50_000  # nodes (keys included) written in one file: bounds the work before a refusal
 MAX_DEPTH = 64
 MAX_DOCUMENTS = 200
 # Refused anywhere in a file and in any value (also when written as an escape such as "\\x00"): the C0 controls but
@@ -124,17 +125,24 @@ class _TooLarge(Exception):
 
 _OPENING = (yaml.FlowSequenceStartToken, yaml.FlowMappingStartToken, yaml.BlockSequenceStartToken, yaml.BlockMappingStartToken)
 _CLOSING = (yaml.FlowSequenceEndToken, yaml.FlowMappingEndToken, yaml.BlockEndToken)
+_NODE_TOKENS = (yaml.ScalarToken, yaml.AliasToken, *_OPENING)  # keys counted too: a bound, not an exact count
 
 
-def _check_depth(text: str) -> None:
-    """Refuse deep nesting from the token stream, before PyYAML's recursive composer sees it."""
+def _check_tokens(text: str) -> None:
+    """Refuse deep nesting and too many nodes from the token stream, before a composer builds any node: libyaml's
+    composer recurses on the C stack (200,000 nested '[' crash the process), and composing a file of half a
+    million one-character scalars takes seconds before the node count could be checked on the nodes."""
     scanner = LOADER(text)
-    depth = 0
+    depth = nodes = 0
     try:
         while True:
             token = scanner.get_token()
             if token is None or isinstance(token, yaml.StreamEndToken):
                 return
+            if isinstance(token, _NODE_TOKENS):
+                nodes += 1
+                if nodes > MAX_FILE_NODES:
+                    raise _TooLarge(f"more than {MAX_FILE_NODES} YAML nodes in the file (line {token.start_mark.line + 1})")
             if isinstance(token, _OPENING):
                 depth += 1
                 if depth > MAX_DEPTH:
@@ -239,7 +247,7 @@ def load_documents(text: str, source: str) -> list[Document]:
         )
         raise SpecError([problem], title=f"{source} is not valid") from None
     try:
-        _check_depth(text)
+        _check_tokens(text)
         index = 0
         while loader.check_node():
             node = loader.get_node()
