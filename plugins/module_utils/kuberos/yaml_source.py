@@ -120,7 +120,10 @@ class _Walker:
 
 
 class _TooLarge(Exception):
-    pass
+    def __init__(self, message: str, what: str = "document too large", line: int | None = None):
+        super().__init__(message)
+        self.what = what
+        self.line = line
 
 
 _OPENING = (yaml.FlowSequenceStartToken, yaml.FlowMappingStartToken, yaml.BlockSequenceStartToken, yaml.BlockMappingStartToken)
@@ -133,7 +136,7 @@ def _check_tokens(text: str) -> None:
     composer recurses on the C stack (200,000 nested '[' crash the process), and composing a file of half a
     million one-character scalars takes seconds before the node count could be checked on the nodes."""
     scanner = LOADER(text)
-    depth = nodes = 0
+    depth = nodes = documents = 0
     try:
         while True:
             token = scanner.get_token()
@@ -142,7 +145,19 @@ def _check_tokens(text: str) -> None:
             if isinstance(token, _NODE_TOKENS):
                 nodes += 1
                 if nodes > MAX_FILE_NODES:
-                    raise _TooLarge(f"more than {MAX_FILE_NODES} YAML nodes in the file (line {token.start_mark.line + 1})")
+                    raise _TooLarge(
+                        f"more than {MAX_FILE_NODES} YAML nodes; expected at most {MAX_FILE_NODES} in one file",
+                        "file too large",
+                        token.start_mark.line + 1,
+                    )
+            elif isinstance(token, yaml.DocumentStartToken):
+                documents += 1
+                if documents > MAX_DOCUMENTS:
+                    raise _TooLarge(
+                        f"more than {MAX_DOCUMENTS} documents; expected at most {MAX_DOCUMENTS} in one file",
+                        "file too large",
+                        token.start_mark.line + 1,
+                    )
             if isinstance(token, _OPENING):
                 depth += 1
                 if depth > MAX_DEPTH:
@@ -271,7 +286,7 @@ def load_documents(text: str, source: str) -> list[Document]:
     except yaml.YAMLError as exc:
         problems.append(Problem(source, "", f"not valid YAML: {exc}"))
     except _TooLarge as exc:
-        problems.append(Problem(source, "", f"document too large: {exc}"))
+        problems.append(Problem(source, "", f"{exc.what}: {exc}", exc.line))
     except RecursionError:
         problems.append(Problem(source, "", f"document too large: nested deeper than {MAX_DEPTH} levels"))
     finally:
