@@ -23,7 +23,8 @@ Each file is refused two ways, each in a fresh process, ``--repeat`` times:
   -e kuberos_render_dir=<empty dir>``: wall time from start to exit, and ``ru_maxrss`` of ``os.wait4``
   (the largest process of the tree: Linux reports the maximum over the process and its waited-for
   children). Each run must exit non-zero, print the expected reason on a located line, show no Python
-  traceback, and leave the render directory empty.
+  traceback, and leave the render directory empty. The floor is the same command stopped by the playbook's
+  first task (no ``rosdeployment_file``): what Ansible itself takes to start, fail and exit.
 
     .venv/bin/python bench/bench_refusal.py                      # 3 repeats, results/refusal.json
     .venv/bin/python bench/bench_refusal.py --repeat 1 --json /tmp/refusal.json
@@ -154,6 +155,18 @@ def playbook_run(path: Path, reason: str, workdir: Path) -> dict:
     return {"wall_s": wall, "peak_rss_mb": rss, "exit_code": code}
 
 
+def playbook_floor(workdir: Path) -> dict:
+    """The same playbook stopped by its very first task (no rosdeployment_file): Ansible's own start-up and teardown."""
+    env = {**os.environ, "ANSIBLE_CONFIG": str(REPO / "ansible.cfg"), "ANSIBLE_NOCOLOR": "1"}
+    command = [
+        str(VENV_BIN / "ansible-playbook"), "playbooks/deploy.yml", "-i", "inventories/local",
+        "-e", "rosdeployment_file=", "-e", "kuberos_apply=false", "-e", f"kuberos_render_dir={workdir / 'render'}",
+    ]  # fmt: skip
+    wall, rss, code, text = run_measured(command, env)
+    assert code != 0 and "Set rosdeployment_file" in text, text[-2000:]
+    return {"wall_s": wall, "peak_rss_mb": rss}
+
+
 def summary(runs: list[dict], key: str) -> dict:
     values = [run[key] for run in runs]
     return {"median": round(statistics.median(values), 3), "max": round(max(values), 3)}
@@ -167,6 +180,7 @@ def main() -> int:
     args = parser.parse_args()
 
     results = {}
+    load_before = Path("/proc/loadavg").read_text().split()[:3]
     with tempfile.TemporaryDirectory(prefix="kuberos-bench-refusal-") as tmp:
         workdir = Path(tmp)
         for name, (make, reason) in CASES.items():
@@ -198,16 +212,19 @@ def main() -> int:
                 file=sys.stderr,
             )
 
+    floor = [] if args.skip_playbook else [playbook_floor(Path(tempfile.mkdtemp())) for _ in range(args.repeat)]
     report = {
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "machine": {"nproc": os.cpu_count(), "python": platform.python_version(), "kernel": platform.release()},
         "commit": subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True
         ).stdout.strip(),
-        "load_before": Path("/proc/loadavg").read_text().split()[:3],
+        "load_before": load_before,
+        "load_after": Path("/proc/loadavg").read_text().split()[:3],
         "repeat": args.repeat,
         "target": {"seconds": TARGET_SECONDS, "peak_rss_mb": TARGET_MB},
         "cases": results,
+        "playbook_floor": {"wall_s": summary(floor, "wall_s"), "peak_rss_mb": summary(floor, "peak_rss_mb")} if floor else None,
     }
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
@@ -216,10 +233,19 @@ def main() -> int:
 
 
 def print_markdown(report: dict) -> None:
-    print(f"Date {report['date']}, commit {report['commit']}, {report['repeat']} runs per case, load {report['load_before']}.\n")
+    print(
+        f"Date {report['date']}, commit {report['commit']}, {report['repeat']} runs per case, "
+        f"load {' '.join(report['load_before'])} before, {' '.join(report['load_after'])} after.\n"
+    )
     print("| file | bytes | filter: refusal s (median / max) | filter: process s | filter: peak RSS MB | "
           "playbook: wall s (median / max) | playbook: peak RSS MB |")  # fmt: skip
     print("|---|---:|---:|---:|---:|---:|---:|")
+    floor = report["playbook_floor"]
+    if floor:
+        print(
+            f"| (floor: deploy.yml stopped by its first task) | | | | | {floor['wall_s']['median']:.2f} / "
+            f"{floor['wall_s']['max']:.2f} | {floor['peak_rss_mb']['max']:.0f} |"
+        )
     for name, case in report["cases"].items():
         f, p = case["filter"], case["playbook"]
         playbook = f"{p['wall_s']['median']:.2f} / {p['wall_s']['max']:.2f} | {p['peak_rss_mb']['max']:.0f}" if p else "- | -"
