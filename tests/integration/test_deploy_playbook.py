@@ -176,3 +176,29 @@ def test_bad_inventory_names_host_and_variable(tmp_path):
     assert "hosts.fetch-2.kuberos_fleet: is required for a robot" in result.stdout
     assert "Traceback" not in result.stdout + result.stderr
     assert not (tmp_path / "render").exists()
+
+
+@pytest.mark.parametrize("playbook", ["deploy.yml", "undeploy.yml", "rollout.yml"])
+def test_a_failing_spec_is_reported_once_by_the_validation_task(tmp_path, playbook):
+    spec = tmp_path / "app.yml"
+    spec.write_text(
+        "metadata: {name: Bad_Name, targetFleet: test-fleet}\nrosModules:\n- name: planner\n  image: x\n  launch: [run]\n"
+        "  prefrence: cloud\n"
+    )
+    env = {**os.environ, "ANSIBLE_CONFIG": os.path.join(ROOT, "ansible.cfg"), "ANSIBLE_NOCOLOR": "1", "ANSIBLE_FORCE_COLOR": "0"}
+    command = [
+        venv_tool("ansible-playbook"), f"playbooks/{playbook}", "-i", "inventories/local", "-e", f"rosdeployment_file={spec}",
+        "-e", f"kuberos_render_dir={tmp_path / 'render'}", "-e", f"kuberos_kubeconfig={tmp_path / 'no-cluster'}",
+    ]  # fmt: skip
+    result = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    output = result.stdout + result.stderr
+    assert result.returncode != 0
+    for problem in (
+        "app.yml:1: metadata.name: 'Bad_Name' is not valid",
+        "app.yml:6: rosModules[0].prefrence: unknown field; did you mean 'preference'?",
+    ):
+        assert output.count(problem) == 1, output
+    failed = re.findall(r"^TASK \[(?:kuberos\.platform\.rosdeployment : )?([^\]]+)\]", output.split("fatal:")[0], re.M)
+    assert failed[-1] == "Validate the RosDeployment", output
+    assert "caused by" not in output and "Traceback" not in output
+    assert not (tmp_path / "render").exists()

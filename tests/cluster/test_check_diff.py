@@ -1,0 +1,156 @@
+"""deploy.yml --check --diff against the real local control plane: what the cluster would change, per object (a
+server-side dry run diffed against the live object) and first per module of each robot; check mode writes nothing.
+
+Proves: nothing changed shows no diff; the same spec under another file name shows no new object (only the record's
+and the revision's source line); an edit (one module's image, one module moved by a preference change, one module
+removed) shows exactly the objects it changes, new and removed, readable (no managedFields, no base64 blobs), with a
+summary first that names module, robots and nodes; no object's resourceVersion moves in check mode; the diff runs
+outside check mode too (--diff on a real deploy), and afterwards the cluster matches the spec.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+
+import pytest
+from helpers import ROOT
+
+pytestmark = pytest.mark.cluster
+
+NAMESPACE = "kuberos-test-fleet"
+DIFF_TASK = "TASK [kuberos.platform.rosdeployment : Show what the deploy changes in the cluster]"
+HEADER = re.compile(r"^--- before: (\S+) (\S+) \((live|absent)\)\n\+\+\+ after: \S+ \S+ \((server dry run|removed)\)$", re.M)
+BLOB = re.compile(r"[A-Za-z0-9+/=]{80,}")  # a base64 run as long as a line
+
+
+def diff_section(result) -> str:
+    """What the diff task printed: its summary, then one diff per object."""
+    out = result.stdout
+    assert DIFF_TASK in out, out[-6000:]
+    section = out[out.index(DIFF_TASK) + len(DIFF_TASK) :]
+    return section[: section.index("\nTASK [")]
+
+
+def headers(section: str) -> dict[tuple[str, str], str]:
+    """(kind, namespace/name) -> live|absent|removed for every object diff shown."""
+    found = {}
+    for kind, name, before, after in HEADER.findall(section):
+        found[(kind, name)] = "removed" if after == "removed" else before
+    return found
+
+
+def live_versions(cluster) -> dict:
+    """resourceVersion of every object in the fleet's namespace (and of the namespace)."""
+    core, apps, _discovery = cluster.clients()
+    versions = {("Namespace", NAMESPACE): core.read_namespace(NAMESPACE).metadata.resource_version}
+    for d in apps.list_namespaced_deployment(NAMESPACE).items:
+        versions[("Deployment", d.metadata.name)] = d.metadata.resource_version
+    for c in core.list_namespaced_config_map(NAMESPACE).items:
+        versions[("ConfigMap", c.metadata.name)] = c.metadata.resource_version
+    for s in core.list_namespaced_service(NAMESPACE).items:
+        versions[("Service", s.metadata.name)] = s.metadata.resource_version
+    return versions
+
+
+@pytest.fixture
+def deployed(cluster, tmp_path):
+    spec = tmp_path / "pick-and-place.yml"
+    shutil.copy(os.path.join(ROOT, "examples", "pick-and-place.yml"), spec)
+    first = cluster.deploy(spec, tmp_path / "render")
+    assert first.returncode == 0, first.stdout[-6000:] + first.stderr[-2000:]
+    yield spec
+    cluster.undeploy(spec)
+
+
+def test_check_diff_shows_what_the_cluster_would_change_and_writes_nothing(cluster, deployed, tmp_path):
+    spec = deployed
+    render = tmp_path / "render"
+
+    # Nothing changed: no object diff, the summary says so.
+    same = cluster.deploy(spec, render, "--check", "--diff")
+    assert same.returncode == 0, same.stdout[-6000:]
+    section = diff_section(same)
+    assert headers(section) == {}, section
+    assert "no module moves, starts, stops or changes" in same.stdout
+    assert "objects: 0 changed, 0 new, 0 removed" in same.stdout
+
+    # The same spec under another file name (and so another render directory): no new object, no module changes. The
+    # record and its revision would note the new source path, nothing else.
+    other = tmp_path / "renamed-copy.yml"
+    shutil.copy(spec, other)
+    renamed = cluster.deploy(other, tmp_path / "render-renamed", "--check", "--diff")
+    assert renamed.returncode == 0, renamed.stdout[-6000:]
+    section = diff_section(renamed)
+    shown = headers(section)
+    assert set(shown) <= {
+        ("ConfigMap", f"{NAMESPACE}/kuberos-record-pick-and-place"),
+        ("ConfigMap", f"{NAMESPACE}/kuberos-rev-pick-and-place-1"),
+    }, section
+    assert set(shown.values()) <= {"live"}, section
+    assert "no module moves, starts, stops or changes" in renamed.stdout
+    changed_lines = [line for line in section.splitlines() if re.match(r"^[-+]\s", line)]
+    assert changed_lines, section
+    # The source path is kept in the record and the revision, and in the record's placement (its deployments' source).
+    assert [line for line in changed_lines if not re.match(r"^[-+]\s+(source|placement\.json\.gz):", line)] == [], section
+
+    # An edit: a new planner image, perception prefers the cloud now, the task coordinator is dropped.
+    text = spec.read_text()
+    text = text.replace("pnp-planner:0.1", "pnp-planner:0.2").replace("preference: [edge, cloud]", "preference: [cloud, edge]")
+    text = text[: text.index("- name: task-coordinator")]
+    spec.write_text(text)
+    before = live_versions(cluster)
+    edited = cluster.deploy(spec, render, "--check", "--diff")
+    assert edited.returncode == 0, edited.stdout[-6000:]
+    assert live_versions(cluster) == before  # check mode wrote nothing
+    section = diff_section(edited)
+
+    # The summary comes first and names module, robots and nodes.
+    summary = section[: section.index("--- before:")]
+    assert "What the deploy would change (check mode: nothing written):" in summary
+    assert (
+        "pick-and-place/motion-planner (fetch-1, fetch-2): changes: "
+        "image ghcr.io/kuberos/pnp-planner:0.1 -> ghcr.io/kuberos/pnp-planner:0.2" in summary
+    ), summary
+    assert re.search(r"pick-and-place/task-coordinator \(fetch-1, fetch-2\): stops on edge-\d", summary), summary
+    moves = re.findall(r"pick-and-place/perception \((fetch-\d)\): moves (\S+) -> (\S+)", summary)
+    assert moves and all(a != b for _robot, a, b in moves), summary
+    assert re.search(r"record kuberos-test-fleet/kuberos-record-pick-and-place: updated, placement of \d+ instances", summary)
+
+    # Exactly the objects the edit changes: the planners, the perception instances that move, the record, a new
+    # revision, and the coordinator and its robots' nothing else.
+    shown = headers(section)
+    expected = {
+        ("ConfigMap", f"{NAMESPACE}/kuberos-record-pick-and-place"): "live",
+        ("ConfigMap", f"{NAMESPACE}/kuberos-rev-pick-and-place-2"): "absent",
+        ("Deployment", f"{NAMESPACE}/pick-and-place-motion-planner-fetch-1"): "live",
+        ("Deployment", f"{NAMESPACE}/pick-and-place-motion-planner-fetch-2"): "live",
+        ("Deployment", f"{NAMESPACE}/pick-and-place-task-coordinator-shared-0"): "removed",
+        **{("Deployment", f"{NAMESPACE}/pick-and-place-perception-{robot}"): "live" for robot, _a, _b in moves},
+    }
+    assert shown == expected, section
+    # Readable: the image line itself, no server bookkeeping, no encoded blobs.
+    assert re.search(r"^-\s+image: ghcr.io/kuberos/pnp-planner:0.1$", section, re.M), section
+    assert re.search(r"^\+\s+image: ghcr.io/kuberos/pnp-planner:0.2$", section, re.M), section
+    for noise in ("managedFields", "resourceVersion", "creationTimestamp", "uid:", "status:"):
+        assert noise not in section, noise
+    assert not BLOB.search(section), BLOB.search(section).group(0)[:100]
+    # The render directory's own diff is not shown when a cluster is there to diff against.
+    assert "--- before: manifests/" not in edited.stdout
+
+    # Without --diff, check mode still prints the summary, as its own task.
+    quiet = cluster.deploy(spec, render, "--check")
+    assert quiet.returncode == 0, quiet.stdout[-6000:]
+    assert "--- before:" not in quiet.stdout
+    assert "pick-and-place/motion-planner (fetch-1, fetch-2): changes: image" in quiet.stdout
+    assert live_versions(cluster) == before
+
+    # --diff on a real deploy shows what is being applied; afterwards nothing is left to change.
+    applied = cluster.deploy(spec, render, "--diff")
+    assert applied.returncode == 0, applied.stdout[-6000:]
+    assert "What the deploy changes:" in diff_section(applied)
+    assert headers(diff_section(applied)) == expected
+    again = cluster.deploy(spec, render, "--check", "--diff")
+    assert again.returncode == 0, again.stdout[-6000:]
+    assert headers(diff_section(again)) == {}, diff_section(again)
