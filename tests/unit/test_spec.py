@@ -129,3 +129,62 @@ def test_multi_document_file_and_line_numbers():
     assert [d.name for d in deps] == ["kubeross-demo-picking", "second"]
     assert deps[1].source == "two.yml (document 2)"
     assert deps[0].line_of("rosModules[1]") == 13
+
+
+# -- what the hostile-input checks must still accept (tests/unit/test_hostile_input.py has what they refuse) ------
+
+MODULE_WITH = """\
+metadata:
+  name: demo
+  targetFleet: test-fleet
+  labels: {{team: picking, example.com/owner: lab-3, app.kubernetes.io/name: planner}}
+rosModules:
+- name: planner
+  image: {image}
+  launch: ros2 run planner node
+  requirements: {{max_latency: 0.5 ms}}
+  rosParameters: {parameters}
+"""
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        "planner",
+        "ros:jazzy-ros-base",
+        "ghcr.io/kuberos/bridge:0.2.0",
+        "localhost/planner",
+        "localhost:5000/planner:1.0",
+        "registry.example.com:5000/a/b/c:v1.2_3-rc.1",
+        "Registry.Example.COM/planner:1",  # a registry host may have capitals
+        "10.0.0.1:5000/planner",
+        "'[fd00::1]:5000/planner:1'",
+        "docker.io/library/ubuntu",
+        "a__b/c--d.e_f/g-h:_tag",
+        "planner:" + "t" * 128,
+        "planner@sha256:" + "0123456789abcdef" * 4,
+        "ghcr.io/x/planner:1.0@sha512:" + "ab" * 64,
+    ],
+)
+def test_valid_image_references_are_accepted(image):
+    (deployment,) = load_rosdeployments(MODULE_WITH.format(image=image, parameters="{}"), "ok.yml")
+    assert deployment.modules[0].image == image.strip("'")
+
+
+@pytest.mark.parametrize(
+    "parameters",
+    [
+        "{use_sim_time: true}",
+        "{rate: 10, scale: 0.5, frame: map, flags: [true, false]}",
+        "{weights: [1.0, 2.5, .inf], ids: [1, -2, 9223372036854775807], names: [a, b]}",
+        "{planner: {ompl: {range: 0.1, goal_bias: 0.05}}}",
+        "{qos_overrides: {/tf: {publisher: {depth: 10}}}}",
+        "{since: '2024-05-01', empty_text: ''}",
+        "{<<: {merged: 1}, own: 2}",
+    ],
+)
+def test_ros_parameters_ros2_reads_are_accepted(parameters):
+    (deployment,) = load_rosdeployments(MODULE_WITH.format(image="planner:1", parameters=parameters), "ok.yml")
+    assert deployment.modules[0].ros_parameters
+    assert deployment.modules[0].requirements.max_latency_ms == 0.5
+    assert dict(deployment.labels)["example.com/owner"] == "lab-3"

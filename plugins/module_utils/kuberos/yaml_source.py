@@ -61,7 +61,7 @@ class Document:
         return self.lines.get(())
 
 
-_STR_TAG = "tag:yaml.org,2002:str"
+_TYPED_KEY_TAGS = {f"tag:yaml.org,2002:{name}" for name in ("bool", "int", "float", "null")}
 
 
 class _Walker:
@@ -101,7 +101,7 @@ class _Walker:
                 seen[key] = key_node.start_mark.line + 1
                 # A field's line is where its key is written, even when its value starts below.
                 self.lines.setdefault((*path, str(key)), key_node.start_mark.line + 1)
-                if self.loader is not None and isinstance(key_node, yaml.ScalarNode) and key_node.tag != _STR_TAG:
+                if self.loader is not None and isinstance(key_node, yaml.ScalarNode) and key_node.tag in _TYPED_KEY_TAGS:
                     # A key YAML reads as another type (yes -> True, ~ -> None) is named by its value in messages.
                     constructed = str(self.loader.construct_object(key_node))
                     self.lines.setdefault((*path, constructed), key_node.start_mark.line + 1)
