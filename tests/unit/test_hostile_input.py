@@ -515,6 +515,19 @@ INVENTORY_ROWS = [
 ]
 
 
+def test_inventory_names_with_a_trailing_line_break():
+    raw = {
+        "hosts": {"fetch-1": {"kuberos_cpu": 4, "kuberos_memory": "8Gi", "kuberos_fleet": "f\n"}},
+        "groups": {"robots": ["fetch-1"]},
+    }
+    with pytest.raises(errors.SpecError) as info:
+        inventory.load_inventory(raw)
+    assert str(info.value).split("\n")[1:] == [
+        "  - inventory: hosts.fetch-1.kuberos_fleet: 'f\\n' is not valid; "
+        "expected a fleet name of lowercase letters, digits, '-' and '.'"
+    ]
+
+
 @pytest.mark.parametrize(("variables", "field", "reason"), INVENTORY_ROWS)
 def test_inventory_with_control_characters(variables, field, reason):
     raw = {"hosts": {"fetch-1": {"kuberos_cpu": 4, "kuberos_memory": "8Gi", **variables}}, "groups": {"robots": ["fetch-1"]}}

@@ -31,8 +31,8 @@ HOST_VARS = (
     "kuberos_cluster_domain", "kuberos_bridge_endpoint", "kuberos_bridge_node_port",
 )  # fmt: skip
 DEFAULT_LATENCY_MS = {"onboard": 0.0, "edge": 5.0, "cloud": 50.0}
-_NAME = re.compile(r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?$")
-_LABEL_VALUE = re.compile(r"^[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?$")
+_NAME = re.compile(r"[a-z0-9]([-a-z0-9.]*[a-z0-9])?")  # fullmatch: no trailing line break
+_LABEL_VALUE = re.compile(r"[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?")
 
 
 @dataclass(frozen=True)
@@ -177,7 +177,7 @@ def _string_list(value, source, host, var, problems) -> tuple[str, ...]:
 
 
 def _name(value, source, host, var, problems, what):
-    if not isinstance(value, str) or not _NAME.match(value) or len(value) > 63:
+    if not isinstance(value, str) or not _NAME.fullmatch(value) or len(value) > 63:
         problems.append(
             _host_problem(
                 source,
@@ -315,13 +315,13 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
                 problems.append(_host_problem(source, host, var, "must be more than zero"))
         pods = _count(hv.get("kuberos_pods"), source, host, "kuberos_pods", problems, 110)
         arch = hv.get("kuberos_arch", "amd64")
-        if not isinstance(arch, str) or not _LABEL_VALUE.match(arch):
+        if not isinstance(arch, str) or not _LABEL_VALUE.fullmatch(arch):
             problems.append(
                 _host_problem(source, host, "kuberos_arch", f"{describe(arch)} is not valid; expected e.g. amd64 or arm64")
             )
         devices = _string_list(hv.get("kuberos_devices"), source, host, "kuberos_devices", problems)
         for device in devices:
-            if not _NAME.match(device):
+            if not _NAME.fullmatch(device):
                 problems.append(
                     _host_problem(
                         source,
@@ -387,7 +387,7 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
                 default=defaults[tier],
             )
             group = hv.get("kuberos_resource_group", tier)
-            if not isinstance(group, str) or not _LABEL_VALUE.match(group):
+            if not isinstance(group, str) or not _LABEL_VALUE.fullmatch(group):
                 problems.append(
                     _host_problem(
                         source,
