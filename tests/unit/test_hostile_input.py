@@ -538,6 +538,17 @@ def test_inventory_with_control_characters(variables, field, reason):
     assert rendered.split("\n")[1].isprintable()
 
 
+@pytest.mark.parametrize("path", ["/dev/zero", "fifo"])
+def test_a_file_that_never_ends_is_refused_without_reading_it(path, tmp_path):
+    if path == "fifo":
+        path = str(tmp_path / "spec.yml")
+        os.mkfifo(path)  # opening it would block until a writer comes
+    with pytest.raises(errors.SpecError) as info:
+        spec.load_rosdeployment_file(path)
+    line = str(info.value).split("\n")[1]
+    assert line.startswith(f"  - {path}: is a ") and line.endswith(", not a regular file"), str(info.value)
+
+
 def test_every_control_character_class_is_refused():
     """The set is what docs/rosdeployment.md says: C0 but tab and line breaks, DEL, C1, U+2028/9, bidi controls."""
     refused = {chr(c) for c in range(0x110000) if 0xD800 > c or c > 0xDFFF if yaml_source.CONTROL_CHARACTERS.match(chr(c))}

@@ -8,7 +8,9 @@ characters are refused (``CONTROL_CHARACTERS``), and every failure becomes a ``P
 from __future__ import annotations
 
 import bisect
+import os
 import re
+import stat
 from dataclasses import dataclass, field
 
 import yaml
@@ -26,6 +28,9 @@ MAX_DOCUMENTS = 200
 # text display in another order than it is read ("Trojan Source").
 CONTROL_CHARACTERS = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u061c\u200e\u200f\u2028-\u202e\u2066-\u2069]")
 _MAX_REPORTED = 10
+_SPECIAL_FILES = {
+    stat.S_IFIFO: "a FIFO", stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFSOCK: "a socket",
+}  # fmt: skip
 # libyaml's loader when PyYAML was built with it (about ten times faster: a hostile 1 MiB file is refused in a
 # fraction of a second instead of several), else PyYAML's own; both build the same nodes with the same marks.
 LOADER = yaml.CSafeLoader if getattr(yaml, "__with_libyaml__", False) else yaml.SafeLoader
@@ -185,6 +190,9 @@ def control_character_reason(character: str, where: str = "") -> str:
 def read_text(path: str, display: str, what: str = "file") -> str:
     """The UTF-8 text of ``path``, its size checked on the bytes before decoding; ``SpecError`` naming ``display``."""
     try:
+        kind = _SPECIAL_FILES.get(stat.S_IFMT(os.stat(path).st_mode))
+        if kind:  # opening a FIFO blocks until someone writes to it; a device never ends
+            raise SpecError([Problem(display, "", f"is {kind}, not a regular file")], title=f"cannot read {display}")
         with open(path, "rb") as handle:
             raw = handle.read(MAX_BYTES + 1)
     except OSError as exc:
