@@ -10,12 +10,13 @@ and check the exit code, the message and that nothing was rendered.
 from __future__ import annotations
 
 import os
+import shutil
 import textwrap
 from dataclasses import dataclass
 
 import pytest
 from ansible.errors import AnsibleFilterError
-from helpers import playbook
+from helpers import ROOT, playbook
 
 from ansible_collections.kuberos.platform.plugins.filter.rosdeployment_targets import rosdeployment_targets
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import catalog, errors, inventory, spec, yaml_source
@@ -634,3 +635,22 @@ def test_names_against_the_objects_in_the_cluster(objects, expected, local_inven
         assert problems == []
     else:
         assert len(problems) == 1 and expected in str(problems[0]), problems
+
+
+def test_deploy_playbook_refuses_an_inventory_value_with_a_control_character(tmp_path):
+    site = tmp_path / "site"
+    shutil.copytree(os.path.join(ROOT, "inventories", "local"), site)
+    hosts = site / "hosts.yml"
+    text = hosts.read_text(encoding="utf-8")
+    assert "          kuberos_fleet: test-fleet\n" in text
+    hosts.write_text(text.replace("          kuberos_fleet: test-fleet\n", '          kuberos_fleet: "test-\\x00fleet"\n', 1))
+    render = tmp_path / "render"
+    result = playbook(
+        "deploy.yml", "-e", f"rosdeployment_file={os.path.join(ROOT, 'examples', 'listing1.yml')}",
+        "-e", "kuberos_apply=false", "-e", f"kuberos_render_dir={render}", inventory=site,
+    )  # fmt: skip
+    output = result.stdout + result.stderr
+    assert result.returncode != 0, output[-4000:]
+    assert "- inventory: hosts.fetch-1.kuberos_fleet: control character U+0000 (NUL); expected printable text" in output
+    assert "Traceback" not in output
+    assert not render.exists() or not os.listdir(render)
