@@ -137,6 +137,13 @@ ROWS = [
         7,
         "control character U+0000 (NUL) (written as an escape)",
     ),
+    row(
+        "noncharacter",
+        BASE.replace("name: demo", "name: de\ufffemo"),
+        "metadata.name",
+        2,
+        "control character U+FFFE in column 11",
+    ),
     row("multibyte-over-the-limit", "# " + "é" * 600_000 + "\n" + BASE, "", None, "file is larger than 1048576 bytes"),
     row("not-utf8", BASE.encode() + b"# \xff\n", "", 8, "not UTF-8 text (byte"),
     row(
@@ -551,7 +558,7 @@ def test_a_file_that_never_ends_is_refused_without_reading_it(path, tmp_path):
 
 
 def test_every_control_character_class_is_refused():
-    """The set is what docs/rosdeployment.md says: C0 but tab and line breaks, DEL, C1, U+2028/9, bidi controls."""
+    """The set docs/rosdeployment.md names: C0 but tab and line breaks, DEL, C1, U+2028/9, bidi controls, U+FFFE/F."""
     refused = {chr(c) for c in range(0x110000) if 0xD800 > c or c > 0xDFFF if yaml_source.CONTROL_CHARACTERS.match(chr(c))}
     expected = {chr(c) for c in (*range(0x00, 0x20), *range(0x7F, 0xA0))} - {"\t", "\n", "\r"}
     expected |= {
@@ -562,6 +569,8 @@ def test_every_control_character_class_is_refused():
         "\u2029",
         *map(chr, range(0x202A, 0x202F)),
         *map(chr, range(0x2066, 0x206A)),
+        "\ufffe",
+        "\uffff",
     }
     assert refused == expected
 

@@ -29,7 +29,7 @@ class Problem:
 
 # Line breaks and other controls that a file name, a key or a message may hold, shown escaped so that a problem
 # stays one line of plain text (yaml_source.CONTROL_CHARACTERS, with line breaks and tab).
-_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u2028-\u202e\u2066-\u2069]")
+_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u2028-\u202e\u2066-\u2069\ufffe\uffff]")
 
 
 def printable(text: str) -> str:

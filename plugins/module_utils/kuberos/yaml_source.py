@@ -25,8 +25,8 @@ MAX_DOCUMENTS = 200
 # Refused anywhere in a file and in any value (also when written as an escape such as "\\x00"): the C0 controls but
 # tab, line feed and carriage return; DEL; the C1 controls (YAML reads U+0085 as a line break); the Unicode line
 # and paragraph separators (line breaks to YAML, not to most editors); and the bidirectional controls, which make
-# text display in another order than it is read ("Trojan Source").
-CONTROL_CHARACTERS = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u061c\u200e\u200f\u2028-\u202e\u2066-\u2069]")
+# text display in another order than it is read ("Trojan Source"); and the noncharacters U+FFFE and U+FFFF.
+CONTROL_CHARACTERS = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f\u061c\u200e\u200f\u2028-\u202e\u2066-\u2069\ufffe\uffff]")
 _MAX_REPORTED = 10
 _SPECIAL_FILES = {
     stat.S_IFIFO: "a FIFO", stat.S_IFCHR: "a character device", stat.S_IFBLK: "a block device", stat.S_IFSOCK: "a socket",
