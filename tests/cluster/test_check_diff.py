@@ -2,7 +2,7 @@
 server-side dry run diffed against the live object) and first per module of each robot; check mode writes nothing.
 
 Proves: nothing changed shows no diff; the same spec under another file name shows no new object (only the record's
-and the revision's source line); an edit (one module's image, one module moved by a preference change, one module
+and the revision's source); an edit (one module's image, one module moved by a preference change, one module
 removed) shows exactly the objects it changes, new and removed, readable (no managedFields, no base64 blobs), with a
 summary first that names module, robots and nodes; no object's resourceVersion moves in check mode; the diff runs
 outside check mode too (--diff on a real deploy), and afterwards the cluster matches the spec.
@@ -95,10 +95,10 @@ def test_check_diff_shows_what_the_cluster_would_change_and_writes_nothing(clust
     # The source path is kept in the record and the revision, and in the record's placement (its deployments' source).
     assert [line for line in changed_lines if not re.match(r"^[-+]\s+(source|placement\.json\.gz):", line)] == [], section
 
-    # An edit: a new planner image, perception prefers the cloud now, the task coordinator is dropped.
-    text = spec.read_text()
-    text = text.replace("pnp-planner:0.1", "pnp-planner:0.2").replace("preference: [edge, cloud]", "preference: [cloud, edge]")
-    text = text[: text.index("- name: task-coordinator")]
+    # An edit: a new planner image, the task coordinator prefers the cloud now, perception is dropped.
+    text = spec.read_text().replace("pnp-planner:0.1", "pnp-planner:0.2")
+    text = text.replace("  preference: edge\n  strategy: shared", "  preference: cloud\n  strategy: shared")
+    text = text[: text.index("- name: perception")] + text[text.index("- name: motion-planner") :]
     spec.write_text(text)
     before = live_versions(cluster)
     edited = cluster.deploy(spec, render, "--check", "--diff")
@@ -113,21 +113,24 @@ def test_check_diff_shows_what_the_cluster_would_change_and_writes_nothing(clust
         "pick-and-place/motion-planner (fetch-1, fetch-2): changes: "
         "image ghcr.io/kuberos/pnp-planner:0.1 -> ghcr.io/kuberos/pnp-planner:0.2" in summary
     ), summary
-    assert re.search(r"pick-and-place/task-coordinator \(fetch-1, fetch-2\): stops on edge-\d", summary), summary
-    moves = re.findall(r"pick-and-place/perception \((fetch-\d)\): moves (\S+) -> (\S+)", summary)
-    assert moves and all(a != b for _robot, a, b in moves), summary
-    assert re.search(r"record kuberos-test-fleet/kuberos-record-pick-and-place: updated, placement of \d+ instances", summary)
+    for robot in ("fetch-1", "fetch-2"):
+        assert re.search(rf"pick-and-place/perception \({robot}\): stops on edge-\d", summary), summary
+        assert re.search(rf"pick-and-place/task-coordinator \({robot}\): moves edge-\d -> cloud-\d", summary), summary
+    # perception's 2 instances go, the coordinator moves.
+    assert "record kuberos-test-fleet/kuberos-record-pick-and-place: updated, placement of 3 instances changed" in summary
 
-    # Exactly the objects the edit changes: the planners, the perception instances that move, the record, a new
-    # revision, and the coordinator and its robots' nothing else.
+    # Exactly the objects the edit changes: the planners, the coordinator, the record and a new revision; perception's
+    # Deployments and parameters are removed. Nothing else.
     shown = headers(section)
     expected = {
         ("ConfigMap", f"{NAMESPACE}/kuberos-record-pick-and-place"): "live",
         ("ConfigMap", f"{NAMESPACE}/kuberos-rev-pick-and-place-2"): "absent",
         ("Deployment", f"{NAMESPACE}/pick-and-place-motion-planner-fetch-1"): "live",
         ("Deployment", f"{NAMESPACE}/pick-and-place-motion-planner-fetch-2"): "live",
-        ("Deployment", f"{NAMESPACE}/pick-and-place-task-coordinator-shared-0"): "removed",
-        **{("Deployment", f"{NAMESPACE}/pick-and-place-perception-{robot}"): "live" for robot, _a, _b in moves},
+        ("Deployment", f"{NAMESPACE}/pick-and-place-task-coordinator-shared-0"): "live",
+        ("Deployment", f"{NAMESPACE}/pick-and-place-perception-fetch-1"): "removed",
+        ("Deployment", f"{NAMESPACE}/pick-and-place-perception-fetch-2"): "removed",
+        ("ConfigMap", f"{NAMESPACE}/pick-and-place-perception-params"): "removed",
     }
     assert shown == expected, section
     # Readable: the image line itself, no server bookkeeping, no encoded blobs.
