@@ -21,7 +21,7 @@ pytestmark = pytest.mark.cluster
 
 NAMESPACE = "kuberos-test-fleet"
 DIFF_TASK = "TASK [kuberos.platform.rosdeployment : Show what the deploy changes in the cluster]"
-HEADER = re.compile(r"^--- before: (\S+) (\S+) \((live|absent)\)\n\+\+\+ after: \S+ \S+ \((server dry run|removed)\)$", re.M)
+HEADER = re.compile(r"^--- before: (\S+) (\S+) \((live|absent)\)\n\+\+\+ after: \S+ \S+ \((server dry run|new|removed)\)$", re.M)
 BLOB = re.compile(r"[A-Za-z0-9+/=]{80,}")  # a base64 run as long as a line
 
 

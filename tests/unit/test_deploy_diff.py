@@ -100,7 +100,9 @@ def test_object_diff_none_when_only_bookkeeping_differs():
     assert entry["before_header"].endswith("(live)") and entry["after_header"].endswith("(server dry run)")
     assert "image: x/planner:1" in entry["before"] and "image: x/planner:2" in entry["after"]
     assert "managedFields" not in entry["before"] + entry["after"]
-    assert object_diff(None, dry)["before"] == "" and object_diff(live, None)["after_header"].endswith("(removed)")
+    new = object_diff(None, dry)
+    assert new["before"] == "" and new["before_header"].endswith("(absent)") and new["after_header"].endswith("(new)")
+    assert object_diff(live, None)["after_header"].endswith("(removed)")
 
 
 @pytest.mark.parametrize(

@@ -79,7 +79,8 @@ def clean_object(obj: dict) -> dict:
 
 def object_diff(before: dict | None, after: dict | None) -> dict | None:
     """One entry of Ansible's diff list for one object (cleaned first), or None when nothing differs.
-    ``before`` is the live object (None: new); ``after`` what the cluster would hold (None: removed)."""
+    ``before`` is the live object (None: new, and ``after`` is shown as rendered); ``after`` what the cluster would
+    hold (None: removed)."""
     old = dump_object(clean_object(before)) if before is not None else ""
     new = dump_object(clean_object(after)) if after is not None else ""
     if old == new:
@@ -87,7 +88,11 @@ def object_diff(before: dict | None, after: dict | None) -> dict | None:
     label = object_label(after if after is not None else before)
     return {
         "before_header": f"{label} (live)" if before is not None else f"{label} (absent)",
-        "after_header": f"{label} (server dry run)" if after is not None else f"{label} (removed)",
+        "after_header": f"{label} (removed)"
+        if after is None
+        else f"{label} (new)"
+        if before is None
+        else f"{label} (server dry run)",
         "before": old,
         "after": new,
     }
@@ -253,8 +258,14 @@ def record_changes(pairs: dict) -> list[str]:
             lines.append(f"record {namespace}/{name}: changed (its placement could not be read)")
             continue
         count = sum(1 for n in set(old) | set(new) if old.get(n) != new.get(n))
-        what = f"placement of {count} instance{'s' if count != 1 else ''} changed" if count else "placement unchanged"
-        lines.append(f"record {namespace}/{name}: {'new' if before is None else 'updated'}, {what}")
+        instances = f"{count} instance{'s' if count != 1 else ''}"
+        if before is None:
+            lines.append(f"record {namespace}/{name}: new, placement of {instances}")
+        else:
+            lines.append(
+                f"record {namespace}/{name}: updated, "
+                + (f"placement of {instances} changed" if count else "placement unchanged")
+            )
     return lines
 
 
