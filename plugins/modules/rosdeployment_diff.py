@@ -91,6 +91,12 @@ records:
   returned: always
   type: list
   elements: str
+refused:
+  description:
+    - Objects whose dry run the cluster refused (invalid, or forbidden by an admission policy), as C(Kind namespace/name)
+      to what the API server said. They show in the summary, not as diffs; the deploy's own dry run then stops the run.
+  returned: always
+  type: dict
 objects:
   description: C(changed), C(new) and C(removed) (lists of C(Kind namespace/name)) and C(unchanged) (a count).
   returned: always
@@ -123,6 +129,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement
 
 APPLY_TYPE = "application/apply-patch+yaml"
+REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid, forbidden by a policy, a conflict)
 WORKERS = 4  # reads and dry runs side by side; the API server does the work
 # kind -> (api, read, server-side apply) of the typed clients; namespaced unless the kind is Namespace.
 CALLS = {
@@ -140,6 +147,7 @@ class Live:
     def __init__(self, clients, field_manager: str):
         self.clients = clients
         self.field_manager = field_manager
+        self.refused: dict[str, str] = {}  # object -> what the API server said, when its dry run was refused
 
     def _call(self, obj: dict, which: int, *args, **kwargs):
         kind = obj["kind"]
@@ -167,8 +175,27 @@ class Live:
 
     def pair(self, obj: dict) -> tuple[dict | None, dict]:
         """(live, what the cluster would hold): the dry run's result when the object exists, else the object as rendered."""
+        from kubernetes.client.exceptions import ApiException
+
         live = self.read(obj)
-        return live, (self.dry_run_apply(obj) if live is not None else obj)
+        if live is None:
+            return None, obj
+        try:
+            return live, self.dry_run_apply(obj)
+        except ApiException as exc:
+            if exc.status not in REFUSALS:
+                raise
+            # Said in the summary; the deploy's own dry run (dry_run.yml) stops the run with it, nothing applied.
+            self.refused[object_label(obj)] = refusal(exc)
+            return live, live
+
+
+def refusal(exc) -> str:
+    """What the API server said, in one line (its Status message when it sent one)."""
+    try:
+        return json.loads(exc.body).get("message") or f"{exc.status} {exc.reason}"
+    except (TypeError, ValueError, AttributeError):
+        return f"{exc.status} {exc.reason}"
 
 
 def prune_candidates(clients, placement: Placement, keep: list[dict]) -> list[dict]:
@@ -227,9 +254,10 @@ def run(module: AnsibleModule) -> dict:
         diffs.append(entry)
     rows = change_summary(previous_placements(live, placement), placement, pairs)
     records = record_changes(pairs)
-    summary = summary_text(rows, records, counts, module.check_mode)
+    summary = summary_text(rows, records, counts, module.check_mode, refused=live.refused)
     result = {
-        "changed": bool(diffs),
+        "changed": bool(diffs or live.refused),
+        "refused": live.refused,
         "msg": summary,
         "summary": summary,
         "modules": rows,

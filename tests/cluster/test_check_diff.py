@@ -157,3 +157,69 @@ def test_check_diff_shows_what_the_cluster_would_change_and_writes_nothing(clust
     again = cluster.deploy(spec, render, "--check", "--diff")
     assert again.returncode == 0, again.stdout[-6000:]
     assert headers(diff_section(again)) == {}, diff_section(again)
+
+
+def test_an_object_the_cluster_refuses_is_named_in_the_summary(cluster, deployed, tmp_path):
+    """A policy refuses the new planner image: the diff names the refused objects and what the cluster said, the
+    deploy's own dry run stops the run, nothing is written."""
+    import time
+
+    from kubernetes import client
+
+    _core, apps, _discovery = cluster.clients()
+    admission = client.AdmissionregistrationV1Api(apps.api_client)
+    name = "no-planner-0-3"
+    admission.create_validating_admission_policy(
+        {
+            "apiVersion": "admissionregistration.k8s.io/v1",
+            "kind": "ValidatingAdmissionPolicy",
+            "metadata": {"name": name},
+            "spec": {
+                "failurePolicy": "Fail",
+                "matchConstraints": {
+                    "resourceRules": [
+                        {
+                            "apiGroups": ["apps"],
+                            "apiVersions": ["v1"],
+                            "operations": ["CREATE", "UPDATE"],
+                            "resources": ["deployments"],
+                        }
+                    ]
+                },
+                "validations": [
+                    {
+                        "expression": "object.spec.template.spec.containers.all(c, !c.image.endsWith(':0.3'))",
+                        "message": "images of version 0.3 are not allowed in this cluster",
+                    }
+                ],
+            },
+        }
+    )
+    admission.create_validating_admission_policy_binding(
+        {
+            "apiVersion": "admissionregistration.k8s.io/v1",
+            "kind": "ValidatingAdmissionPolicyBinding",
+            "metadata": {"name": name},
+            "spec": {"policyName": name, "validationActions": ["Deny"]},
+        }
+    )
+    try:
+        deployed.write_text(deployed.read_text().replace("pnp-planner:0.1", "pnp-planner:0.3"))
+        before = live_versions(cluster)
+        deadline = time.monotonic() + 30
+        while True:  # the policy takes a moment to be enforced
+            result = cluster.deploy(deployed, tmp_path / "render", "--check", "--diff")
+            if result.returncode != 0 or time.monotonic() > deadline:
+                break
+        assert result.returncode != 0, result.stdout[-6000:]
+        section = diff_section(result)
+        for robot in ("fetch-1", "fetch-2"):
+            assert (
+                f"refused by the cluster's dry run: Deployment {NAMESPACE}/pick-and-place-motion-planner-{robot}: " in section
+            ), section
+        assert "images of version 0.3 are not allowed in this cluster" in section
+        assert "nothing was applied" in result.stdout  # the deploy's own dry run stops the run
+        assert live_versions(cluster) == before
+    finally:
+        admission.delete_validating_admission_policy_binding(name)
+        admission.delete_validating_admission_policy(name)

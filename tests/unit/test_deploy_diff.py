@@ -159,3 +159,8 @@ def test_change_summary_names_moves_starts_stops_and_changes():
     # Not deployed before: every module starts.
     assert {r["action"] for r in change_summary({"app": None}, new, {})} == {"start"}
     assert "no module moves" in summary_text([], [], {}, check_mode=False)
+
+
+def test_summary_names_what_the_cluster_refused():
+    text = summary_text([], [], {"unchanged": 3}, check_mode=True, refused={"Deployment n/a": "forbidden by policy p"})
+    assert text.splitlines()[-1] == "  refused by the cluster's dry run: Deployment n/a: forbidden by policy p"

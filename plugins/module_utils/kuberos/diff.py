@@ -281,9 +281,10 @@ def _describe(row: dict) -> str:
     return text + (": " + "; ".join(row["details"]) if row["details"] else "")
 
 
-def summary_text(rows: list[dict], records: list[str], counts: dict, check_mode: bool) -> str:
+def summary_text(rows: list[dict], records: list[str], counts: dict, check_mode: bool, refused: dict | None = None) -> str:
     """The summary people read first: one line per module of each robot (robots that change alike share a line),
-    the records, and how many objects change."""
+    the records, how many objects change, and the objects whose dry run the cluster refused (``refused``: object ->
+    what it said)."""
     head = "What the deploy would change (check mode: nothing written)" if check_mode else "What the deploy changes"
     lines = [f"{head}:"]
     grouped: dict[tuple, list[str]] = {}
@@ -304,4 +305,6 @@ def summary_text(rows: list[dict], records: list[str], counts: dict, check_mode:
         f"  objects: {counts.get('changed', 0)} changed, {counts.get('new', 0)} new, {counts.get('removed', 0)} removed, "
         f"{counts.get('unchanged', 0)} unchanged"
     )
+    for what, why in sorted((refused or {}).items()):
+        lines.append(f"  refused by the cluster's dry run: {what}: {why}")
     return "\n".join(lines)
