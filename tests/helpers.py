@@ -2,15 +2,54 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
 import re
 import subprocess
 import sys
+import textwrap
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 VENV_BIN = os.path.join(ROOT, ".venv", "bin")
+
+
+def yml(text: str) -> str:
+    """Dedented YAML whose first line is line 1."""
+    return textwrap.dedent(text).lstrip("\n")
+
+
+# The smallest valid spec, lines 1-7: a module's extra lines start at line 8, metadata's at line 4.
+SPEC_BASE = yml(
+    """
+    metadata:
+      name: demo
+      targetFleet: test-fleet
+    rosModules:
+    - name: planner
+      image: registry/planner:1.0
+      launch: ros2 launch planner planner.launch.py
+    """
+)
+# A catalog of two modules, lines 1-13: fields added to the planner's version 1.0.0 start at line 14.
+CATALOG_BASE = yml(
+    """
+    apiVersion: kuberos.io/v1alpha1
+    kind: RosModuleCatalog
+    modules:
+    - name: perception
+      versions:
+      - version: 0.1.0
+        image: registry/perception:0.1
+        launch: [ros2 run perception node]
+    - name: planner
+      versions:
+      - version: 1.0.0
+        image: registry/planner:1.0
+        launch: ros2 launch planner planner.launch.py
+    """
+)
 
 
 def venv_tool(name: str) -> str:
@@ -123,3 +162,38 @@ class Cluster:
 
         api = config.new_client_from_config(config_file=self.kubeconfig)
         return client.CoreV1Api(api), client.AppsV1Api(api), client.DiscoveryV1Api(api)
+
+
+@contextlib.contextmanager
+def deployments_denied(api_client, name: str, expression: str, message: str):
+    """A ValidatingAdmissionPolicy (and its binding) that refuses Deployments failing the CEL ``expression`` with
+    ``message``, for the time of the block. The API server takes a moment to enforce it: retry what it must refuse."""
+    from kubernetes import client
+
+    admission = client.AdmissionregistrationV1Api(api_client)
+    rules = [{"apiGroups": ["apps"], "apiVersions": ["v1"], "operations": ["CREATE", "UPDATE"], "resources": ["deployments"]}]
+    admission.create_validating_admission_policy(
+        {
+            "apiVersion": "admissionregistration.k8s.io/v1",
+            "kind": "ValidatingAdmissionPolicy",
+            "metadata": {"name": name},
+            "spec": {
+                "failurePolicy": "Fail",
+                "matchConstraints": {"resourceRules": rules},
+                "validations": [{"expression": expression, "message": message}],
+            },
+        }
+    )
+    admission.create_validating_admission_policy_binding(
+        {
+            "apiVersion": "admissionregistration.k8s.io/v1",
+            "kind": "ValidatingAdmissionPolicyBinding",
+            "metadata": {"name": name},
+            "spec": {"policyName": name, "validationActions": ["Deny"]},
+        }
+    )
+    try:
+        yield
+    finally:
+        admission.delete_validating_admission_policy_binding(name)
+        admission.delete_validating_admission_policy(name)

@@ -15,7 +15,7 @@ import re
 import shutil
 
 import pytest
-from helpers import ROOT
+from helpers import ROOT, deployments_denied
 
 pytestmark = pytest.mark.cluster
 
@@ -164,46 +164,10 @@ def test_an_object_the_cluster_refuses_is_named_in_the_summary(cluster, deployed
     deploy's own dry run stops the run, nothing is written."""
     import time
 
-    from kubernetes import client
-
     _core, apps, _discovery = cluster.clients()
-    admission = client.AdmissionregistrationV1Api(apps.api_client)
-    name = "no-planner-0-3"
-    admission.create_validating_admission_policy(
-        {
-            "apiVersion": "admissionregistration.k8s.io/v1",
-            "kind": "ValidatingAdmissionPolicy",
-            "metadata": {"name": name},
-            "spec": {
-                "failurePolicy": "Fail",
-                "matchConstraints": {
-                    "resourceRules": [
-                        {
-                            "apiGroups": ["apps"],
-                            "apiVersions": ["v1"],
-                            "operations": ["CREATE", "UPDATE"],
-                            "resources": ["deployments"],
-                        }
-                    ]
-                },
-                "validations": [
-                    {
-                        "expression": "object.spec.template.spec.containers.all(c, !c.image.endsWith(':0.3'))",
-                        "message": "images of version 0.3 are not allowed in this cluster",
-                    }
-                ],
-            },
-        }
-    )
-    admission.create_validating_admission_policy_binding(
-        {
-            "apiVersion": "admissionregistration.k8s.io/v1",
-            "kind": "ValidatingAdmissionPolicyBinding",
-            "metadata": {"name": name},
-            "spec": {"policyName": name, "validationActions": ["Deny"]},
-        }
-    )
-    try:
+    expression = "object.spec.template.spec.containers.all(c, !c.image.endsWith(':0.3'))"
+    refusal = "images of version 0.3 are not allowed in this cluster"
+    with deployments_denied(apps.api_client, "no-planner-0-3", expression, refusal):
         deployed.write_text(deployed.read_text().replace("pnp-planner:0.1", "pnp-planner:0.3"))
         before = live_versions(cluster)
         deadline = time.monotonic() + 30
@@ -220,6 +184,3 @@ def test_an_object_the_cluster_refuses_is_named_in_the_summary(cluster, deployed
         assert "images of version 0.3 are not allowed in this cluster" in section
         assert "nothing was applied" in result.stdout  # the deploy's own dry run stops the run
         assert live_versions(cluster) == before
-    finally:
-        admission.delete_validating_admission_policy_binding(name)
-        admission.delete_validating_admission_policy(name)

@@ -16,7 +16,7 @@ import shutil
 import subprocess
 
 import pytest
-from helpers import ROOT, venv_tool
+from helpers import ROOT, deployments_denied, venv_tool
 
 pytestmark = pytest.mark.cluster
 
@@ -158,45 +158,10 @@ def test_a_rejected_object_means_nothing_is_applied(cluster, tmp_path):
     """A cluster policy rejects one Deployment; the objects before it passed their dry run, yet none is written."""
     import time
 
-    from kubernetes import client
-
     core, apps, _discovery = cluster.clients()
-    admission = client.AdmissionregistrationV1Api(apps.api_client)
-    admission.create_validating_admission_policy(
-        {
-            "apiVersion": "admissionregistration.k8s.io/v1",
-            "kind": "ValidatingAdmissionPolicy",
-            "metadata": {"name": "no-forbidden-modules"},
-            "spec": {
-                "failurePolicy": "Fail",
-                "matchConstraints": {
-                    "resourceRules": [
-                        {
-                            "apiGroups": ["apps"],
-                            "apiVersions": ["v1"],
-                            "operations": ["CREATE", "UPDATE"],
-                            "resources": ["deployments"],
-                        }
-                    ]
-                },
-                "validations": [
-                    {
-                        "expression": "object.metadata.?labels[?'kuberos.io/module'].orValue('') != 'zz-forbidden'",
-                        "message": "module zz-forbidden is not allowed in this cluster",
-                    }
-                ],
-            },
-        }
-    )
-    admission.create_validating_admission_policy_binding(
-        {
-            "apiVersion": "admissionregistration.k8s.io/v1",
-            "kind": "ValidatingAdmissionPolicyBinding",
-            "metadata": {"name": "no-forbidden-modules"},
-            "spec": {"policyName": "no-forbidden-modules", "validationActions": ["Deny"]},
-        }
-    )
-    try:
+    expression = "object.metadata.?labels[?'kuberos.io/module'].orValue('') != 'zz-forbidden'"
+    refusal = "module zz-forbidden is not allowed in this cluster"
+    with deployments_denied(apps.api_client, "no-forbidden-modules", expression, refusal):
         spec = tmp_path / "guarded.yml"
         spec.write_text(
             "metadata: {name: guarded, targetFleet: warehouse-fleet}\nrosModules:\n"
@@ -218,9 +183,6 @@ def test_a_rejected_object_means_nothing_is_applied(cluster, tmp_path):
         assert {status for status, _host in dry_runs} == {"ok", "fatal"}, result.stdout[-4000:]
         assert "TASK [kuberos.platform.rosdeployment : Apply every object of the batch" not in result.stdout
         assert resource_versions(apps, core, "kuberos-warehouse-fleet") == {}
-    finally:
-        admission.delete_validating_admission_policy_binding("no-forbidden-modules")
-        admission.delete_validating_admission_policy("no-forbidden-modules")
 
 
 def test_check_mode_applies_nothing(cluster, tmp_path):

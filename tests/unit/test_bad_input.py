@@ -13,9 +13,9 @@ behaviour should be, and starts passing (so must lose its mark) once the code is
 from __future__ import annotations
 
 import copy
-import textwrap
 
 import pytest
+from helpers import SPEC_BASE, yml
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import errors, inventory, scheduler, spec, yaml_source
 
@@ -28,23 +28,7 @@ def defect(reason: str):
     return pytest.mark.xfail(strict=True, reason=f"code defect: {reason}")
 
 
-def yml(text: str) -> str:
-    """Dedented YAML whose first line is line 1."""
-    return textwrap.dedent(text).lstrip("\n")
-
-
-# Lines 1-7 of every spec built with ``module()``; extra module lines start at line 8.
-BASE = yml(
-    """
-    metadata:
-      name: demo
-      targetFleet: test-fleet
-    rosModules:
-    - name: planner
-      image: registry/planner:1.0
-      launch: ros2 launch planner planner.launch.py
-    """
-)
+BASE = SPEC_BASE  # lines 1-7 of every spec built with ``module()``; extra module lines start at line 8
 
 
 def module(*lines: str) -> str:

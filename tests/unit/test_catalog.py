@@ -9,9 +9,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import textwrap
 
 import pytest
+from helpers import CATALOG_BASE
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -34,10 +34,6 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 EXAMPLE_CATALOG = os.path.join(ROOT, "inventories", "local", "catalog")
 DATA_CATALOG = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "catalog")
 DIGEST = "sha256:" + "0123456789abcdef" * 4
-
-
-def yml(text: str) -> str:
-    return textwrap.dedent(text).lstrip("\n")
 
 
 @pytest.fixture(scope="module")
@@ -307,23 +303,7 @@ def test_hostile_catalog_data_only_raises_spec_error(data):
 # --------------------------------------------------------------------------------------------
 
 # Lines 1-13; lines added with ``planner()`` start at line 14 (fields of planner 1.0.0).
-BASE = yml(
-    """
-    apiVersion: kuberos.io/v1alpha1
-    kind: RosModuleCatalog
-    modules:
-    - name: perception
-      versions:
-      - version: 0.1.0
-        image: registry/perception:0.1
-        launch: [ros2 run perception node]
-    - name: planner
-      versions:
-      - version: 1.0.0
-        image: registry/planner:1.0
-        launch: ros2 launch planner planner.launch.py
-    """
-)
+BASE = CATALOG_BASE
 PLANNER = "modules[1].versions[0]"
 
 

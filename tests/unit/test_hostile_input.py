@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import os
 import shutil
-import textwrap
 from dataclasses import dataclass
 
 import pytest
 from ansible.errors import AnsibleFilterError
-from helpers import ROOT, playbook
+from helpers import CATALOG_BASE, ROOT, SPEC_BASE, playbook
 
 from ansible_collections.kuberos.platform.plugins.filter.rosdeployment_targets import rosdeployment_targets
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import catalog, errors, inventory, spec, yaml_source
@@ -26,40 +25,8 @@ CATALOG_NAME = "catalog"
 TRACEBACK_TEXT = ("Traceback", "Error(", "Exception", 'File "')
 
 
-def yml(text: str) -> str:
-    return textwrap.dedent(text).lstrip("\n")
-
-
-# Lines 1-7; a module's extra lines start at line 8, metadata's at line 4.
-BASE = yml(
-    """
-    metadata:
-      name: demo
-      targetFleet: test-fleet
-    rosModules:
-    - name: planner
-      image: registry/planner:1.0
-      launch: ros2 launch planner planner.launch.py
-    """
-)
-# A catalog file of 13 lines; fields added to the planner's version start at line 14.
-CATALOG = yml(
-    """
-    apiVersion: kuberos.io/v1alpha1
-    kind: RosModuleCatalog
-    modules:
-    - name: perception
-      versions:
-      - version: 0.1.0
-        image: registry/perception:0.1
-        launch: [ros2 run perception node]
-    - name: planner
-      versions:
-      - version: 1.0.0
-        image: registry/planner:1.0
-        launch: ros2 launch planner planner.launch.py
-    """
-)
+BASE = SPEC_BASE  # lines 1-7; a module's extra lines start at line 8, metadata's at line 4
+CATALOG = CATALOG_BASE  # 13 lines; fields added to the planner's version start at line 14
 
 
 def module(*lines: str) -> str:
