@@ -630,3 +630,15 @@ def test_deploy_playbook_refuses_an_inventory_value_with_a_control_character(tmp
     assert "- inventory: hosts.fetch-1.kuberos_fleet: control character U+0000 (NUL); expected printable text" in output
     assert "Traceback" not in output
     assert not render.exists() or not os.listdir(render)
+
+
+@pytest.mark.parametrize("option", ["discovery_image", "bridge_image"])
+def test_the_images_given_as_render_options_are_image_references_too(option):
+    from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS, render_options
+
+    params = {name: spec["default"] for name, spec in RENDER_ARGS.items()}
+    assert render_options(params).discovery_image == params["discovery_image"]
+    params[option] = "ros:jazzy $(reboot)"
+    with pytest.raises(errors.SpecError) as refused:
+        render_options(params)
+    assert f"render options: {option}: 'ros:jazzy $(reboot)' is not a valid image reference" in str(refused.value)

@@ -219,3 +219,19 @@ def test_placement_round_trips_through_plain_data():
     for row in data["placements"]:
         assert {"robot", "module", "node", "tier", "reason", "robots", "instance"} <= set(row)
         assert row["tier"] in ("onboard", "edge", "cloud")
+
+
+def test_names_that_clash_through_a_robots_name_are_refused_once_the_fleets_robots_are_known():
+    """Module m0-x of robot r1 and module m0 of robot x-r1 would both name a Deployment app-m0-x-r1."""
+
+    def spec(second: str):
+        modules = [{"name": n, "image": "img", "launch": ["run"], "requirements": {"onboard": True}} for n in ("m0", second)]
+        return parse_rosdeployment({"metadata": {"name": "app", "targetFleet": "f"}, "rosModules": modules}, "app.yml")
+
+    inventory = load_inventory(
+        site(robots=1, **{"x-r1": ("robots", {"kuberos_fleet": "f", "kuberos_cpu": 2, "kuberos_memory": "4Gi"})})
+    )
+    with pytest.raises(SpecError) as refused:
+        place_modules([spec("m0-x")], inventory)
+    assert "would name a Deployment app-m0-x-r1 (the instance of robot" in str(refused.value)
+    assert place_modules([spec("m0-y")], inventory).rows(), "without the clash it places"

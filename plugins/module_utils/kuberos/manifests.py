@@ -188,8 +188,7 @@ def discovery_from_deployments(objects: list[dict]) -> dict[str, list[DiscoveryS
     return {fleet: sorted(servers, key=lambda s: s.server_id) for fleet, servers in sorted(fleets.items())}
 
 
-def params_configmap_name(deployment: str, module: str) -> str:
-    return naming.dns_label(deployment, module, "params")
+params_configmap_name = naming.parameters_configmap_name  # one rule, also for the name clash check
 
 
 def _params_configmap(dep: RosDeployment, module: RosModule, namespace: str, base_labels: dict) -> dict:

@@ -22,7 +22,7 @@ from . import naming, quantities
 from .catalog import catalog_problems_against_inventory
 from .errors import PlacementError, Problem, SpecError, did_you_mean
 from .inventory import Inventory, Node
-from .spec import RosDeployment, RosModule
+from .spec import RosDeployment, RosModule, name_clash_problems
 
 DISCOVERY_CPU_MILLIS = 100
 DISCOVERY_MEMORY_BYTES = 64 * 1024**2
@@ -654,6 +654,10 @@ def _check_against_inventory(deployments: list[RosDeployment], inventory: Invent
                 )
             )
         ports.setdefault(dep.fleet, (dep.discovery_port, dep.source))
+    if not problems:
+        # With the fleets' robots known, names that clash through a robot's name (module b of robot c-1 and module
+        # b-c of robot 1) are found too; loading a spec alone knows the robots of a robotSelector only.
+        problems += name_clash_problems(deployments, lambda dep: dep.robots or inventory.fleets.get(dep.fleet))
     return problems + catalog_problems_against_inventory(deployments, inventory)
 
 
