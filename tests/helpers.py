@@ -105,7 +105,9 @@ def built_kubeadm() -> str:
 
 
 # KUBEROS_TEST_PORT_SHIFT moves every test port by one number, so that a second cluster test session
-# (another checkout, a developer's second terminal) can run beside the first on its own ports.
+# (another checkout, a developer's second terminal) can run beside the first on its own ports. Pick a shift that
+# keeps clear of the other session's ports: kwok sits 10 below the controller-manager and the scheduler 2 above it,
+# so shifts of 2, 10 and 12 between two sessions collide (3, 37 or 100 do not).
 PORT_SHIFT = int(os.environ.get("KUBEROS_TEST_PORT_SHIFT", "0"))
 
 
