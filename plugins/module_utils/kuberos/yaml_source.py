@@ -136,6 +136,13 @@ _CLOSING = (yaml.FlowSequenceEndToken, yaml.FlowMappingEndToken, yaml.BlockEndTo
 _NODE_TOKENS = (yaml.ScalarToken, yaml.AliasToken, *_OPENING)  # keys counted too: a bound, not an exact count
 
 
+def _at_most(count: int, limit: int, what: str, token) -> None:
+    if count > limit:
+        raise _TooLarge(
+            f"more than {limit} {what}; expected at most {limit} in one file", "file too large", token.start_mark.line + 1
+        )
+
+
 def _check_tokens(text: str) -> None:
     """Refuse deep nesting and too many nodes from the token stream, before a composer builds any node: libyaml's
     composer recurses on the C stack (200,000 nested '[' crash the process), and composing a file of half a
@@ -149,20 +156,10 @@ def _check_tokens(text: str) -> None:
                 return
             if isinstance(token, _NODE_TOKENS):
                 nodes += 1
-                if nodes > MAX_FILE_NODES:
-                    raise _TooLarge(
-                        f"more than {MAX_FILE_NODES} YAML nodes; expected at most {MAX_FILE_NODES} in one file",
-                        "file too large",
-                        token.start_mark.line + 1,
-                    )
+                _at_most(nodes, MAX_FILE_NODES, "YAML nodes", token)
             elif isinstance(token, yaml.DocumentStartToken):
                 documents += 1
-                if documents > MAX_DOCUMENTS:
-                    raise _TooLarge(
-                        f"more than {MAX_DOCUMENTS} documents; expected at most {MAX_DOCUMENTS} in one file",
-                        "file too large",
-                        token.start_mark.line + 1,
-                    )
+                _at_most(documents, MAX_DOCUMENTS, "documents", token)
             if isinstance(token, _OPENING):
                 depth += 1
                 if depth > MAX_DEPTH:
