@@ -145,10 +145,10 @@ def record_placement(core) -> dict[str, str]:
     return where
 
 
-def count_faults(core) -> tuple[list[str], list[str]]:
-    """(lost, duplicated) instances of the record right now."""
-    placed = record_placement(core)
-    instances = by_instance(list_pods(core))
+def count_faults(core, placed: dict[str, str] | None = None, instances: dict | None = None) -> tuple[list[str], list[str]]:
+    """(lost, duplicated) instances of the record right now (or of the record and pods given)."""
+    placed = record_placement(core) if placed is None else placed
+    instances = by_instance(list_pods(core)) if instances is None else instances
     lost, duplicated = [], []
     for name, node in sorted(placed.items()):
         live = [p for p in instances.get(name, []) if not p["metadata"].get("deletionTimestamp")]
@@ -160,16 +160,14 @@ def count_faults(core) -> tuple[list[str], list[str]]:
 
 
 def converged(core, dead: str) -> bool:
+    """Nothing placed on or left on the dead node, and every instance once, Running and Ready, where placed."""
     placed = record_placement(core)
     if dead in placed.values():
         return False
-    instances = by_instance(list_pods(core))
-    for name, node in placed.items():
-        pods = instances.get(name, [])
-        live = [p for p in pods if not p["metadata"].get("deletionTimestamp")]
-        if any(pod_node(p) == dead for p in pods) or len(live) != 1 or not pod_ready(live[0]) or pod_node(live[0]) != node:
-            return False
-    return True
+    pods = list_pods(core)
+    if any(pod_node(p) == dead for p in pods):
+        return False
+    return count_faults(core, placed, by_instance(pods)) == ([], [])
 
 
 def trial(index: int, core, coordination, replicas: Replicas, node: str | None, args) -> dict:

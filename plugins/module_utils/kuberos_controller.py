@@ -238,7 +238,7 @@ class Controller:
         self.last_pass: list[dict] = []  # per record: deployment, moves, stranded, waiting, table
         self.elector = elector  # None: this replica acts alone (--once, --no-leader-elect)
         self.identity = identity or (elector.identity if elector else "")
-        self.leading = elector is None
+        self.leading = False  # as of the last pass loop; without an elector the first loop turns it on
         self.lead_passes = 0  # completed passes since this replica last became the leader
 
     # -- fencing --------------------------------------------------------------------------------
@@ -759,7 +759,6 @@ def main(argv=None) -> int:
             api_client, args.lease_namespace, args.lease_name, controller.identity, timings,
             on_change=lambda leading: controller.changed.set(), stand_down=lambda: controller.stand_down(args.node_name),
         )  # fmt: skip
-        controller.leading = False
     signal.signal(signal.SIGTERM, lambda *_: (controller.stop_event.set(), controller.changed.set()))
     signal.signal(signal.SIGINT, lambda *_: (controller.stop_event.set(), controller.changed.set()))
     controller.run()
