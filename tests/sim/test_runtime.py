@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import statistics
 import subprocess
 import sys
 import time
@@ -96,8 +95,9 @@ def wait_until(condition, timeout: float, what: str, runtime: Runtime) -> float:
 
 
 def ping_rtt_ms(runtime: Runtime, source: str, target: str, count: int = 20) -> float:
-    """The median round-trip time of ``count`` pings: the fabric's delay without the odd packet a busy machine held up
-    (the mean of the same pings once read 5.68 ms for a 5 ms link under load)."""
+    """The fastest round-trip time of ``count`` pings: the fabric's delay plus its least overhead. A busy machine only
+    ever adds time (the mean of the same pings once read 5.68 ms for a 5 ms link under load, the median 5.57 ms in a CI
+    run), and no packet can come back sooner than the delay the fabric holds it for."""
     done = run(
         "ip", "netns", "exec", runtime.hosts[source].netns,
         "ping", "-n", "-c", str(count), "-i", "0.05", "-W", "2", runtime.host_address(target),
@@ -105,7 +105,7 @@ def ping_rtt_ms(runtime: Runtime, source: str, target: str, count: int = 20) -> 
     )  # fmt: skip
     times = sorted(float(t) for t in re.findall(r"time=([\d.]+) ms", done.stdout))
     assert len(times) >= count // 2, done.stdout
-    return statistics.median(times)
+    return times[0]
 
 
 def received(process) -> list[int]:
@@ -250,8 +250,12 @@ def test_ping_rtt_matches_the_inventory(runtime, local_inventory, target):
     expected = rtt_ms(local_inventory, "fetch-1", target)
     measured = ping_rtt_ms(runtime, "fetch-1", target)
     print(f"fetch-1 -> {target}: RTT {measured:.3f} ms emulated, {expected:.1f} ms in the inventory")
-    tolerance = max(expected * RTT_TOLERANCE, 0.5)  # the LAN's 1 ms: half a millisecond of fabric overhead
-    assert abs(measured - expected) <= tolerance, f"fetch-1 -> {target}: {measured:.3f} ms measured, {expected} ms expected"
+    # Never sooner than the delay; later by the fabric's overhead (a Python loop on two busy cores: 0.25-0.6 ms seen
+    # on the fastest of 20 pings), at most 10 % or, for the LAN's 1 ms, 0.75 ms (a doubled LAN delay still fails).
+    overhead = max(expected * RTT_TOLERANCE, 0.75)
+    assert expected - 0.05 <= measured <= expected + overhead, (
+        f"fetch-1 -> {target}: {measured:.3f} ms measured, {expected} ms expected"
+    )
 
 
 def test_modules_see_their_node_params_and_the_sim_packages(runtime):
