@@ -69,8 +69,9 @@ attributes:
     support: full
 extends_documentation_fragment:
   - kuberos.platform.render
+  - kuberos.platform.attributes
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -124,26 +125,15 @@ files:
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
-    bridge_secret_name,
-    object_order,
-    render_deployment,
-    render_remote,
-)
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, catalog_configmap
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import (
-    RenderDirError,
-    apply_plan,
-    plan_render_dir,
-)
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement, placement_table
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import RenderDirError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
-from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS, render_options
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
+from ansible_collections.kuberos.platform.plugins.module_utils.render_pass import render_to_dir
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),
@@ -157,130 +147,22 @@ ARGUMENT_SPEC = dict(
 )
 
 
-def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[dict]:
-    """Certificates of every bridge, made once and kept in dest/tls; Secret manifests for both ends beside them."""
-    import base64
-    import os
-
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FLEET
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT, DEPLOYMENT, MANAGED_BY
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import dump_object
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
-
-    files = []
-    for fleet, bridges in sorted(placement.bridges.items()):
-        for bridge in bridges:
-            folder = os.path.join(dest, "tls", fleet, bridge.cluster)
-            first = next(i.deployment for i in placement.instances if i.cluster == bridge.cluster and i.fleet == fleet)
-            files.append({"cluster": "", "bridge": bridge.cluster, "path": os.path.join(folder, "secret-server.yaml")})
-            files.append(
-                {"cluster": bridge.cluster, "bridge": bridge.cluster, "path": os.path.join(folder, "secret-client.yaml")}
-            )
-            if check_mode:
-                continue
-            names = ("ca.crt", "server.crt", "server.key", "client.crt", "client.key")
-            if not all(os.path.exists(os.path.join(folder, n)) for n in names):
-                os.makedirs(folder, mode=0o700, exist_ok=True)
-                generate_certificates(folder, bridge.name)
-
-            def read(name, folder=folder):
-                with open(os.path.join(folder, name), "rb") as handle:
-                    return base64.b64encode(handle.read()).decode()
-
-            for side, secret_name, cert, key in (
-                ("server", bridge_secret_name(bridge.name), "server.crt", "server.key"),
-                ("client", bridge_secret_name(BRIDGE_CLIENT), "client.crt", "client.key"),
-            ):
-                secret = {
-                    "apiVersion": "v1",
-                    "kind": "Secret",
-                    "type": "kubernetes.io/tls",
-                    "metadata": {
-                        "name": secret_name,
-                        "namespace": bridge.namespace,
-                        "labels": {
-                            MANAGED_BY: "kuberos",
-                            COMPONENT: f"bridge-{side}",
-                            FLEET: bridge.fleet,
-                            DEPLOYMENT: first,
-                        },
-                    },
-                    "data": {"tls.crt": read(cert), "tls.key": read(key), "ca.crt": read("ca.crt")},
-                }
-                path = os.path.join(folder, f"secret-{side}.yaml")
-                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-                with os.fdopen(fd, "w", encoding="utf-8") as handle:
-                    handle.write(dump_object(secret))
-    return files
-
-
 def run(module: AnsibleModule) -> dict:
     params = module.params
     catalog = load_catalog(params["catalog"]) if params["catalog"] else None
     deployments = load_specs(params["src"], catalog=catalog)
     placement = Placement.from_dict(params["placement"])
-    options = render_options(params)
-    objects = render_deployment(deployments, placement, options)
-    remote = {}
-    if placement.bridges:
-        if params["inventory"] is None:
-            module.fail_json(msg="modules in third-party clusters need the inventory (the inventory option) to render")
-        remote = render_remote(deployments, placement, load_inventory(params["inventory"]).clusters, options)
-    if params["inventory"] is not None:
-        with open(params["src"], encoding="utf-8") as handle:
-            spec_text = handle.read()
-        used = (
-            catalog.subset((m.catalog_module, m.version) for d in deployments for m in d.modules if m.version)
-            if catalog
-            else None
-        )
-        records = build_records(
-            spec_text, params["src"], deployments, placement, params["inventory"], options, params["field_manager"],
-            params["revisions"], used,
-        )  # fmt: skip
-        if catalog is not None and not catalog.missing:
-            records += [catalog_configmap(ns, catalog) for ns in sorted({naming.fleet_namespace(d.fleet) for d in deployments})]
-        objects = sorted(objects + records, key=object_order)
-    table = placement_table(placement)
-    plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement), remote)
-    if plan.changed and not module.check_mode:
-        apply_plan(plan)
-    secret_files = bridge_secrets(plan.root, placement, module.check_mode) if placement.bridges else []
-    others = [o for o in objects if o["kind"] != "Namespace"]
-    result = {
-        "changed": plan.changed,
-        "objects": objects,
-        "namespaces": [o for o in objects if o["kind"] == "Namespace"],
-        "apply_objects": others,
-        "object_refs": [
-            {"apiVersion": o["apiVersion"], "kind": o["kind"], "metadata": {k: o["metadata"][k] for k in ("name", "namespace")}}
-            for o in others
-        ]
-        + [  # the bridge servers' TLS Secrets, applied from their files
-            {"apiVersion": "v1", "kind": "Secret", "metadata": {"name": bridge_secret_name(b.name), "namespace": b.namespace}}
-            for bridges in placement.bridges.values()
-            for b in bridges
-        ],
-        "remote": {
-            cluster: {
-                "namespaces": [o for o in cluster_objects if o["kind"] == "Namespace"],
-                "apply_objects": [o for o in cluster_objects if o["kind"] != "Namespace"],
-            }
-            for cluster, cluster_objects in remote.items()
-        },
-        "secret_files": secret_files,
-        "table": table,
-        "dest": plan.root,
-        "files": {"created": plan.created, "updated": plan.updated, "removed": plan.removed},
-    }
+    clusters = load_inventory(params["inventory"]).clusters if params["inventory"] is not None else None
+    rendered = render_to_dir(params, deployments, placement, catalog, module.check_mode, params["revisions"], clusters=clusters)
+    plan = rendered.pop("plan")
     if module._diff:
-        result["diff"] = plan.diff()
-    return result
+        rendered["diff"] = plan.diff()
+    return rendered
 
 
 def main():
     module = AnsibleModule(argument_spec=ARGUMENT_SPEC, supports_check_mode=True)
+    require_packages(module)
     try:
         module.exit_json(**run(module))
     except (KuberosError, RenderDirError) as exc:

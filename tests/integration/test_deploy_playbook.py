@@ -179,7 +179,7 @@ def test_bad_inventory_names_host_and_variable(tmp_path):
 
 
 @pytest.mark.parametrize("playbook", ["deploy.yml", "undeploy.yml", "rollout.yml"])
-def test_a_failing_spec_is_reported_once_by_the_validation_task(tmp_path, playbook):
+def test_a_failing_spec_is_reported_once_by_the_first_task_that_reads_it(tmp_path, playbook):
     spec = tmp_path / "app.yml"
     spec.write_text(
         "metadata: {name: Bad_Name, targetFleet: test-fleet}\nrosModules:\n- name: planner\n  image: x\n  launch: [run]\n"
@@ -199,6 +199,11 @@ def test_a_failing_spec_is_reported_once_by_the_validation_task(tmp_path, playbo
     ):
         assert output.count(problem) == 1, output
     failed = re.findall(r"^TASK \[(?:kuberos\.platform\.rosdeployment : )?([^\]]+)\]", output.split("fatal:")[0], re.M)
-    assert failed[-1] == "Validate the RosDeployment", output
+    first_task = {
+        "deploy.yml": "Validate, place, render, dry-run, apply, prune and wait",  # one module reads the spec first
+        "undeploy.yml": "Remove every object of the deployment",
+        "rollout.yml": "Validate the RosDeployment",
+    }
+    assert failed[-1] == first_task[playbook], output
     assert "caused by" not in output and "Traceback" not in output
     assert not (tmp_path / "render").exists()

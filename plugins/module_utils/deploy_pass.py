@@ -1,0 +1,524 @@
+"""One deploy pass, for the ``rosdeployment`` module: spec + inventory -> validate, read the cluster once, place,
+render, dry-run every object server-side, apply what changes (one server-side-apply PATCH per object, from a thread
+pool), prune, wait until every module runs where it was placed.
+
+The I/O around the pure core: the core (``kuberos/``) parses, places and renders; this file reads and writes the
+cluster through the Kubernetes Python client and writes the render directory. Every object is read once (one LIST per
+kind and namespace), dry-run once and, only when the dry run says the cluster would hold something else, applied once.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
+    api_clients,
+    node_allocations,
+    previous_placement,
+    running_modules,
+    stale_objects,
+    unavailable_nodes,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
+    change_summary,
+    clean_object,
+    object_diff,
+    object_key,
+    object_label,
+    record_changes,
+    summary_text,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, SpecError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+    COMPONENT,
+    DEPLOYMENT,
+    MANAGED_BY,
+    MODULE,
+    bridge_secret_name,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantities import parse_cpu, parse_memory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name, record_placement
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import RenderDirError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement, place_modules
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployments, name_clash_problems
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
+from ansible_collections.kuberos.platform.plugins.module_utils.render_pass import render_to_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.status_table import compare, status_table
+
+APPLY_TYPE = "application/apply-patch+yaml"
+REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid, forbidden by a policy, a conflict)
+# kind -> (api, list, server-side apply, delete) of the typed clients; every kind but Namespace is namespaced.
+KINDS = {
+    "Namespace": ("core", "list_namespace", "patch_namespace", "delete_namespace"),
+    "ConfigMap": ("core", "list_namespaced_config_map", "patch_namespaced_config_map", "delete_namespaced_config_map"),
+    "Service": ("core", "list_namespaced_service", "patch_namespaced_service", "delete_namespaced_service"),
+    "Secret": ("core", "list_namespaced_secret", "patch_namespaced_secret", "delete_namespaced_secret"),
+    "Deployment": ("apps", "list_namespaced_deployment", "patch_namespaced_deployment", "delete_namespaced_deployment"),
+}
+API_VERSIONS = {"Deployment": "apps/v1"}
+CLUSTER_HINT = 'in the inventory (docs/inventory.md, "Third-party clusters")'
+
+
+def refusal(exc) -> str:
+    """What the API server said, in one line (its Status message when it sent one)."""
+    try:
+        return json.loads(exc.body).get("message") or f"{exc.status} {exc.reason}"
+    except (TypeError, ValueError, AttributeError):
+        return f"{exc.status} {exc.reason}"
+
+
+class Api:
+    """Raw JSON lists, server-side applies and deletes of the kinds KubeROS renders, through the typed clients
+    (``_preload_content=False``: the answer is read as the server sent it, without building model objects)."""
+
+    def __init__(self, clients, field_manager: str, name: str = ""):
+        self.clients = clients
+        self.field_manager = field_manager
+        self.name = name  # '' for this cluster, else the third-party cluster's inventory name
+
+    def _method(self, kind: str, which: int):
+        if kind not in KINDS:
+            raise KuberosError(f"KubeROS does not apply a {kind}")
+        api, *methods = KINDS[kind]
+        return getattr(self.clients[api], methods[which])
+
+    def list(self, kind: str, namespace: str = "") -> list[dict]:
+        """Every object of ``kind`` (in ``namespace``), with apiVersion and kind set; [] when the namespace is gone."""
+        from kubernetes.client.exceptions import ApiException
+
+        args = (namespace,) if kind != "Namespace" else ()
+        try:
+            response = self._method(kind, 0)(*args, _preload_content=False)
+        except ApiException as exc:
+            if exc.status == 404:
+                return []
+            raise
+        head = {"kind": kind, "apiVersion": API_VERSIONS.get(kind, "v1")}  # first, as the server writes single objects
+        return [{**head, **item} for item in json.loads(response.data).get("items") or []]
+
+    def apply(self, obj: dict, dry_run: bool) -> dict:
+        meta = obj["metadata"]
+        where = (meta["name"],) if obj["kind"] == "Namespace" else (meta["name"], meta["namespace"])
+        extra = {"dry_run": "All"} if dry_run else {}
+        response = self._method(obj["kind"], 1)(
+            *where, obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE, _preload_content=False, **extra
+        )
+        return json.loads(response.data)
+
+    def delete(self, obj: dict) -> None:
+        from kubernetes.client.exceptions import ApiException
+
+        meta = obj["metadata"]
+        where = (meta["name"],) if obj["kind"] == "Namespace" else (meta["name"], meta["namespace"])
+        try:
+            self._method(obj["kind"], 2)(*where, propagation_policy="Background")
+        except ApiException as exc:
+            if exc.status != 404:
+                raise
+
+
+def remote_clients(name: str, connection: dict | None):
+    """Typed clients for a third-party cluster, reached through its API server with a bearer token and its CA."""
+    from kubernetes import client
+
+    connection = connection or {}
+    if not connection.get("api_server") or not connection.get("token"):
+        raise KuberosError(
+            f"Cluster {name} needs kuberos_api_server, kuberos_token (in ansible-vault) and kuberos_ca_cert {CLUSTER_HINT}."
+        )
+    configuration = client.Configuration()
+    configuration.host = connection["api_server"]
+    configuration.api_key = {"authorization": connection["token"]}
+    configuration.api_key_prefix = {"authorization": "Bearer"}
+    configuration.verify_ssl = True
+    if connection.get("ca_cert"):
+        configuration.ssl_ca_cert = connection["ca_cert"]
+    api = client.ApiClient(configuration)
+    return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api)}
+
+
+@dataclass
+class Target:
+    """One cluster's share of a deploy: its namespaces and other objects, what is live there, what the dry run said."""
+
+    api: Api
+    namespaces: list[dict]
+    objects: list[dict]
+    live: dict = field(default_factory=dict)  # object_key -> live object
+    existing: set = field(default_factory=set)  # namespace names that exist
+    created: list = field(default_factory=list)  # namespaces this pass created
+    after: dict = field(default_factory=dict)  # object_key -> what the cluster would hold (dry run), or as rendered
+
+    @property
+    def label(self) -> str:
+        return f" (cluster {self.api.name})" if self.api.name else ""
+
+    def read(self, pool: ThreadPoolExecutor) -> None:
+        """Every object of the kinds KubeROS applies in the target's namespaces, one LIST per kind and namespace."""
+        found = self.api.list("Namespace")
+        self.existing = {n["metadata"]["name"] for n in found}
+        self.live.update((object_key(n), n) for n in found if n["metadata"]["name"] in self.wanted_namespaces)
+        jobs = [(kind, ns) for ns in sorted(self.wanted_namespaces & self.existing) for kind in KINDS if kind != "Namespace"]
+        for items in pool.map(lambda job: self.api.list(*job), jobs):
+            self.live.update((object_key(o), o) for o in items)
+
+    @property
+    def wanted_namespaces(self) -> set:
+        return {n["metadata"]["name"] for n in self.namespaces} | {
+            o["metadata"]["namespace"] for o in self.objects if o["metadata"].get("namespace")
+        }
+
+    def all_objects(self) -> list[dict]:
+        return self.namespaces + self.objects
+
+    def managed(self, namespace: str) -> list[dict]:
+        """The live objects KubeROS manages in ``namespace``, in the light form ``stale_objects`` reads."""
+        out = []
+        for (kind, ns, _name), obj in sorted(self.live.items()):
+            labels = obj["metadata"].get("labels") or {}
+            if ns == namespace and kind != "Namespace" and labels.get(MANAGED_BY) == "kuberos":
+                out.append(
+                    {
+                        "apiVersion": obj["apiVersion"],
+                        "kind": kind,
+                        "metadata": {"name": obj["metadata"]["name"], "namespace": ns, "labels": dict(labels)},
+                    }
+                )
+        return out
+
+
+class DeployPass:
+    """The ``rosdeployment`` module's work; ``params`` are its options, ``check_mode`` and ``diff_mode`` Ansible's."""
+
+    def __init__(self, params: dict, check_mode: bool, diff_mode: bool):
+        self.params = params
+        self.check_mode = check_mode
+        self.diff_mode = diff_mode
+        self.workers = max(1, int(params.get("workers") or 8))
+        self.timings: dict[str, float] = {}
+        self._started = time.monotonic()
+
+    def _lap(self, step: str) -> None:
+        now = time.monotonic()
+        self.timings[step] = round(now - self._started, 3)
+        self._started = now
+
+    # --- reading ---------------------------------------------------------------------------------------------------
+
+    def load(self) -> None:
+        params = self.params
+        self.catalog = load_catalog(params["catalog"]) if params.get("catalog") else None
+        self.spec_text = read_text(params["src"], params["src"])  # read once: parsed here, kept in the record
+        self.deployments = load_rosdeployments(self.spec_text, params["src"], self.catalog)
+        self.inventory = load_inventory(params["inventory"])
+        self._lap("validate")
+
+    def read_cluster(self) -> None:
+        """What runs on each node, which nodes are unavailable, what this deployment runs now (sticky placement)."""
+        self.clients = api_clients(self.params["kubeconfig"])
+        names = [d.name for d in self.deployments]
+        fleets = [d.fleet for d in self.deployments]
+        allocated = node_allocations(self.clients, names, fleets)
+        for node, extra in (self.params.get("allocated") or {}).items():
+            entry = allocated.setdefault(node, {"cpu": "0m", "memory": 0, "gpu": 0, "pods": 0})
+            entry["cpu"] = f"{parse_cpu(str(entry['cpu'])) + parse_cpu(str(extra.get('cpu', '0')))}m"
+            entry["memory"] = parse_memory(str(entry["memory"])) + parse_memory(str(extra.get("memory", "0")))
+            entry["gpu"] = int(entry["gpu"]) + int(extra.get("gpu", 0))
+            entry["pods"] = int(entry["pods"]) + int(extra.get("pods", 0))
+        self.allocated = allocated
+        self.unavailable = unavailable_nodes(self.clients, list(self.inventory.nodes))
+        self.previous = previous_placement(self.clients, [{"name": d.name, "fleet": d.fleet} for d in self.deployments])
+        self._lap("read the cluster")
+
+    def place(self) -> None:
+        previous = self.previous if (self.previous.get("instances") or self.previous.get("discovery")) else None
+        self.placement = place_modules(
+            self.deployments,
+            self.inventory,
+            self.allocated,
+            self.unavailable,
+            Placement.from_dict(previous) if previous else None,
+        )
+        self._lap("place")
+
+    def render(self) -> None:
+        params = self.params
+        revisions = dict(self.previous.get("revisions") or {})
+        try:
+            self.rendered = render_to_dir(
+                params,
+                self.deployments,
+                self.placement,
+                self.catalog,
+                self.check_mode,
+                revisions=revisions,
+                spec_text=self.spec_text,
+                clusters=self.inventory.clusters,
+            )
+        except OSError as exc:
+            raise RenderDirError(f"cannot write the render directory {params['dest']}: {exc}") from exc
+        self._lap("render")
+
+    # --- the cluster -----------------------------------------------------------------------------------------------
+
+    def targets(self) -> list[Target]:
+        """This cluster's share first, then each third-party cluster's."""
+        rendered = self.rendered
+        local_secrets, remote_secrets = self._secret_objects()
+        out = [
+            Target(
+                Api(self.clients, self.params["field_manager"]),
+                rendered["namespaces"],
+                rendered["apply_objects"] + local_secrets,
+            )
+        ]
+        for cluster, share in sorted(rendered["remote"].items()):
+            connection = (self.params.get("clusters") or {}).get(cluster)
+            api = Api(remote_clients(cluster, connection), self.params["field_manager"], cluster)
+            out.append(Target(api, share["namespaces"], share["apply_objects"] + remote_secrets.get(cluster, [])))
+        return out
+
+    def _secret_objects(self) -> tuple[list[dict], dict[str, list[dict]]]:
+        """The bridges' TLS Secrets, read from the render directory where they are kept (not there yet in check mode)."""
+        import yaml
+
+        local, remote = [], {}
+        for entry in self.rendered["secret_files"]:
+            if not os.path.exists(entry["path"]):
+                continue
+            with open(entry["path"], encoding="utf-8") as handle:
+                secret = yaml.safe_load(handle)
+            (remote.setdefault(entry["cluster"], []) if entry["cluster"] else local).append(secret)
+        return local, remote
+
+    def _dry_run(self, target: Target, pool: ThreadPoolExecutor) -> dict[str, str]:
+        """Dry-run every object of ``target`` whose namespace exists; the others are new. Returns the refusals."""
+        from kubernetes.client.exceptions import ApiException
+
+        refused = {}
+
+        def one(obj):
+            namespace = obj["metadata"].get("namespace")
+            if namespace and namespace not in target.existing:
+                return obj, obj, None  # a new namespace in check mode: no dry run can be done there; the object is new
+            try:
+                return obj, target.api.apply(obj, dry_run=True), None
+            except ApiException as exc:
+                if exc.status not in REFUSALS:
+                    raise
+                return obj, None, refusal(exc)
+
+        for obj, after, why in pool.map(one, target.all_objects()):
+            if why is not None:
+                refused[object_label(obj) + target.label] = why
+            else:
+                target.after[object_key(obj)] = after
+        return refused
+
+    def _create_namespaces(self, target: Target) -> None:
+        for namespace in target.namespaces:
+            name = namespace["metadata"]["name"]
+            if name not in target.existing:
+                target.api.apply(namespace, dry_run=False)
+                target.created.append(name)
+                target.existing.add(name)
+
+    def _undo_namespaces(self, targets: list[Target]) -> None:
+        for target in targets:
+            for name in target.created:
+                target.api.delete({"kind": "Namespace", "metadata": {"name": name}})
+
+    def _needs_apply(self, target: Target, obj: dict) -> bool:
+        key = object_key(obj)
+        live = target.live.get(key)
+        if live is None or clean_object(live) != clean_object(target.after[key]):
+            return True
+        # The same content under another field manager: apply, so that KubeROS owns (and later prunes) its fields.
+        managers = live["metadata"].get("managedFields") or []
+        return not any(m.get("manager") == self.params["field_manager"] and m.get("operation") == "Apply" for m in managers)
+
+    def _stale(self, target: Target) -> list[dict]:
+        names = [d.name for d in self.deployments]
+        keep = target.all_objects()
+        stale = []
+        for fleet in sorted({d.fleet for d in self.deployments}):
+            namespace = naming.fleet_namespace(fleet)
+            stale.extend(stale_objects(target.managed(namespace), keep, names, remove_discovery=True))
+        return stale
+
+    def deploy(self) -> dict:
+        """The pass against the cluster(s), after ``render``. Raises ``KuberosError`` when the cluster refuses."""
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            targets = self.targets()
+            for target in targets:
+                target.read(pool)
+            self._lap("read the objects")
+            self._check_names(targets[0])
+            refused = {}
+            try:
+                for target in targets:
+                    if not self.check_mode:
+                        self._create_namespaces(target)
+                    refused.update(self._dry_run(target, pool))
+            except BaseException:
+                if not self.check_mode:
+                    self._undo_namespaces(targets)
+                raise
+            self._lap("dry run")
+            if refused and not self.check_mode:
+                self._undo_namespaces(targets)
+                raise KuberosError(
+                    "The cluster rejected the deployment in a server-side dry run; nothing was applied.\n"
+                    + "\n".join(f"{what}: {why}" for what, why in sorted(refused.items()))
+                )
+            stale = self._stale(targets[0])
+            summary, diffs, counts = self._summary(targets, stale, refused)
+            changes = [(t, o) for t in targets for o in t.all_objects() if object_key(o) in t.after and self._needs_apply(t, o)]
+            applied, removed = [], [f"{o['kind']}/{o['metadata']['namespace']}/{o['metadata']['name']}" for o in stale]
+            if not self.check_mode:
+                for target, obj in changes:  # namespaces first: they exist before the objects in them are applied
+                    if obj["kind"] == "Namespace":
+                        target.api.apply(obj, dry_run=False)
+                rest = [(t, o) for t, o in changes if o["kind"] != "Namespace"]
+                list(pool.map(lambda pair: pair[0].api.apply(pair[1], dry_run=False), rest))
+                applied = [object_label(o) + t.label for t, o in changes]
+                self._lap("apply")
+                list(pool.map(targets[0].api.delete, stale))
+                self._lap("prune")
+            else:
+                applied = [object_label(o) + t.label for t, o in changes]
+        created = [name + t.label for t in targets for name in t.created]
+        return {
+            "changed": bool(changes or created or stale or (self.check_mode and (counts["new"] or refused))),
+            "applied": applied,
+            "created_namespaces": created,
+            "removed": removed,
+            "refused": refused,
+            "summary": summary,
+            "objects": counts,
+            "diffs": diffs,
+        }
+
+    def _check_names(self, target: Target) -> None:
+        """Stop when a module would take the name of an object another deployment owns (a-b + c = a + b-c)."""
+        live = []
+        for (kind, namespace, name), obj in target.live.items():
+            if kind in ("Deployment", "ConfigMap"):
+                labels = obj["metadata"].get("labels") or {}
+                live.append(
+                    {
+                        "kind": kind,
+                        "namespace": namespace,
+                        "name": name,
+                        "deployment": labels.get(DEPLOYMENT, ""),
+                        "module": labels.get(MODULE, ""),
+                    }
+                )
+        fleets = self.inventory.fleets
+        problems = name_clash_problems(self.deployments, lambda dep: dep.robots or fleets.get(dep.fleet), live)
+        if problems:
+            raise SpecError(problems, title=f"{self.params['src']} would take the names of objects in the cluster")
+
+    def _summary(self, targets: list[Target], stale: list[dict], refused: dict) -> tuple[str, list[dict], dict]:
+        """What changes, module by module of each robot and object by object (live against dry run)."""
+        local = targets[0]
+        pairs = {}
+        for target in targets:
+            for obj in target.all_objects():
+                key = object_key(obj)
+                if key in target.after:
+                    pairs[key if not target.api.name else (*key[:2], f"{key[2]}@{target.api.name}")] = (
+                        target.live.get(key),
+                        target.after[key],
+                    )
+        removed = [local.live[object_key(o)] for o in stale if object_key(o) in local.live]
+        counts = {"changed": 0, "new": 0, "removed": 0, "unchanged": 0}
+        diffs = []
+        for before, after in [*pairs.values(), *((o, None) for o in removed)]:
+            entry = object_diff(before, after)
+            if entry is None:
+                counts["unchanged"] += 1
+                continue
+            counts["new" if before is None else "removed" if after is None else "changed"] += 1
+            diffs.append(entry)
+        previous = {}
+        for dep in self.deployments:
+            record = local.live.get(("ConfigMap", naming.fleet_namespace(dep.fleet), record_name(dep.name)))
+            previous[dep.name] = record_placement(record) if record is not None else None
+        rows = change_summary(previous, self.placement, pairs)
+        text = summary_text(rows, record_changes(pairs), counts, self.check_mode, refused=refused)
+        return text, diffs, counts
+
+    def wait(self) -> dict:
+        """Until every module runs on its placed node (or ``wait_timeout``): the table read back from the cluster."""
+        placement = self.placement.to_dict()
+        fleets = [d["fleet"] for d in placement["deployments"]]
+        names = [d["name"] for d in placement["deployments"]]
+        deadline = time.monotonic() + int(self.params.get("wait_timeout") or 0)
+        while True:
+            rows = compare(placement, running_modules(self.clients, fleets, names))
+            ready = all(r["ready"] for r in rows)
+            if ready or time.monotonic() >= deadline:
+                break
+            time.sleep(0.5)
+        self._lap("wait")
+        return {"rows": rows, "ready": ready, "table": status_table(rows)}
+
+    # --- undeploy ----------------------------------------------------------------------------------------------------
+
+    def undeploy(self) -> dict:
+        """Every object of the deployments, here and in third-party clusters; a fleet's shared objects (discovery
+        servers, bridge server, catalog) go with its last deployment."""
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import render_remote
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
+        from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
+
+        self.clients = api_clients(self.params["kubeconfig"])
+        self.placement = place_modules(self.deployments, self.inventory)  # names the fleets and bridges
+        names = [d.name for d in self.deployments]
+        local = Api(self.clients, self.params["field_manager"])
+        removed = []
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            if self.placement.bridges:
+                remote = render_remote(self.deployments, self.placement, self.inventory.clusters, render_options(self.params))
+                for cluster, objects in sorted(remote.items()):
+                    api = Api(remote_clients(cluster, (self.params.get("clusters") or {}).get(cluster)), "", cluster)
+                    gone = [o for o in reversed(objects) if o["kind"] != "Namespace"]
+                    gone += [
+                        {"kind": "Secret", "metadata": {"name": bridge_secret_name(BRIDGE_CLIENT), "namespace": b.namespace}}
+                        for bridges in self.placement.bridges.values()
+                        for b in bridges
+                        if b.cluster == cluster
+                    ]
+                    live = {object_key(o) for ns in {o["metadata"]["namespace"] for o in gone} for k in KINDS if k != "Namespace"
+                            for o in api.list(k, ns)}  # fmt: skip
+                    gone = [o for o in gone if object_key(o) in live]
+                    removed += [f"{object_label(o)} (cluster {cluster})" for o in gone]
+                    if not self.check_mode:
+                        list(pool.map(api.delete, gone))
+            for fleet in sorted({d.fleet for d in self.deployments}):
+                namespace = naming.fleet_namespace(fleet)
+                target = Target(local, [], [])
+                for kind in KINDS:
+                    if kind != "Namespace":
+                        target.live.update((object_key(o), o) for o in local.list(kind, namespace))
+                live = target.managed(namespace)
+                others = [
+                    o
+                    for o in live
+                    if o["metadata"]["labels"].get(COMPONENT) == "ros-module"
+                    and o["metadata"]["labels"].get(DEPLOYMENT) not in names
+                ]
+                stale = stale_objects(live, [], names, remove_discovery=not others)
+                removed += [f"{o['kind']}/{namespace}/{o['metadata']['name']}" for o in stale]
+                if not self.check_mode:
+                    list(pool.map(local.delete, stale))
+        self._lap("remove")
+        return {"changed": bool(removed), "removed": removed}

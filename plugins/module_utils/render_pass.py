@@ -1,0 +1,143 @@
+"""Rendering a placed RosDeployment into its render directory (manifests, placement, picture, the bridges' TLS
+Secrets), shared by the ``rosdeployment_render`` and ``rosdeployment`` modules. The objects come from the pure core
+(``kuberos/manifests.py``, ``kuberos/record.py``); this file writes the files."""
+
+from __future__ import annotations
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+    bridge_secret_name,
+    object_order,
+    render_deployment,
+    render_remote,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, catalog_configmap
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import apply_plan, plan_render_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement, placement_table
+from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
+
+
+def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[dict]:
+    """Certificates of every bridge, made once and kept in dest/tls; Secret manifests for both ends beside them."""
+    import base64
+    import os
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FLEET
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT, DEPLOYMENT, MANAGED_BY
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import dump_object
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
+
+    files = []
+    for fleet, bridges in sorted(placement.bridges.items()):
+        for bridge in bridges:
+            folder = os.path.join(dest, "tls", fleet, bridge.cluster)
+            first = next(i.deployment for i in placement.instances if i.cluster == bridge.cluster and i.fleet == fleet)
+            files.append({"cluster": "", "bridge": bridge.cluster, "path": os.path.join(folder, "secret-server.yaml")})
+            files.append(
+                {"cluster": bridge.cluster, "bridge": bridge.cluster, "path": os.path.join(folder, "secret-client.yaml")}
+            )
+            if check_mode:
+                continue
+            names = ("ca.crt", "server.crt", "server.key", "client.crt", "client.key")
+            if not all(os.path.exists(os.path.join(folder, n)) for n in names):
+                os.makedirs(folder, mode=0o700, exist_ok=True)
+                generate_certificates(folder, bridge.name)
+
+            def read(name, folder=folder):
+                with open(os.path.join(folder, name), "rb") as handle:
+                    return base64.b64encode(handle.read()).decode()
+
+            for side, secret_name, cert, key in (
+                ("server", bridge_secret_name(bridge.name), "server.crt", "server.key"),
+                ("client", bridge_secret_name(BRIDGE_CLIENT), "client.crt", "client.key"),
+            ):
+                secret = {
+                    "apiVersion": "v1",
+                    "kind": "Secret",
+                    "type": "kubernetes.io/tls",
+                    "metadata": {
+                        "name": secret_name,
+                        "namespace": bridge.namespace,
+                        "labels": {
+                            MANAGED_BY: "kuberos",
+                            COMPONENT: f"bridge-{side}",
+                            FLEET: bridge.fleet,
+                            DEPLOYMENT: first,
+                        },
+                    },
+                    "data": {"tls.crt": read(cert), "tls.key": read(key), "ca.crt": read("ca.crt")},
+                }
+                path = os.path.join(folder, f"secret-{side}.yaml")
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                with os.fdopen(fd, "w", encoding="utf-8") as handle:
+                    handle.write(dump_object(secret))
+    return files
+
+
+def render_to_dir(
+    params: dict, deployments, placement: Placement, catalog, check_mode: bool, revisions=None, spec_text=None, clusters=None
+) -> dict:
+    """Render ``deployments`` as ``placement`` places them into ``params["dest"]`` (written unless ``check_mode``).
+
+    ``params`` holds the render options (``render_args.RENDER_ARGS``), ``src``, ``dest``, ``inventory`` (raw, for the
+    records; None renders no record) and ``field_manager``. ``spec_text`` is the spec file's text when the caller has
+    read it already; ``clusters`` the inventory's third-party clusters (``Inventory.clusters``)."""
+    options = render_options(params)
+    objects = render_deployment(deployments, placement, options)
+    remote = {}
+    if placement.bridges:
+        if clusters is None:
+            raise KuberosError("modules in third-party clusters need the inventory (the inventory option) to render")
+        remote = render_remote(deployments, placement, clusters, options)
+    if params["inventory"] is not None:
+        if spec_text is None:
+            with open(params["src"], encoding="utf-8") as handle:
+                spec_text = handle.read()
+        used = (
+            catalog.subset((m.catalog_module, m.version) for d in deployments for m in d.modules if m.version)
+            if catalog
+            else None
+        )
+        records = build_records(
+            spec_text, params["src"], deployments, placement, params["inventory"], options, params["field_manager"],
+            revisions or {}, used,
+        )  # fmt: skip
+        if catalog is not None and not catalog.missing:
+            records += [catalog_configmap(ns, catalog) for ns in sorted({naming.fleet_namespace(d.fleet) for d in deployments})]
+        objects = sorted(objects + records, key=object_order)
+    table = placement_table(placement)
+    plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement), remote)
+    if plan.changed and not check_mode:
+        apply_plan(plan)
+    secret_files = bridge_secrets(plan.root, placement, check_mode) if placement.bridges else []
+    others = [o for o in objects if o["kind"] != "Namespace"]
+    return {
+        "changed": plan.changed,
+        "plan": plan,
+        "objects": objects,
+        "namespaces": [o for o in objects if o["kind"] == "Namespace"],
+        "apply_objects": others,
+        "object_refs": [
+            {"apiVersion": o["apiVersion"], "kind": o["kind"], "metadata": {k: o["metadata"][k] for k in ("name", "namespace")}}
+            for o in others
+        ]
+        + [  # the bridge servers' TLS Secrets, applied from their files
+            {"apiVersion": "v1", "kind": "Secret", "metadata": {"name": bridge_secret_name(b.name), "namespace": b.namespace}}
+            for bridges in placement.bridges.values()
+            for b in bridges
+        ],
+        "remote": {
+            cluster: {
+                "namespaces": [o for o in cluster_objects if o["kind"] == "Namespace"],
+                "apply_objects": [o for o in cluster_objects if o["kind"] != "Namespace"],
+            }
+            for cluster, cluster_objects in remote.items()
+        },
+        "secret_files": secret_files,
+        "table": table,
+        "dest": plan.root,
+        "files": {"created": plan.created, "updated": plan.updated, "removed": plan.removed},
+    }

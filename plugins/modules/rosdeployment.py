@@ -1,0 +1,273 @@
+#!/usr/bin/python
+# Copyright: KubeROS contributors
+# GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
+"""Deploy (or remove) a RosDeployment in one pass."""
+
+from __future__ import annotations
+
+DOCUMENTATION = r"""
+module: rosdeployment
+short_description: Deploy a RosDeployment in one pass, or remove it
+version_added: 0.3.0
+description:
+  - With O(state=present), in one pass - reads and validates the spec file once; reads the cluster once (what runs on
+    each node, which nodes are not Ready, what this deployment runs now, every object in the fleets' namespaces);
+    places every module of every robot (sticky - what still fits where it runs stays there); renders the manifests
+    into O(dest); creates the fleets' namespaces that are new; dry-runs every object server-side (C(dryRun=All),
+    field manager O(field_manager), conflicts forced); and only when the cluster took every object, applies the
+    objects whose dry run differs from the live object, one server-side-apply PATCH per object from O(workers)
+    threads; removes the deployment's objects that are no longer rendered; waits until every module runs, Ready, on
+    the node it was placed on.
+  - If the cluster refuses any object in the dry run, the namespaces this pass created are removed, nothing is
+    applied, and the task fails with what the cluster said about each refused object.
+  - Modules placed in third-party clusters are dry-run and applied there through O(clusters), after the dry run of
+    this cluster's objects and before any object is written anywhere.
+  - With O(state=absent), removes every object of the spec's deployments, here and in third-party clusters; a
+    fleet's discovery servers, bridge server and catalog go with its last deployment.
+  - With O(apply=false), renders only (no cluster is read).
+  - The same pieces are public for users who compose their own plays - the
+    P(kuberos.platform.place_modules#filter) filter and the P(kuberos.platform.rosdeployment_render#module),
+    P(kuberos.platform.rosdeployment_diff#module), P(kuberos.platform.rosdeployment_prune#module) and
+    P(kuberos.platform.rosdeployment_info#module) modules.
+options:
+  src:
+    description: Path of the RosDeployment file (one or more YAML documents).
+    type: path
+    required: true
+  inventory:
+    description: The fleet inventory, as returned by the P(kuberos.platform.fleet_inventory#filter) filter.
+    type: dict
+    required: true
+  dest:
+    description: Directory the manifests, C(placement.json), C(placement.txt) and C(placement.svg) are rendered into.
+    type: path
+    required: true
+  state:
+    description: C(present) deploys, C(absent) removes the spec's deployments.
+    type: str
+    choices: [present, absent]
+    default: present
+  apply:
+    description: Apply to the cluster; C(false) renders only.
+    type: bool
+    default: true
+  catalog:
+    description: The software catalog that C(module) references of the spec resolve against (a directory, or one file).
+    type: path
+  field_manager:
+    description: Field manager of the server-side applies.
+    type: str
+    default: kuberos
+  allocated:
+    description: "Resources used per node by workloads the cluster does not show, as C({node: {cpu, memory, gpu, pods}})."
+    type: dict
+    default: {}
+  workers:
+    description: Requests sent side by side (dry runs, applies, deletes, reads).
+    type: int
+    default: 8
+  wait_timeout:
+    description: Seconds to wait for every module to be Running and Ready on its placed node; 0 does not wait.
+    type: int
+    default: 180
+  clusters:
+    description:
+      - How to reach each third-party cluster, by its inventory name - C(api_server), C(token) (keep it in
+        ansible-vault) and C(ca_cert) (a path). Needed only for the clusters the placement uses.
+    type: dict
+    default: {}
+  kubeconfig:
+    description: Kubeconfig of the cluster; required unless O(apply=false).
+    type: path
+extends_documentation_fragment:
+  - kuberos.platform.render
+attributes:
+  check_mode:
+    support: full
+    details: Reads the cluster and dry-runs every object; writes nothing, neither to the cluster nor to O(dest).
+  diff_mode:
+    support: full
+    details:
+      - A summary of which modules of which robots move, start, stop or change, then one diff per object, live against
+        the server-side dry run. With O(apply=false), the render directory's diff.
+author:
+  - KubeROS contributors
+"""
+
+EXAMPLES = r"""
+- name: Deploy the pick-and-place application
+  kuberos.platform.rosdeployment:
+    src: examples/pick-and-place.yml
+    inventory: "{{ groups | kuberos.platform.fleet_inventory(hostvars) }}"
+    dest: rendered/pick-and-place
+    kubeconfig: ~/.cache/kuberos/cluster/kubeconfig
+  register: deployed
+
+- name: Show where every module of every robot runs
+  ansible.builtin.debug:
+    msg: "{{ deployed.table }}"
+
+- name: Remove it
+  kuberos.platform.rosdeployment:
+    src: examples/pick-and-place.yml
+    inventory: "{{ groups | kuberos.platform.fleet_inventory(hostvars) }}"
+    dest: rendered/pick-and-place
+    kubeconfig: ~/.cache/kuberos/cluster/kubeconfig
+    state: absent
+"""
+
+RETURN = r"""
+table:
+  description: Where every module of every robot runs, read back from the cluster (the placement when not applied).
+  returned: when state is present
+  type: str
+summary:
+  description: Which modules of which robots move, start, stop or change, the records, and the objects' counts.
+  returned: when applying
+  type: str
+placement:
+  description: The placement, as the P(kuberos.platform.place_modules#filter) filter returns it.
+  returned: when state is present
+  type: dict
+objects:
+  description: Counts of objects C(changed), C(new), C(removed) and C(unchanged) (live against the dry run).
+  returned: when applying
+  type: dict
+applied:
+  description: The objects applied (or that would be, in check mode), as C(Kind namespace/name).
+  returned: when applying
+  type: list
+  elements: str
+removed:
+  description: The objects deleted (or that would be, in check mode), as C(Kind/namespace/name).
+  returned: when applying or removing
+  type: list
+  elements: str
+rows:
+  description: One entry per robot and module with C(placed_node), C(node), C(phase) and C(ready).
+  returned: when applying, not in check mode
+  type: list
+  elements: dict
+ready:
+  description: Every module runs, Ready, on the node it was placed on.
+  returned: when applying, not in check mode
+  type: bool
+dest:
+  description: The render directory.
+  returned: when state is present
+  type: str
+files:
+  description: The files of the render directory C(created), C(updated) and C(removed).
+  returned: when state is present
+  type: dict
+timings:
+  description: Seconds each step took (validate, read the cluster, place, render, read the objects, dry run, apply, ...).
+  returned: always
+  type: dict
+"""
+
+import textwrap
+
+from ansible.module_utils.basic import AnsibleModule
+
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import explain
+from ansible_collections.kuberos.platform.plugins.module_utils.deploy_pass import DeployPass
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import RenderDirError
+from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
+
+ARGUMENT_SPEC = dict(
+    src=dict(type="path", required=True),
+    inventory=dict(type="dict", required=True),
+    dest=dict(type="path", required=True),
+    state=dict(type="str", choices=["present", "absent"], default="present"),
+    apply=dict(type="bool", default=True),
+    catalog=dict(type="path"),
+    field_manager=dict(type="str", default="kuberos"),
+    allocated=dict(type="dict", default={}),
+    workers=dict(type="int", default=8),
+    wait_timeout=dict(type="int", default=180),
+    clusters=dict(type="dict", default={}, no_log=True),
+    kubeconfig=dict(type="path"),
+    **RENDER_ARGS,
+)
+
+
+def run(module: AnsibleModule) -> dict:
+    work = DeployPass(module.params, module.check_mode, module._diff)
+    work.load()
+    if module.params["state"] == "absent":
+        result = work.undeploy()
+        if module._diff:
+            result["diff"] = {"before": "".join(f"{r}\n" for r in result["removed"]), "after": ""}
+        return {**result, "timings": work.timings}
+    if not module.params["apply"]:
+        work.previous = {}
+        work.allocated, work.unavailable = dict(module.params["allocated"]), {}
+        work.place()
+        work.render()
+        rendered = work.rendered
+        result = {"changed": rendered["changed"], "table": rendered["table"]}
+        if module._diff:
+            result["diff"] = rendered["plan"].diff()
+    else:
+        try:
+            work.read_cluster()
+        except KuberosError:
+            raise
+        except Exception:
+            # A cluster that cannot be read: a spec that cannot be placed even on empty nodes says so first.
+            work.previous, work.allocated, work.unavailable = {}, {}, {}
+            work.place()
+            raise
+        work.place()
+        work.render()
+        rendered = work.rendered
+        result = work.deploy()
+        diffs = result.pop("diffs")
+        if module._diff:
+            result["diff"] = [{"prepared": result["summary"] + "\n\n"}, *diffs]
+        result["changed"] = result["changed"] or rendered["changed"]
+        if module.check_mode:
+            result["table"] = rendered["table"]
+        else:
+            waited = work.wait() if module.params["wait_timeout"] else {"rows": [], "ready": True, "table": rendered["table"]}
+            result.update(waited)
+            if not waited["ready"]:
+                waiting = [
+                    f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" for r in waited["rows"] if not r["ready"]
+                ]
+                module.fail_json(
+                    msg=f"not every module is Ready on its placed node after {module.params['wait_timeout']} s: "
+                    + "; ".join(waiting[:10]),
+                    **{**result, "timings": work.timings},
+                )
+    return {
+        **result,
+        "placement": work.placement.to_dict(),
+        "dest": rendered["dest"],
+        "files": rendered["files"],
+        "timings": work.timings,
+    }
+
+
+def main():
+    module = AnsibleModule(
+        argument_spec=ARGUMENT_SPEC,
+        required_if=[("apply", True, ("kubeconfig",))],
+        supports_check_mode=True,
+    )
+    try:
+        module.exit_json(**run(module))
+    except KuberosError as exc:
+        # The headline as msg (Ansible repeats msg in its error line), the problems once, one line each, below it.
+        headline, _, rest = str(exc).partition("\n")
+        module.fail_json(msg=headline.rstrip(":"), **({"problems": textwrap.dedent(rest) + "\n"} if rest else {}))
+    except RenderDirError as exc:
+        module.fail_json(msg=str(exc))
+    except Exception as exc:  # connection and API problems: one clear line, no traceback
+        module.fail_json(msg=explain(exc, module.params["kubeconfig"] or "(no kubeconfig)"))
+
+
+if __name__ == "__main__":
+    main()
