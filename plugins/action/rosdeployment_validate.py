@@ -27,7 +27,7 @@ def validate(src: str, catalog_path: str | None, inventory: dict | None) -> dict
 
 def failure(exc: KuberosError) -> dict:
     """The headline as msg (Ansible repeats msg in its error line), the problems once, one line each, below it."""
-    headline, _, rest = str(exc).partition("\n")
+    headline, _sep, rest = str(exc).partition("\n")
     return {"failed": True, "changed": False, "msg": headline.rstrip(":"), "problems": textwrap.dedent(rest) + "\n"}
 
 

@@ -90,8 +90,8 @@ _value:
   elements: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.calico import calico_objects, settings_from
+from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 
 @reports_kuberos_errors

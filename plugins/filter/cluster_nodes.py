@@ -46,9 +46,9 @@ _value:
   elements: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import cluster_nodes as build_nodes
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 
 @reports_kuberos_errors

@@ -54,8 +54,8 @@ _value:
   elements: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controller_manifests import controller_objects
+from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 
 @reports_kuberos_errors

@@ -39,14 +39,14 @@ _value:
   type: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import (
     CLUSTERS_GROUP,
     HOST_VARS,
     TIER_GROUPS,
     load_inventory,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import plain
+from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
+from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import plain
 
 
 @reports_kuberos_errors

@@ -138,11 +138,11 @@ _value:
       type: str
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import kubeadm_config as core
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import host_address, plain
+from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
+from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import host_address, plain
 
 _SETTINGS = ("kubernetes_version", "pod_cidr", "service_cidr", "control_plane_endpoint", "cri_socket", "bind_port")
 

@@ -38,11 +38,11 @@ _value:
   type: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import real_node_names
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import real_nodes as plan
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import plain
+from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
+from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import plain
 
 
 @reports_kuberos_errors

@@ -65,10 +65,10 @@ _value:
 
 from ansible.errors import AnsibleFilterError
 
-from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import did_you_mean
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.plain_data import host_address
+from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
+from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import host_address
 
 
 def _node_name(raw: dict, host: str) -> str:

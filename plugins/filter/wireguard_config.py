@@ -78,8 +78,8 @@ _value:
   type: str
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.vpn import build_vpn, wg_quick_config
+from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 
 @reports_kuberos_errors

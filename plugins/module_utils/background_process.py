@@ -15,7 +15,7 @@ import time
 def run_checked(command, error: type[Exception], check: bool = True, timeout: float = 30) -> subprocess.CompletedProcess:
     """Run a short command; ``error`` with the command and its output when it cannot run or, if ``check``, fails."""
     try:
-        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout, check=False)
     except (OSError, subprocess.TimeoutExpired) as failure:
         raise error(f"{' '.join(command)}: {failure}") from failure
     if check and done.returncode != 0:

@@ -738,6 +738,8 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 
 def main(argv=None) -> int:
+    # A command line program's entry point (python -m ...), not code a module runs: it prints and exits.
+    # pylint: disable=ansible-bad-function
     args = parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
     settings = Settings(grace_s=args.grace, restart_threshold=args.restart_threshold, cooldown_s=args.cooldown)
@@ -766,4 +768,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main())  # pylint: disable=ansible-bad-function

@@ -13,12 +13,12 @@ import ipaddress
 import json
 import os
 import signal
-import ssl
 import subprocess
 import time
 import urllib.error
-import urllib.request
 from dataclasses import dataclass, field
+
+from ansible.module_utils.urls import open_url
 
 from ansible_collections.kuberos.platform.plugins.module_utils.background_process import alive
 
@@ -304,15 +304,14 @@ class LocalControlPlane:
         return True
 
     # -- health ------------------------------------------------------------------------------------
-    def _ssl_context(self) -> ssl.SSLContext:
-        context = ssl.create_default_context(cafile=self.path("pki", "ca.crt"))
-        context.load_cert_chain(self.path("pki", "admin.crt"), self.path("pki", "admin.key"))
-        return context
-
     def get(self, path: str, timeout: float = 5.0) -> tuple[int, bytes]:
-        request = urllib.request.Request(self.server + path)
+        tls = {
+            "ca_path": self.path("pki", "ca.crt"),
+            "client_cert": self.path("pki", "admin.crt"),
+            "client_key": self.path("pki", "admin.key"),
+        }
         try:
-            with urllib.request.urlopen(request, timeout=timeout, context=self._ssl_context()) as response:
+            with open_url(self.server + path, timeout=timeout, **tls) as response:
                 return response.status, response.read()
         except urllib.error.HTTPError as exc:
             return exc.code, exc.read()
@@ -321,7 +320,7 @@ class LocalControlPlane:
 
     def etcd_healthy(self) -> bool:
         try:
-            with urllib.request.urlopen(f"http://127.0.0.1:{self.ports.etcd_client}/health", timeout=3) as response:
+            with open_url(f"http://127.0.0.1:{self.ports.etcd_client}/health", timeout=3) as response:
                 return b'"health":"true"' in response.read()
         except (urllib.error.URLError, OSError):
             return False

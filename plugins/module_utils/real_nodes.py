@@ -34,13 +34,13 @@ import json
 import os
 import shutil
 import signal
-import ssl
 import subprocess
 import sys
 import time
 import urllib.error
-import urllib.request
 from dataclasses import dataclass, field
+
+from ansible.module_utils.urls import open_url
 
 from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
 from ansible_collections.kuberos.platform.plugins.module_utils import delay_fabric
@@ -369,15 +369,15 @@ class RealNodes:
         """One request to the API server as the administrator (server-side apply for PATCH)."""
         if method == "PATCH":
             path += "?fieldManager=kuberos-local-cluster&force=true"
-        request = urllib.request.Request(
-            self.plane.server + path, method=method, data=json.dumps(body).encode() if body else None
-        )
-        if body is not None:
-            request.add_header("Content-Type", "application/apply-patch+yaml")
-        context = ssl.create_default_context(cafile=self.plane.path("pki", "ca.crt"))
-        context.load_cert_chain(self.plane.path("pki", "admin.crt"), self.plane.path("pki", "admin.key"))
+        data = json.dumps(body).encode() if body else None
+        headers = {"Content-Type": "application/apply-patch+yaml"} if body is not None else None
+        tls = {
+            "ca_path": self.plane.path("pki", "ca.crt"),
+            "client_cert": self.plane.path("pki", "admin.crt"),
+            "client_key": self.plane.path("pki", "admin.key"),
+        }
         try:
-            with urllib.request.urlopen(request, timeout=10, context=context) as response:
+            with open_url(self.plane.server + path, method=method, data=data, headers=headers, timeout=10, **tls) as response:
                 return json.loads(response.read() or b"{}")
         except urllib.error.HTTPError as error:
             if error.code == 404 and method == "GET":
@@ -719,7 +719,7 @@ class RealNodes:
     def _kill_leftovers(self, net: NodeNet) -> bool:
         killed = False
         socket = self.socket(net.name)
-        for _ in range(50):
+        for _attempt in range(50):
             pids = self._cgroup_pids(net)
             pids |= {
                 pid for pid in _all_pids() if "containerd-shim" in " ".join(bg.cmdline(pid)[:1]) and socket in bg.cmdline(pid)

@@ -60,7 +60,7 @@ def ros_problem(prefix: str = sys.prefix) -> str | None:
         python = os.path.join(prefix, "bin", "python3")
         for command in ([python if os.access(python, os.X_OK) else sys.executable, "-c", check], [program, "-h"]):
             try:
-                done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=60)
+                done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=60, check=False)
             except (OSError, subprocess.TimeoutExpired) as error:
                 return f"{command[0]}: {error}"
             if done.returncode != 0:

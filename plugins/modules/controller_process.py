@@ -20,6 +20,7 @@ description:
   - For a controller inside the cluster use the C(kuberos.platform.controller) role with C(controller_mode=in_cluster).
 extends_documentation_fragment:
   - kuberos.platform.cluster
+  - kuberos.platform.attributes
 options:
   state:
     description: C(started) or C(stopped).
@@ -87,7 +88,7 @@ attributes:
   diff_mode:
     support: none
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -134,6 +135,7 @@ from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils import background_process
 from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 
 ENTRY = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller"
 STARTED_LINE = "controller started"
@@ -256,6 +258,7 @@ def _since(path: str, offset: int) -> str:
 
 def main():
     module = AnsibleModule(argument_spec=ARGUMENT_SPEC, supports_check_mode=True)
+    require_packages(module)
     module.exit_json(**run(module))
 
 

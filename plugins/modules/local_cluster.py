@@ -76,8 +76,10 @@ attributes:
     support: full
   diff_mode:
     support: none
+extends_documentation_fragment:
+  - kuberos.platform.attributes
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""

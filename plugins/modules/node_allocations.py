@@ -56,10 +56,14 @@ options:
 attributes:
   check_mode:
     support: full
+  diff_mode:
+    support: N/A
+    details: Changes nothing.
 extends_documentation_fragment:
   - kuberos.platform.cluster
+  - kuberos.platform.attributes
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -109,6 +113,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import DEPLOYMENT, MODULE
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file, name_clash_problems
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 
 # The kinds of object a module's names are given to (naming.module_object_names), and how to list them.
 NAMED_KINDS = (("Deployment", "apps", "list_namespaced_deployment"), ("ConfigMap", "core", "list_namespaced_config_map"))
@@ -168,6 +173,7 @@ def main():
         ),
         supports_check_mode=True,
     )
+    require_packages(module)
     try:
         clients = api_clients(module.params["kubeconfig"])
         allocated = node_allocations(clients, module.params["exclude_deployments"], module.params["exclude_discovery_of_fleets"])

@@ -102,8 +102,10 @@ attributes:
 notes:
   - Errors (unreachable robot, refused key, changed host key, unexpected fingerprint) are one sentence each, and
     leave the inventory and the pins as they were.
+extends_documentation_fragment:
+  - kuberos.platform.attributes
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -169,6 +171,7 @@ written:
 from ansible.module_utils.basic import AnsibleModule, missing_required_lib
 
 from ansible_collections.kuberos.platform.plugins.module_utils import robot_registration
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.robot_registration import (
     DEFAULT_DEVICE_GLOBS,
     Registration,
@@ -222,6 +225,7 @@ def registration(params: dict) -> Registration:
 
 def main():
     module = AnsibleModule(argument_spec=ARGUMENT_SPEC, supports_check_mode=True)
+    require_packages(module, ["PyYAML"])
     if robot_registration.paramiko is None:
         module.fail_json(msg=missing_required_lib("paramiko"))
     try:

@@ -53,8 +53,9 @@ options:
     default: kuberos
 extends_documentation_fragment:
   - kuberos.platform.cluster
+  - kuberos.platform.attributes
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -127,6 +128,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name, record_placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 
 APPLY_TYPE = "application/apply-patch+yaml"
 REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid, forbidden by a policy, a conflict)
@@ -281,6 +283,7 @@ def main():
         ),
         supports_check_mode=True,
     )
+    require_packages(module)
     try:
         module.exit_json(**run(module))
     except KuberosError as exc:

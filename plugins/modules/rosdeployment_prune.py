@@ -38,8 +38,9 @@ attributes:
     support: full
 extends_documentation_fragment:
   - kuberos.platform.cluster
+  - kuberos.platform.attributes
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -71,6 +72,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 
 
 def main():
@@ -83,6 +85,7 @@ def main():
         ),
         supports_check_mode=True,
     )
+    require_packages(module)
     params = module.params
     removed = []
     try:

@@ -20,6 +20,7 @@ description:
   - In check mode nothing is written; the result says what would move.
 extends_documentation_fragment:
   - kuberos.platform.cluster
+  - kuberos.platform.attributes
 options:
   grace:
     description: Seconds a node must have been NotReady before its modules move.
@@ -35,7 +36,7 @@ attributes:
   diff_mode:
     support: none
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -57,6 +58,7 @@ deployments:
 from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, ClusterUnreachable, explain
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 
 ARGUMENT_SPEC = dict(
     **KUBECONFIG_ARG,
@@ -67,6 +69,7 @@ ARGUMENT_SPEC = dict(
 
 def main():
     module = AnsibleModule(argument_spec=ARGUMENT_SPEC, supports_check_mode=True)
+    require_packages(module)
     params = module.params
     try:
         import os

@@ -81,8 +81,9 @@ attributes:
 extends_documentation_fragment:
   - kuberos.platform.cluster
   - kuberos.platform.render
+  - kuberos.platform.attributes
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -129,7 +130,7 @@ downtime_s:
   returned: when not in check mode
   type: dict
 max_module_downtime_s:
-  description: The longest of O(downtime_s).
+  description: The longest of RV(downtime_s).
   returned: when not in check mode
   type: float
 summary:
@@ -146,6 +147,7 @@ from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, api_clients, explain
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
 from ansible_collections.kuberos.platform.plugins.module_utils.rollout_runner import RolloutBusy, execute
 
@@ -204,6 +206,7 @@ def main():
         required_by={"revision": ("deployment", "fleet")},
         supports_check_mode=True,
     )
+    require_packages(module)
     if module.params["canary"] < 0 or module.params["wave_size"] < 1:
         module.fail_json(msg="canary must be 0 or more and wave_size 1 or more")
     progress = []

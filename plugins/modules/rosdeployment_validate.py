@@ -36,8 +36,11 @@ options:
   inventory:
     description: The fleet resource model (P(kuberos.platform.fleet_inventory#filter)). Without it, only the file is checked.
     type: dict
+extends_documentation_fragment:
+  - kuberos.platform.attributes
+  - kuberos.platform.attributes.action
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""

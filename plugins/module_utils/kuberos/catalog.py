@@ -25,6 +25,7 @@ keep the entries a deployment used in its record. The format is documented in ``
 from __future__ import annotations
 
 import copy
+import functools
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
@@ -183,7 +184,11 @@ CATALOG_SCHEMA = {
     },
 }
 
-_VALIDATOR = strict_validator(CATALOG_SCHEMA)
+
+@functools.cache
+def _validator():
+    """Built on first use, not at import: jsonschema may be missing where the core is only imported (third_party.py)."""
+    return strict_validator(CATALOG_SCHEMA)
 
 
 @dataclass(frozen=True)
@@ -381,7 +386,7 @@ class Catalog:
         if problems:
             problems.sort(key=lambda p: p.line or 0)
             raise SpecError(problems, title=f"{where} is not a valid software catalog")
-        return cls([entry for entry, _, _ in found], written if written is not None else where, data.get("missing") is True)
+        return cls([entry for entry, *_where in found], written if written is not None else where, data.get("missing") is True)
 
 
 def _too_large(data) -> str:
@@ -501,7 +506,7 @@ def _entries_of(doc: Document, problems: list[Problem], declared: dict[str, str]
     ``declared`` maps the module names of the documents read so far (valid or not) to where they are
     written; a module written twice is a problem (each module is written once, with all its versions).
     """
-    found_problems = schema_problems(_VALIDATOR, doc)
+    found_problems = schema_problems(_validator(), doc)
     broken = {p.path for p in found_problems}
     mine: list[Problem] = list(found_problems)
     entries: list[tuple[CatalogEntry, tuple]] = []
@@ -642,7 +647,7 @@ def load_catalog(path, display: str | None = None) -> Catalog:
     if problems:
         problems.sort(key=lambda p: (p.source, p.line or 0))  # files in the order read, each by line
         raise SpecError(problems, title=f"{display} is not a valid software catalog")
-    return Catalog([entry for entry, _, _ in found], display)
+    return Catalog([entry for entry, *_where in found], display)
 
 
 # --------------------------------------------------------------------------------------------

@@ -19,13 +19,12 @@ import base64
 import binascii
 import hashlib
 
-import yaml
-
 from .errors import SpecError
 from .manifests import VERSION, params_configmap_name
 from .record import RECORD_LABEL, REVISION_LABEL, record_placement
 from .render_files import dump_object
 from .scheduler import Placement
+from .third_party import yaml
 
 SERVER_FIELDS = ("managedFields", "resourceVersion", "generation", "uid", "creationTimestamp", "selfLink")
 LAST_APPLIED = "kubectl.kubernetes.io/last-applied-configuration"

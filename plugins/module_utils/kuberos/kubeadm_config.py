@@ -17,11 +17,10 @@ import ipaddress
 import re
 from dataclasses import dataclass, field
 
-import yaml
-
 from . import labels
 from .errors import Problem, SpecError, describe
 from .inventory import Inventory, Node
+from .third_party import yaml
 
 API_VERSION = "kubeadm.k8s.io/v1beta4"
 KUBELET_API_VERSION = "kubelet.config.k8s.io/v1beta1"
@@ -255,7 +254,7 @@ def _check_labels(host: str, variable: str, wanted, problems: list[Problem]) -> 
     good = {}
     for key, value in wanted.items():
         key, value = str(key), "" if value is None else str(value)
-        prefix, _, name = key.rpartition("/")
+        prefix, _sep, name = key.rpartition("/")
         if (prefix and (len(prefix) > 253 or not _DNS_NAME.match(prefix))) or not _LABEL_NAME.match(name):
             problems.append(
                 _problem(

@@ -12,8 +12,6 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 
-import yaml
-
 from . import labels as node_labels
 from . import naming
 from .launch import container_name, launch_argv, split_amount
@@ -29,6 +27,7 @@ from .scheduler import (
     Placement,
 )
 from .spec import RosDeployment, RosModule
+from .third_party import yaml
 
 MANAGED_BY = "app.kubernetes.io/managed-by"
 COMPONENT = "kuberos.io/component"

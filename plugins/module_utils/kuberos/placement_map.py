@@ -90,11 +90,11 @@ def render_placement_svg(placement: Placement) -> str:
         out.append(f'<rect x="{x}" y="{y}" width="{BOX_WIDTH}" height="{h}" rx="6" fill="#f7f7f7" stroke="#999999"/>')
         out.append(f'<text x="{x + 8}" y="{y + 16}" font-weight="bold">{escape(title)}</text>')
         out.append(f'<text x="{x + 8}" y="{y + 30}" fill="#666666">{escape(capacity)}</text>')
-        bar, bar_x = 70, x + BOX_WIDTH - 78
+        bar_width, bar_x = 70, x + BOX_WIDTH - 78
         bar_color = "#d62728" if fill > 0.9 else "#2ca02c"
-        out.append(f'<rect x="{bar_x}" y="{y + 8}" width="{bar}" height="8" fill="#e0e0e0"/>')
-        out.append(f'<rect x="{bar_x}" y="{y + 8}" width="{bar * min(fill, 1):.1f}" height="8" fill="{bar_color}"/>')
-        out.append(f'<text x="{bar_x + bar}" y="{y + 30}" fill="#666666" text-anchor="end">{fill:.0%} used</text>')
+        out.append(f'<rect x="{bar_x}" y="{y + 8}" width="{bar_width}" height="8" fill="#e0e0e0"/>')
+        out.append(f'<rect x="{bar_x}" y="{y + 8}" width="{bar_width * min(fill, 1):.1f}" height="8" fill="{bar_color}"/>')
+        out.append(f'<text x="{bar_x + bar_width}" y="{y + 30}" fill="#666666" text-anchor="end">{fill:.0%} used</text>')
         for index, (label, stroke) in enumerate(contents.get(node["name"], [])):
             ly = y + 46 + index * LINE
             out.append(f'<rect x="{x + 8}" y="{ly - 8}" width="8" height="8" fill="{stroke}"/>')

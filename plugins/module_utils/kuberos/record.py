@@ -26,14 +26,13 @@ import hashlib
 import json
 from dataclasses import dataclass
 
-import yaml
-
 from . import naming
 from .errors import Problem, SpecError
 from .inventory import Inventory, load_inventory
 from .manifests import COMPONENT, DEPLOYMENT, MANAGED_BY, RenderOptions
 from .scheduler import Placement
 from .spec import RosDeployment, load_rosdeployments
+from .third_party import yaml
 
 RECORD_LABEL = "kuberos.io/record"
 STATUS_LABEL = "kuberos.io/status"
@@ -392,7 +391,7 @@ def parse_revision(configmap: dict):
         name = data["deployment"]
         catalog = catalog_of(configmap)
         text = spec_text_of(configmap)
-        found = [d for d in load_rosdeployments(text, f"{where} (revision {data.get('revision')})", catalog=catalog)]
+        found = list(load_rosdeployments(text, f"{where} (revision {data.get('revision')})", catalog=catalog))
         dep = next(d for d in found if d.name == name)
         return int(data["revision"]), data.get("cause", ""), dep, text, catalog
     except SpecError:

@@ -12,7 +12,7 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 
-import yaml
+from .third_party import yaml
 
 MARKER = ".kuberos-render"
 MANIFEST_DIR = "manifests"
@@ -25,19 +25,20 @@ def object_path(obj: dict) -> str:
     return os.path.join(MANIFEST_DIR, namespace, f"{obj['kind'].lower()}-{obj['metadata']['name']}.yaml")
 
 
-class _NoAliasDumper(yaml.SafeDumper):
-    """Writes repeated values in full: manifests are read by people, not only by parsers."""
-
-    def ignore_aliases(self, data):
-        return True
-
-
 def _represent_str(dumper: yaml.SafeDumper, data: str):
     style = "|" if "\n" in data and not data.endswith((" ", "\t")) else None
     return dumper.represent_scalar("tag:yaml.org,2002:str", data, style=style)
 
 
-_NoAliasDumper.add_representer(str, _represent_str)
+if yaml is not None:  # without PyYAML (third_party.py) nothing here is used: the modules check for it first
+
+    class _NoAliasDumper(yaml.SafeDumper):
+        """Writes repeated values in full: manifests are read by people, not only by parsers."""
+
+        def ignore_aliases(self, data):
+            return True
+
+    _NoAliasDumper.add_representer(str, _represent_str)
 
 
 def dump_object(obj: dict) -> str:

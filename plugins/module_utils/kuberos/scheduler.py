@@ -288,7 +288,7 @@ class _Scheduler:
                 if best is None or key < best[0]:
                     best = (key, node, latency)
             if best is not None:
-                _, node, latency = best
+                _key, node, latency = best
                 self.take(node.name, res.cpu_millis, res.memory_bytes, res.gpu)
                 return node, tier, latency, self._reason(module, tier, skipped, feasible, latency)
             skipped.append(tier)
@@ -375,7 +375,7 @@ class _Scheduler:
                 with_room.append(entry)
         used_names = {k.name for k in kept}
         for robot in (r for r in robots if r not in covered):
-            for inst in with_room:
+            for inst in list(with_room):  # a copy: a full instance is removed (then the loop ends)
                 latency = self.inventory.latency_ms(robot, inst["node"].name)
                 if limit is None or latency <= limit:
                     inst["robots"].append(robot)
@@ -457,7 +457,7 @@ class _Scheduler:
                 if self.rejection(node, None, (), BRIDGE_CPU_MILLIS, BRIDGE_MEMORY_BYTES, 0) is None:
                     options.append((-self.score(node, BRIDGE_CPU_MILLIS, BRIDGE_MEMORY_BYTES, 0), node.name, node))
             if options:
-                _, _, node = min(options)
+                _score, _name, node = min(options)
                 self.take(node.name, BRIDGE_CPU_MILLIS, BRIDGE_MEMORY_BYTES, 0)
                 return BridgeServer(
                     fleet, naming.fleet_namespace(fleet), cluster, naming.bridge_server_name(cluster), node.name, tier,
@@ -513,7 +513,7 @@ class _Scheduler:
                     )
                 )
                 continue
-            _, _, node, tier = chosen
+            _score, _name, node, tier = chosen
             shares = node.name in used
             used.add(node.name)
             self.take(node.name, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)

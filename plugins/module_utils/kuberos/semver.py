@@ -121,7 +121,7 @@ def _explain(text: str) -> str:
     if len(parts) != 3 or not all(re.fullmatch("[0-9]+", p) for p in parts):
         return f"{text!r} is not MAJOR.MINOR.PATCH with three numbers"
     rest = text[len(core) :]
-    pre, _, build = rest[1:].partition("+") if rest.startswith("-") else ("", "", rest[1:])
+    pre, _sep, build = rest[1:].partition("+") if rest.startswith("-") else ("", "", rest[1:])
     if rest.startswith("-") and not pre:
         return f"{text!r} has an empty prerelease after '-'"
     if "+" in rest and not build:
@@ -302,7 +302,7 @@ class Range:
             if not all(_holds(op, version, bound) for op, bound in comparators):
                 continue
             # A prerelease matches only if a comparator names a prerelease of the same MAJOR.MINOR.PATCH.
-            if version.prerelease and not any(bound.prerelease and bound.core == version.core for _, bound in comparators):
+            if version.prerelease and not any(bound.prerelease and bound.core == version.core for _op, bound in comparators):
                 continue
             return True
         return False

@@ -9,6 +9,7 @@ or raises ``SpecError`` listing every problem (file, line, field path, value, ex
 from __future__ import annotations
 
 import copy
+import functools
 from dataclasses import dataclass, field, replace
 
 from . import naming, quantities
@@ -46,7 +47,11 @@ NO_CATALOG = (
     "by default the inventory's catalog/ directory), or give image and launch instead"
 )
 
-_VALIDATOR = strict_validator(SCHEMA)
+
+@functools.cache
+def _validator():
+    """Built on first use, not at import: jsonschema may be missing where the core is only imported (third_party.py)."""
+    return strict_validator(SCHEMA)
 
 
 @dataclass(frozen=True)
@@ -118,7 +123,7 @@ def _problem(doc: Document, parts: tuple, message: str) -> Problem:
 
 
 def _schema_problems(doc: Document) -> list[Problem]:
-    return schema_problems(_VALIDATOR, doc)
+    return schema_problems(_validator(), doc)
 
 
 _as_tuple = as_tuple
@@ -317,7 +322,7 @@ def _resolve(module: dict, index: int, doc: Document, catalog: Catalog | None, p
     if catalog is None:
         problems.append(_problem(doc, path, f"'{reference}' names a catalog module, but {NO_CATALOG}"))
         return None
-    name, _, range_text = reference.partition("@")
+    name, _sep, range_text = reference.partition("@")
     try:
         entry = catalog.resolve(name.strip(), range_text.strip() or None)
     except (LookupError, ValueError) as exc:
@@ -558,7 +563,7 @@ def name_clash_problems(deployments: list[RosDeployment], robots_of, live=()) ->
             other = first.setdefault(key, (dep, module, planned))
             if other[2] is planned or (dep.name, module.name) in reported:
                 continue
-            other_dep, other_module, _ = other
+            other_dep, other_module, _planned = other
             path = f"{module.path}.name"
             where = f"{other_dep.source}:{other_dep.line_of(other_module.path + '.name')}"
             problems.append(

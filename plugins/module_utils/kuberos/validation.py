@@ -13,9 +13,8 @@ import functools
 import re
 import shlex
 
-import jsonschema
-
 from .errors import Problem, describe, did_you_mean
+from .third_party import jsonschema, require
 from .yaml_source import Document, format_path
 
 RESERVED_ENV = ("ROS_DISCOVERY_SERVER", "RMW_IMPLEMENTATION", "ROS_DOMAIN_ID")
@@ -37,6 +36,7 @@ def _pattern(validator, pattern, instance, schema):
 
 def strict_validator(schema: dict) -> jsonschema.protocols.Validator:
     """A Draft 2020-12 validator of ``schema`` whose patterns end where the text ends (see ``_anchored``)."""
+    require("jsonschema")
     cls = jsonschema.validators.extend(jsonschema.Draft202012Validator, {"pattern": _pattern})
     return cls(schema)
 
@@ -156,7 +156,7 @@ IMAGE_EXPECTED = (
 
 def _split_image(image: str) -> tuple[str, str, str | None, str]:
     """``[domain/]path[:tag][@digest]`` -> (domain, path, tag, digest); the tag is None without a ':'."""
-    name, _, digest = image.partition("@")
+    name, _sep, digest = image.partition("@")
     domain, path = "", name
     first, slash, rest = name.partition("/")
     # The first component is a registry when it looks like a host: a dot, a port, 'localhost' or capitals.
@@ -164,7 +164,7 @@ def _split_image(image: str) -> tuple[str, str, str | None, str]:
         domain, path = first, rest
     tag = None
     if ":" in path.rsplit("/", 1)[-1]:
-        path, _, tag = path.rpartition(":")
+        path, _sep, tag = path.rpartition(":")
     return domain, path, tag, digest
 
 
@@ -186,7 +186,7 @@ def _image_reason(image: str, digest_allowed: bool) -> str | None:
     if tag is not None and not _TAG.fullmatch(tag):
         return f"the tag {describe(tag)} is not 1 to 128 letters, digits, '_', '.' and '-' starting with a letter, digit or '_'"
     if "@" in image and digest_allowed:
-        algorithm, _, encoded = digest.partition(":")
+        algorithm, _sep, encoded = digest.partition(":")
         length = _DIGEST_HEX.get(algorithm)
         if length is None:
             return f"the digest algorithm {describe(algorithm)} is not sha256, sha384 or sha512"
@@ -287,7 +287,7 @@ def _ros_array_problems(items: list, doc: Document, parts: tuple) -> list[Proble
         why = _ros_scalar_problem(item)
         if why:
             return [problem(doc, (*parts, position), why)]
-        if type(item) is not first:
+        if type(item) is not first:  # pylint: disable=unidiomatic-typecheck  # exact types: a bool is an int to isinstance
             hint = "; write 1.0 for a double" if {first, type(item)} == {int, float} else ""
             return [
                 problem(

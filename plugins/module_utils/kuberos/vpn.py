@@ -134,7 +134,7 @@ def build_vpn(
             )
         endpoint = str(values.get("endpoint") or "")
         if name == hub:
-            host_part, _, port = endpoint.rpartition(":")
+            host_part, _sep, port = endpoint.rpartition(":")
             if not host_part or not port.isdigit():
                 problems.append(
                     Problem(

@@ -13,9 +13,8 @@ import re
 import stat
 from dataclasses import dataclass, field
 
-import yaml
-
 from .errors import Problem, SpecError
+from .third_party import yaml
 
 MAX_BYTES = 1024 * 1024
 MAX_NODES = 100_000  # nodes of one document, each alias counted again as the nodes it stands for
@@ -33,7 +32,11 @@ _SPECIAL_FILES = {
 }  # fmt: skip
 # libyaml's loader when PyYAML was built with it (about ten times faster: a hostile 1 MiB file is refused in a
 # fraction of a second instead of several), else PyYAML's own; both build the same nodes with the same marks.
-LOADER = yaml.CSafeLoader if getattr(yaml, "__with_libyaml__", False) else yaml.SafeLoader
+# None without PyYAML (third_party.py: the modules check for it before any work).
+if yaml is None:
+    LOADER = None
+else:
+    LOADER = yaml.CSafeLoader if getattr(yaml, "__with_libyaml__", False) else yaml.SafeLoader
 _LINE_BREAK = re.compile("\r\n|\r|\n")
 
 
@@ -131,9 +134,17 @@ class _TooLarge(Exception):
         self.line = line
 
 
-_OPENING = (yaml.FlowSequenceStartToken, yaml.FlowMappingStartToken, yaml.BlockSequenceStartToken, yaml.BlockMappingStartToken)
-_CLOSING = (yaml.FlowSequenceEndToken, yaml.FlowMappingEndToken, yaml.BlockEndToken)
-_NODE_TOKENS = (yaml.ScalarToken, yaml.AliasToken, *_OPENING)  # keys counted too: a bound, not an exact count
+if yaml is None:
+    _OPENING = _CLOSING = _NODE_TOKENS = ()
+else:
+    _OPENING = (
+        yaml.FlowSequenceStartToken,
+        yaml.FlowMappingStartToken,
+        yaml.BlockSequenceStartToken,
+        yaml.BlockMappingStartToken,
+    )
+    _CLOSING = (yaml.FlowSequenceEndToken, yaml.FlowMappingEndToken, yaml.BlockEndToken)
+    _NODE_TOKENS = (yaml.ScalarToken, yaml.AliasToken, *_OPENING)  # keys counted too: a bound, not an exact count
 
 
 def _at_most(count: int, limit: int, what: str, token) -> None:

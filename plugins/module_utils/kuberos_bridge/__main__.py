@@ -21,6 +21,8 @@ import sys
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.topics import TopicsError, load_topics
 
+# The whole file is the bridge program's command line (in its image), not code a module runs: it prints and exits.
+# pylint: disable=ansible-bad-function
 log = logging.getLogger("kuberos.bridge")
 DEFAULT_METRICS_PORT = 9102
 
@@ -149,7 +151,7 @@ async def run(args, topics) -> int:
         if metrics_server is not None:
             log.info("metrics on http://%s:%d/metrics", args.metrics_host, metrics_server.port)
         waiter = asyncio.create_task(stop.wait())
-        done, _ = await asyncio.wait({waiter, *([task] if task else [])}, return_when=asyncio.FIRST_COMPLETED)
+        done, _pending = await asyncio.wait({waiter, *([task] if task else [])}, return_when=asyncio.FIRST_COMPLETED)
         if task is not None and task in done and task.exception() is not None:
             log.error("client stopped: %r", task.exception())
             status = 1

@@ -17,7 +17,10 @@ import secrets
 import time
 from dataclasses import dataclass
 
-import grpc
+try:
+    import grpc
+except ImportError:  # the bridge's image has grpcio; without it this still imports (ansible-test's import check)
+    grpc = None
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.buffer import Backoff, DropOldestBuffer, Outgoing
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.envelope import (
@@ -251,7 +254,7 @@ class Bridge:
         receiver = asyncio.create_task(self._receive_loop(read), name="receive")
         reason = "stopped"
         try:
-            done, _ = await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
+            done, _pending = await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
             task = done.pop()
             error = task.exception()
             if error is None:
@@ -536,7 +539,7 @@ def tls_probe(target: str, cert: str, key: str, ca: str, server_name: str | None
     import socket
     import ssl
 
-    host, _, port = target.rpartition(":")
+    host, _sep, port = target.rpartition(":")
     host = host.strip("[]")
     context = ssl.create_default_context(cafile=ca)
     context.load_cert_chain(cert, key)

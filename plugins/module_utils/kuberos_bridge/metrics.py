@@ -77,7 +77,7 @@ class Metrics:
         with self._lock:
             if labels:
                 return self._values.get((name, tuple(sorted(labels.items()))), 0)
-            return sum(v for (n, _), v in self._values.items() if n == name)
+            return sum(v for (n, _labels), v in self._values.items() if n == name)
 
     def render(self) -> str:
         self._run_hooks()

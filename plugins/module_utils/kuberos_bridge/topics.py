@@ -73,7 +73,7 @@ def normalize_type(name: str) -> str:
 def load_message_type(name: str):
     """The Python class of a ROS 2 message type, imported from ``pkg.msg``; TypeLookupError if there is none."""
     normalized = normalize_type(name)
-    package, _, type_name = normalized.split("/")
+    package, _interface, type_name = normalized.split("/")
     try:
         module = importlib.import_module(f"{package}.msg")
     except ImportError as error:
