@@ -171,7 +171,7 @@ def _run(command: list[str], *, timeout: float = BUILD_TIMEOUT, env: dict | None
     try:
         done = subprocess.run(
             command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-            timeout=timeout, env=env, umask=0o022,
+            timeout=timeout, env=env, umask=0o022, check=False,
         )  # fmt: skip
     except (OSError, subprocess.TimeoutExpired) as error:
         raise ImageBuildError(f"{what or command[0]}: {' '.join(command)}: {error}") from error
@@ -194,7 +194,7 @@ def _size(path: str) -> int:
     if os.path.isfile(path):
         return os.path.getsize(path)
     total = 0
-    for directory, _, files in os.walk(path):
+    for directory, _subdirectories, files in os.walk(path):
         for name in files:
             with contextlib.suppress(OSError):
                 total += os.lstat(os.path.join(directory, name)).st_size
@@ -351,7 +351,7 @@ def _fix_shebangs(bin_dir: str) -> int:
 def _strip(rootfs: str) -> None:
     """Remove what nothing in the image reads at run time (the copyright files stay)."""
     doc = os.path.join(rootfs, "usr/share/doc")
-    for directory, _, files in os.walk(doc):
+    for directory, _subdirectories, files in os.walk(doc):
         for name in files:
             if name != "copyright":
                 os.unlink(os.path.join(directory, name))
@@ -359,7 +359,7 @@ def _strip(rootfs: str) -> None:
         _remove(os.path.join(rootfs, relative))
     # Test suites of the installed packages (numpy, scipy, ...): nothing imports them at run time.
     for site_packages in glob.glob(os.path.join(rootfs, VENV.lstrip("/"), "lib", "python*", "site-packages")):
-        for directory, subdirectories, _ in os.walk(site_packages):
+        for directory, subdirectories, _files in os.walk(site_packages):
             if "tests" in subdirectories:
                 subdirectories.remove("tests")
                 _remove(os.path.join(directory, "tests"))
@@ -552,7 +552,7 @@ def _descriptor(layout: str, tag: str) -> dict:
 
 
 def _blob(layout: str, digest: str) -> str:
-    algorithm, _, hexdigest = digest.partition(":")
+    algorithm, _sep, hexdigest = digest.partition(":")
     return os.path.join(layout, "blobs", algorithm, hexdigest)
 
 
@@ -744,7 +744,7 @@ def build_images(repo_root: str, cache_dir: str, log=print) -> dict[str, str]:
 
 def _qualified(reference: str) -> str:
     """The full name containerd stores (the Docker Hub defaults spelled out)."""
-    name, _, digest = reference.partition("@")
+    name, _sep, digest = reference.partition("@")
     first = name.split("/", 1)[0]
     if "/" not in name or ("." not in first and ":" not in first and first != "localhost"):
         name = f"docker.io/{name}" if "/" in name else f"docker.io/library/{name}"
