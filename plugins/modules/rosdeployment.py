@@ -81,6 +81,7 @@ options:
     type: path
 extends_documentation_fragment:
   - kuberos.platform.render
+  - kuberos.platform.attributes
 attributes:
   check_mode:
     support: full
@@ -91,7 +92,7 @@ attributes:
       - A summary of which modules of which robots move, start, stop or change, then one diff per object, live against
         the server-side dry run. With O(apply=false), the render directory's diff.
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -174,6 +175,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
 from ansible_collections.kuberos.platform.plugins.module_utils.deploy_pass import DeployPass
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import RenderDirError
+from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
 
 ARGUMENT_SPEC = dict(
@@ -257,11 +259,12 @@ def main():
         required_if=[("apply", True, ("kubeconfig",))],
         supports_check_mode=True,
     )
+    require_packages(module)
     try:
         module.exit_json(**run(module))
     except KuberosError as exc:
         # The headline as msg (Ansible repeats msg in its error line), the problems once, one line each, below it.
-        headline, _, rest = str(exc).partition("\n")
+        headline, _sep, rest = str(exc).partition("\n")
         module.fail_json(msg=headline.rstrip(":"), **({"problems": textwrap.dedent(rest) + "\n"} if rest else {}))
     except RenderDirError as exc:
         module.fail_json(msg=str(exc))
