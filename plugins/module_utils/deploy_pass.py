@@ -160,14 +160,21 @@ class Target:
     def label(self) -> str:
         return f" (cluster {self.api.name})" if self.api.name else ""
 
-    def read(self, pool: ThreadPoolExecutor) -> None:
-        """Every object of the kinds KubeROS applies in the target's namespaces, one LIST per kind and namespace."""
+    read_namespaces: set = field(default_factory=set)  # namespaces whose objects are in ``live``
+
+    def read(self, pool: ThreadPoolExecutor, namespaces: set | None = None) -> None:
+        """Every object of the kinds KubeROS applies in ``namespaces`` (default: the target's), one LIST per kind and
+        namespace; namespaces read before are not read again."""
+        wanted = (namespaces if namespaces is not None else self.wanted_namespaces) - self.read_namespaces
+        if not wanted:
+            return
         found = self.api.list("Namespace")
         self.existing = {n["metadata"]["name"] for n in found}
-        self.live.update((object_key(n), n) for n in found if n["metadata"]["name"] in self.wanted_namespaces)
-        jobs = [(kind, ns) for ns in sorted(self.wanted_namespaces & self.existing) for kind in KINDS if kind != "Namespace"]
+        self.live.update((object_key(n), n) for n in found if n["metadata"]["name"] in wanted)
+        jobs = [(kind, ns) for ns in sorted(wanted & self.existing) for kind in KINDS if kind != "Namespace"]
         for items in pool.map(lambda job: self.api.list(*job), jobs):
             self.live.update((object_key(o), o) for o in items)
+        self.read_namespaces |= wanted
 
     @property
     def wanted_namespaces(self) -> set:
@@ -235,6 +242,11 @@ class DeployPass:
         self.allocated = allocated
         self.unavailable = unavailable_nodes(self.clients, list(self.inventory.nodes))
         self.previous = previous_placement(self.clients, [{"name": d.name, "fleet": d.fleet} for d in self.deployments])
+        # Every object of the fleets' namespaces, read now so that a name clash stops the deploy before it renders.
+        self.local = Target(Api(self.clients, self.params["field_manager"]), [], [])
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            self.local.read(pool, {naming.fleet_namespace(d.fleet) for d in self.deployments})
+        self._check_names(self.local)
         self._lap("read the cluster")
 
     def place(self) -> None:
@@ -272,13 +284,9 @@ class DeployPass:
         """This cluster's share first, then each third-party cluster's."""
         rendered = self.rendered
         local_secrets, remote_secrets = self._secret_objects()
-        out = [
-            Target(
-                Api(self.clients, self.params["field_manager"]),
-                rendered["namespaces"],
-                rendered["apply_objects"] + local_secrets,
-            )
-        ]
+        self.local.namespaces = rendered["namespaces"]
+        self.local.objects = rendered["apply_objects"] + local_secrets
+        out = [self.local]
         for cluster, share in sorted(rendered["remote"].items()):
             connection = (self.params.get("clusters") or {}).get(cluster)
             api = Api(remote_clients(cluster, connection), self.params["field_manager"], cluster)
@@ -360,7 +368,6 @@ class DeployPass:
             for target in targets:
                 target.read(pool)
             self._lap("read the objects")
-            self._check_names(targets[0])
             refused = {}
             try:
                 for target in targets:
@@ -372,14 +379,17 @@ class DeployPass:
                     self._undo_namespaces(targets)
                 raise
             self._lap("dry run")
-            if refused and not self.check_mode:
-                self._undo_namespaces(targets)
+            stale = self._stale(targets[0])
+            summary, diffs, counts = self._summary(targets, stale, refused)
+            if refused:
+                if not self.check_mode:
+                    self._undo_namespaces(targets)
                 raise KuberosError(
                     "The cluster rejected the deployment in a server-side dry run; nothing was applied.\n"
                     + "\n".join(f"{what}: {why}" for what, why in sorted(refused.items()))
+                    + "\n\n"
+                    + summary
                 )
-            stale = self._stale(targets[0])
-            summary, diffs, counts = self._summary(targets, stale, refused)
             changes = [(t, o) for t in targets for o in t.all_objects() if object_key(o) in t.after and self._needs_apply(t, o)]
             applied, removed = [], [f"{o['kind']}/{o['metadata']['namespace']}/{o['metadata']['name']}" for o in stale]
             if not self.check_mode:
@@ -396,7 +406,7 @@ class DeployPass:
                 applied = [object_label(o) + t.label for t, o in changes]
         created = [name + t.label for t in targets for name in t.created]
         return {
-            "changed": bool(changes or created or stale or (self.check_mode and (counts["new"] or refused))),
+            "changed": bool(changes or created or stale or (self.check_mode and counts["new"])),
             "applied": applied,
             "created_namespaces": created,
             "removed": removed,

@@ -20,7 +20,7 @@ from helpers import ROOT, deployments_denied
 pytestmark = pytest.mark.cluster
 
 NAMESPACE = "kuberos-test-fleet"
-DIFF_TASK = "TASK [kuberos.platform.rosdeployment : Show what the deploy changes in the cluster]"
+DIFF_TASK = "TASK [kuberos.platform.rosdeployment : Validate, place, render, dry-run, apply, prune and wait]"
 HEADER = re.compile(r"^--- before: (\S+) (\S+) \((live|absent)\)\n\+\+\+ after: \S+ \S+ \((server dry run|new|removed)\)$", re.M)
 BLOB = re.compile(r"[A-Za-z0-9+/=]{80,}")  # a base64 run as long as a line
 
@@ -30,7 +30,8 @@ def diff_section(result) -> str:
     out = result.stdout
     assert DIFF_TASK in out, out[-6000:]
     section = out[out.index(DIFF_TASK) + len(DIFF_TASK) :]
-    return section[: section.index("\nTASK [")]
+    ends = [i for i in (section.find("\nTASK ["), section.find("\nPLAY RECAP")) if i >= 0]  # a failed task ends the play
+    return section[: min(ends)]
 
 
 def headers(section: str) -> dict[tuple[str, str], str]:
