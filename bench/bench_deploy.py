@@ -498,38 +498,38 @@ def run_kubectl(setup: Setup, dry_run: bool) -> dict:
     }
 
 
-def run_variant(setup: Setup, variant: str, label: str) -> dict:
-    """One way to deploy, from the starting state, and its removal."""
+def run_variant(setup: Setup, variant: str, label: str, run: dict) -> None:
+    """One way to deploy, from the starting state, and its removal; each step recorded into ``run`` when it ends."""
     ensure_start_state(setup)
     if variant == "a":
         log(f"{label}: (a) deploy.yml")
-        a = run_deploy(setup)
+        a = run["a"] = run_deploy(setup)
         log(f"{label}: (a) {a['wall_s']:.1f} s (all Ready seen at {fmt(a['ready_seen_s'])} s); re-run with nothing changed")
-        rerun = run_rerun(setup)
+        rerun = run["rerun"] = run_rerun(setup)
         log(
             f"{label}: re-run {rerun['wall_s']:.1f} s, pods unchanged: {rerun['pods_unchanged']}, "
             f"objects rewritten: {rerun['objects_rewritten']}; undeploying"
         )
-        undeploy = run_undeploy(setup, "(a)")
+        undeploy = run["undeploy_a"] = run_undeploy(setup, "(a)")
         log(f"{label}: undeploy exits at {undeploy['exit_s']:.1f} s, namespace empty at {undeploy['empty_s']:.1f} s")
-        return {"a": a, "rerun": rerun, "undeploy_a": undeploy}
+        return
     what = "(b) kubectl dry run + apply" if variant == "b" else "(c) kubectl apply"
     log(f"{label}: {what}")
-    result = run_kubectl(setup, dry_run=variant == "b")
+    result = run[variant] = run_kubectl(setup, dry_run=variant == "b")
     log(f"{label}: {what}: all Ready at {result['wall_s']:.1f} s (apply exits at {result['apply_exit_s']:.1f} s); undeploying")
-    return {variant: result, f"undeploy_{variant}": run_undeploy(setup, f"({variant})")}
+    run[f"undeploy_{variant}"] = run_undeploy(setup, f"({variant})")
 
 
-def run_repeat(setup: Setup, index: int) -> dict:
+def run_repeat(setup: Setup, index: int, run: dict) -> None:
+    """One repeat, recorded into ``run`` as it goes (what finished stays recorded when a later step fails)."""
     order = VARIANTS[index % 3 :] + VARIANTS[: index % 3]
-    run: dict = {"order": " ".join(order), "load_start": load()}
+    run.update(order=" ".join(order), load_start=load())
     for variant in order:
-        run.update(run_variant(setup, variant, f"run {index + 1}"))
+        run_variant(setup, variant, f"run {index + 1}", run)
     run["load_end"] = load()
     run["ratio"] = run["a"]["wall_s"] / run["b"]["wall_s"]
     run["ratio_plain"] = run["a"]["wall_s"] / run["c"]["wall_s"]
     log(f"run {index + 1}: ratio (a)/(b) {run['ratio']:.2f}, (a)/(c) {run['ratio_plain']:.2f}")
-    return run
 
 
 # -- report --------------------------------------------------------------------------------
@@ -578,23 +578,33 @@ SERIES = {
 }
 
 
+def value(run: dict, part: str, field: str | None = None):
+    """A value of a run; None when that part did not run (a benchmark stopped on the way)."""
+    found = run.get(part)
+    return found if field is None or found is None else found.get(field)
+
+
 def summarize(runs: list[dict], robots: int) -> dict:
     """The issue's keys (medians over the repeats), the per-run values behind them, and the targets."""
-    raw = {key: [run[part] if field is None else run[part][field] for run in runs] for key, (part, field) in SERIES.items()}
+    raw = {key: [value(run, part, field) for run in runs] for key, (part, field) in SERIES.items()}
     summary: dict = {"robots": robots}
     for key, values in raw.items():
         present = [v for v in values if v is not None]
         summary[f"{key}_median"] = statistics.median(present) if present else None
-    summary["rerun_pods_unchanged"] = all(run["rerun"]["pods_unchanged"] for run in runs)
+    reruns = [run["rerun"]["pods_unchanged"] for run in runs if "rerun" in run]
+    summary["rerun_pods_unchanged"] = all(reruns) if reruns else None
     summary["raw"] = raw
     summary["targets"] = None  # the targets are set at 100 robots
     if robots == TARGET_ROBOTS:
-        met = {key: summary[key] <= bound if op == "<=" else summary[key] < bound for key, op, bound in TARGETS}
+        met = {
+            key: summary[key] is not None and (summary[key] <= bound if op == "<=" else summary[key] < bound)
+            for key, op, bound in TARGETS
+        }
         summary["targets"] = {
             key: {"target": f"{op} {bound}", "value": summary[key], "pass": met[key]} for key, op, bound in TARGETS
         }
         unchanged = summary["rerun_pods_unchanged"]
-        summary["targets"]["rerun_pods_unchanged"] = {"target": "true", "value": unchanged, "pass": unchanged}
+        summary["targets"]["rerun_pods_unchanged"] = {"target": "true", "value": unchanged, "pass": bool(unchanged)}
     return summary
 
 
@@ -614,6 +624,7 @@ def markdown(data: dict) -> str:
         "",
         f"Command: `{data['command']}`",
         "",
+        *([] if data["complete"] else ["**Incomplete**: the benchmark stopped before the end; `-` marks what did not run.", ""]),
         f"Cluster: {data.get('nodes', '-')} kwok nodes ({args['robots']} robots, {EDGE_NODES} edge, {CLOUD_NODES} cloud), "
         f"started in {fmt(data.get('cluster_start_s'))} s; {data.get('objects', '-')} objects rendered "
         f"({data['expected_pods']} Deployments of 1 replica, so {data['expected_pods']} pods).",
@@ -624,14 +635,15 @@ def markdown(data: dict) -> str:
         "|---:|---|---:|---:|---:|---|---:|---:|---:|---:|---:|",
     ]
     for i, run in enumerate(runs, 1):
-        a, rerun, und, b, c = run["a"], run["rerun"], run["undeploy_a"], run["b"], run["c"]
+        unchanged = {True: "yes", False: "**no**", None: "-"}[value(run, "rerun", "pods_unchanged")]
+        rewritten = value(run, "rerun", "objects_rewritten")
         out.append(
-            f"| {i} | {run['order']} | {a['wall_s']:.1f} | {fmt(a['ready_seen_s'])} | {rerun['wall_s']:.1f} "
-            f"| {'yes' if rerun['pods_unchanged'] else '**no**'}, {rerun['objects_rewritten']} "
-            f"| {und['exit_s']:.1f} / {und['empty_s']:.1f} "
-            f"| {fmt(b['dry_run_s'])} / {b['apply_exit_s']:.1f} / {b['wall_s']:.1f} "
-            f"| {c['apply_exit_s']:.1f} / {c['wall_s']:.1f} "
-            f"| {run['ratio']:.2f} | {run['ratio_plain']:.2f} |"
+            f"| {i} | {run.get('order', '-')} | {fmt(value(run, 'a', 'wall_s'))} | {fmt(value(run, 'a', 'ready_seen_s'))} "
+            f"| {fmt(value(run, 'rerun', 'wall_s'))} | {unchanged}, {'-' if rewritten is None else rewritten} "
+            f"| {fmt(value(run, 'undeploy_a', 'exit_s'))} / {fmt(value(run, 'undeploy_a', 'empty_s'))} "
+            f"| {fmt(value(run, 'b', 'dry_run_s'))} / {fmt(value(run, 'b', 'apply_exit_s'))} / {fmt(value(run, 'b', 'wall_s'))} "
+            f"| {fmt(value(run, 'c', 'apply_exit_s'))} / {fmt(value(run, 'c', 'wall_s'))} "
+            f"| {fmt(value(run, 'ratio'), 2)} | {fmt(value(run, 'ratio_plain'), 2)} |"
         )
     if runs:
         s = data
@@ -639,11 +651,11 @@ def markdown(data: dict) -> str:
             f"| **median** | | **{fmt(s['deploy_s_median'])}** | {fmt(s['deploy_ready_seen_s_median'])} "
             f"| **{fmt(s['rerun_s_median'])}** | | **{fmt(s['undeploy_s_median'])}** / {fmt(s['undeploy_empty_s_median'])} "
             f"| **{fmt(s['kubectl_same_work_s_median'])}** | **{fmt(s['kubectl_plain_s_median'])}** "
-            f"| **{s['ratio_median']:.2f}** | **{s['ratio_plain_median']:.2f}** |"
+            f"| **{fmt(s['ratio_median'], 2)}** | **{fmt(s['ratio_plain_median'], 2)}** |"
         )
         out += ["", *target_lines(data)]
         out += ["", "Loads (`uptime`) per run, start / end:", ""]
-        out += [f"- run {i}: {run['load_start']} / {run['load_end']}" for i, run in enumerate(runs, 1)]
+        out += [f"- run {i}: {run.get('load_start', '-')} / {run.get('load_end', '-')}" for i, run in enumerate(runs, 1)]
         out += profile_table(runs)
     return "\n".join(out) + "\n"
 
@@ -653,8 +665,8 @@ def target_lines(summary: dict) -> list[str]:
         return [f"No targets at {summary['robots']} robots (they are set at {TARGET_ROBOTS})."]
     lines = [f"Targets at {TARGET_ROBOTS} robots:", ""]
     for key, target in summary["targets"].items():
-        value = target["value"]
-        shown = f"{value:.2f}" if isinstance(value, float) else str(value).lower()
+        got = target["value"]
+        shown = f"{got:.2f}" if isinstance(got, float) else "-" if got is None else str(got).lower()
         lines.append(f"- {key} {target['target']}: {shown}: **{'PASS' if target['pass'] else 'FAIL'}**")
     return lines
 
@@ -666,7 +678,7 @@ def profile_table(runs: list[dict]) -> list[str]:
     for run in runs:
         seen: dict[str, int] = {}
         row = {}
-        for name, seconds in run["a"]["profile"]:
+        for name, seconds in value(run, "a", "profile") or []:
             seen[name] = seen.get(name, 0) + 1
             row[(name, seen[name])] = seconds
         keyed.append(row)
@@ -684,10 +696,12 @@ def profile_table(runs: list[dict]) -> list[str]:
     for key in order:
         name = key[0] + (f" ({key[1]})" if key[1] > 1 else "")
         out.append(f"| {name} | " + " | ".join(fmt(row.get(key), 2) for row in keyed) + " |")
-    out.append("| sum of tasks | " + " | ".join(fmt(r["a"]["tasks_s"], 2) for r in runs) + " |")
+    tasks = [value(r, "a", "tasks_s") for r in runs]
+    walls = [value(r, "a", "wall_s") for r in runs]
+    out.append("| sum of tasks | " + " | ".join(fmt(t, 2) for t in tasks) + " |")
     out.append(
         "| process wall - sum of tasks (start-up, parsing, exit) | "
-        + " | ".join(fmt(r["a"]["wall_s"] - r["a"]["tasks_s"] if r["a"]["tasks_s"] is not None else None, 2) for r in runs)
+        + " | ".join(fmt(w - t if t is not None else None, 2) for w, t in zip(walls, tasks, strict=True))
         + " |"
     )
     return out
@@ -818,7 +832,8 @@ def main(argv: list[str] | None = None) -> int:
         setup = prepare(cluster, spec, work, args, expected)
         data["objects"] = sum(1 for _ in setup.manifests.rglob("*.yaml"))
         for index in range(args.repeat):
-            data["runs"].append(run_repeat(setup, index))
+            data["runs"].append({})
+            run_repeat(setup, index, data["runs"][-1])
         finished = True
     finally:
         if args.keep_cluster:
@@ -837,7 +852,7 @@ def main(argv: list[str] | None = None) -> int:
         if data["runs"]:
             data.update(summarize(data["runs"], args.robots))
         write_results(data, args)
-    print(markdown(data))
+        print(markdown(data))  # also what finished before a failure
     return 0
 
 
