@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods controller controller-stop status test lint unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -69,6 +69,15 @@ test: setup
 
 unit: setup
 	$(VENV)/python -m pytest tests/unit
+
+## Lint as the ecosystem does: ruff, yamllint, ansible-lint (production profile), ansible-test sanity on the built
+## collection and the tarball's contents (tests/lint; docs/testing.md). Set-up first: it works on a fresh clone.
+lint: setup
+	$(VENV)/python -m pytest tests/lint
+
+## ansible-test sanity alone (scripts/sanity.sh); TEST=pylint runs one of its tests.
+sanity: setup
+	scripts/sanity.sh $(if $(TEST),--test $(TEST))
 
 ## Regenerate docs/rosdeployment.schema.json from the schema in the code.
 schema: setup

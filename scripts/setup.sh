@@ -36,6 +36,7 @@ command -v ping >/dev/null 2>&1 || missing+=(iputils-ping)
 command -v ssh >/dev/null 2>&1 || missing+=(openssh-client)
 command -v wg >/dev/null 2>&1 || missing+=(wireguard-tools)
 command -v wireguard-go >/dev/null 2>&1 || missing+=(wireguard-go)
+command -v shellcheck >/dev/null 2>&1 || missing+=(shellcheck)  # ansible-test sanity's shellcheck test
 # node_prereqs' packages: the role's test hosts have no route to package mirrors, so they are installed here.
 # The local cluster's real nodes: CNI plugins, and umoci and debootstrap to build the images they run.
 for package in containerd runc conntrack socat iptables ethtool gpg containernetworking-plugins umoci debootstrap gcc libc6-dev; do
@@ -53,4 +54,20 @@ fi
 
 mkdir -p .collections/ansible_collections/kuberos
 ln -sfn ../../.. .collections/ansible_collections/kuberos/platform
+
+# ansible-test sanity's tools (pylint, pycodestyle, yamllint, voluptuous... at the versions the installed ansible-core
+# pins) from PyPI, into the virtualenvs it keeps under ~/.cache/kuberos/ansible-test (scripts/sanity.sh); once per
+# ansible-core version. Without them the sanity test installs them when it runs.
+sanity_home="${KUBEROS_CACHE_DIR:-$HOME/.cache/kuberos}/ansible-test"
+sanity_stamp="$sanity_home/primed-$(.venv/bin/python -c 'import ansible.release; print(ansible.release.__version__)')"
+if [ ! -e "$sanity_stamp" ]; then
+  echo "setup: installing the tools of ansible-test sanity from PyPI (first time: about 4 minutes)"
+  mkdir -p "$sanity_home"
+  if scripts/sanity.sh --prime-venvs >"$sanity_home/prime.log" 2>&1; then
+    touch "$sanity_stamp"
+  else
+    tail -20 "$sanity_home/prime.log" >&2
+    echo "setup: could not install the tools of ansible-test sanity (log: $sanity_home/prime.log)" >&2
+  fi
+fi
 echo "setup: ready (.venv, collection kuberos.platform linked from this checkout)"
