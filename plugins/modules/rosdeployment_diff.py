@@ -116,6 +116,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     managed_objects,
     stale_objects,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.deploy_pass import APPLY_TYPE, REFUSALS, refusal
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
     change_summary,
     object_diff,
@@ -130,8 +131,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 
-APPLY_TYPE = "application/apply-patch+yaml"
-REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid, forbidden by a policy, a conflict)
 WORKERS = 4  # reads and dry runs side by side; the API server does the work
 # kind -> (api, read, server-side apply) of the typed clients; namespaced unless the kind is Namespace.
 CALLS = {
@@ -187,17 +186,9 @@ class Live:
         except ApiException as exc:
             if exc.status not in REFUSALS:
                 raise
-            # Said in the summary; the deploy's own dry run (dry_run.yml) stops the run with it, nothing applied.
+            # Said in the summary; a deploy (the rosdeployment module) stops at its own dry run, nothing applied.
             self.refused[object_label(obj)] = refusal(exc)
             return live, live
-
-
-def refusal(exc) -> str:
-    """What the API server said, in one line (its Status message when it sent one)."""
-    try:
-        return json.loads(exc.body).get("message") or f"{exc.status} {exc.reason}"
-    except (TypeError, ValueError, AttributeError):
-        return f"{exc.status} {exc.reason}"
 
 
 def prune_candidates(clients, placement: Placement, keep: list[dict]) -> list[dict]:
