@@ -63,6 +63,18 @@ def test_pure_core_has_no_ansible_or_kubernetes_imports():
             assert not re.search(r"^\s*(from|import)\s+(ansible|kubernetes)\b", text, re.M), name
 
 
+def test_the_core_imports_pyyaml_and_jsonschema_in_one_place():
+    """third_party.py guards them, so that the core imports without them (ansible-test's import check)."""
+    import re
+
+    core = os.path.join(ROOT, "plugins", "module_utils", "kuberos")
+    for name in sorted(os.listdir(core)):
+        if name.endswith(".py") and name != "third_party.py":
+            with open(os.path.join(core, name), encoding="utf-8") as handle:
+                text = handle.read()
+            assert not re.search(r"^\s*(from|import)\s+(yaml|jsonschema)\b", text, re.M), name
+
+
 def test_test_files_have_unique_names():
     """pytest imports test modules by basename here (no packages): two files of one name break collection."""
     names = {}
