@@ -61,6 +61,7 @@ import sys
 import tempfile
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -166,8 +167,23 @@ def ansible_env(profile: bool = False) -> dict:
 
 
 def playbook(name: str, inventory: Path, *extra: str, timeout: float, profile: bool = False) -> subprocess.CompletedProcess:
+    """Run a playbook in a process group of its own: on a timeout, SIGTERM or Ctrl-C the whole group is killed, the
+    worker forks and their modules too (killing ansible-playbook alone leaves its workers running)."""
     command = [str(VENV_BIN / "ansible-playbook"), f"playbooks/{name}", "-i", str(inventory), *extra]
-    return subprocess.run(command, cwd=REPO, env=ansible_env(profile), capture_output=True, text=True, timeout=timeout)
+    pipe = subprocess.PIPE
+    with subprocess.Popen(
+        command, cwd=REPO, env=ansible_env(profile), stdout=pipe, stderr=pipe, text=True, start_new_session=True
+    ) as process:
+        try:
+            stdout, stderr = process.communicate(timeout=timeout)
+        except BaseException:
+            try:
+                os.killpg(process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            process.communicate()
+            raise
+    return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
 
 
 def check(result: subprocess.CompletedProcess, what: str) -> None:
@@ -411,18 +427,25 @@ def check_all_ready(setup: Setup, what: str) -> None:
 def run_deploy(setup: Setup) -> dict:
     """(a): deploy.yml; wall time of the process, and when all pods were first seen Ready from outside."""
     watcher_core = setup.cluster.core()
-    seen: dict[str, float | None] = {"ready": None}
+    seen: dict[str, float | str | None] = {"ready": None}
     stop = threading.Event()
     start = time.monotonic()
     deadline = start + setup.timeout + 60
-    watcher = threading.Thread(
-        target=lambda: seen.update(ready=wait_all_ready(watcher_core, setup.expected, start, deadline, stop)), daemon=True
-    )
+
+    def watch() -> None:
+        try:
+            seen["ready"] = wait_all_ready(watcher_core, setup.expected, start, deadline, stop)
+        except Exception as error:  # the watcher only informs; the deploy's own checks follow
+            seen["error"] = repr(error)
+
+    watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
-    result = deploy_playbook(setup, setup.render_dir, profile=setup.profile)
-    wall = time.monotonic() - start
-    watcher.join(timeout=10)
-    stop.set()
+    try:
+        result = deploy_playbook(setup, setup.render_dir, profile=setup.profile)
+        wall = time.monotonic() - start
+        watcher.join(timeout=10)
+    finally:
+        stop.set()
     if result.returncode != 0:
         print(not_ready_report(setup.cluster.core()), file=sys.stderr)
     check(result, "deploy.yml")
@@ -432,6 +455,7 @@ def run_deploy(setup: Setup) -> dict:
     return {
         "wall_s": wall,
         "ready_seen_s": seen["ready"],
+        **({"watcher_error": seen["error"]} if "error" in seen else {}),
         "recap": recap,
         "profile": profile,
         "tasks_s": sum(s for _n, s in profile) if profile else None,
@@ -498,26 +522,58 @@ def run_kubectl(setup: Setup, dry_run: bool) -> dict:
     }
 
 
+@contextmanager
+def step(run: dict, name: str):
+    """Marks ``name`` as running in ``run`` until it ends, so that a benchmark stopped on the way can tell where."""
+    run["running"] = {"step": name, "started": time.monotonic()}
+    yield
+    del run["running"]
+
+
 def run_variant(setup: Setup, variant: str, label: str, run: dict) -> None:
     """One way to deploy, from the starting state, and its removal; each step recorded into ``run`` when it ends."""
     ensure_start_state(setup)
     if variant == "a":
         log(f"{label}: (a) deploy.yml")
-        a = run["a"] = run_deploy(setup)
+        with step(run, "a"):
+            a = run["a"] = run_deploy(setup)
         log(f"{label}: (a) {a['wall_s']:.1f} s (all Ready seen at {fmt(a['ready_seen_s'])} s); re-run with nothing changed")
-        rerun = run["rerun"] = run_rerun(setup)
+        with step(run, "rerun"):
+            rerun = run["rerun"] = run_rerun(setup)
         log(
             f"{label}: re-run {rerun['wall_s']:.1f} s, pods unchanged: {rerun['pods_unchanged']}, "
             f"objects rewritten: {rerun['objects_rewritten']}; undeploying"
         )
-        undeploy = run["undeploy_a"] = run_undeploy(setup, "(a)")
+        with step(run, "undeploy_a"):
+            undeploy = run["undeploy_a"] = run_undeploy(setup, "(a)")
         log(f"{label}: undeploy exits at {undeploy['exit_s']:.1f} s, namespace empty at {undeploy['empty_s']:.1f} s")
         return
     what = "(b) kubectl dry run + apply" if variant == "b" else "(c) kubectl apply"
     log(f"{label}: {what}")
-    result = run[variant] = run_kubectl(setup, dry_run=variant == "b")
+    with step(run, variant):
+        result = run[variant] = run_kubectl(setup, dry_run=variant == "b")
     log(f"{label}: {what}: all Ready at {result['wall_s']:.1f} s (apply exits at {result['apply_exit_s']:.1f} s); undeploying")
-    run[f"undeploy_{variant}"] = run_undeploy(setup, f"({variant})")
+    with step(run, f"undeploy_{variant}"):
+        run[f"undeploy_{variant}"] = run_undeploy(setup, f"({variant})")
+
+
+def note_stop(cluster: Cluster, runs: list[dict]) -> None:
+    """When the benchmark stops inside a step: which step, after how long, and how far the cluster got."""
+    running = runs[-1].pop("running", None) if runs else None
+    if running is None:
+        return
+    stopped = {"step": running["step"], "after_s": time.monotonic() - running["started"]}
+    try:
+        pods = live_pods(cluster.core())
+        stopped.update(
+            deployments=len(items(cluster.apps().list_namespaced_deployment, NAMESPACE)),
+            pods=len(pods),
+            pods_ready=sum(map(is_ready, pods)),
+        )
+    except Exception as error:  # the cluster may be what failed
+        stopped["cluster_error"] = repr(error)
+    runs[-1]["stopped_in"] = stopped
+    log(f"stopped in {stopped}")
 
 
 def run_repeat(setup: Setup, index: int, run: dict) -> None:
@@ -653,6 +709,14 @@ def markdown(data: dict) -> str:
             f"| **{fmt(s['kubectl_same_work_s_median'])}** | **{fmt(s['kubectl_plain_s_median'])}** "
             f"| **{fmt(s['ratio_median'], 2)}** | **{fmt(s['ratio_plain_median'], 2)}** |"
         )
+        for i, run in enumerate(runs, 1):
+            if "stopped_in" in run:
+                stop = run["stopped_in"]
+                seen = ", ".join(f"{k.replace('_', ' ')} {stop[k]}" for k in ("deployments", "pods", "pods_ready") if k in stop)
+                out += [
+                    "",
+                    f"Run {i} stopped in step {stop['step']} after {stop['after_s']:.0f} s; the namespace held: {seen or '-'}.",
+                ]
         out += ["", *target_lines(data)]
         out += ["", "Loads (`uptime`) per run, start / end:", ""]
         out += [f"- run {i}: {run.get('load_start', '-')} / {run.get('load_end', '-')}" for i, run in enumerate(runs, 1)]
@@ -829,13 +893,17 @@ def main(argv: list[str] | None = None) -> int:
         log(f"cluster up with {data['nodes']} nodes in {data['cluster_start_s']:.1f} s")
         if data["nodes"] != args.robots + EDGE_NODES + CLOUD_NODES:
             raise SystemExit(f"bench: {data['nodes']} nodes, expected {args.robots + EDGE_NODES + CLOUD_NODES}")
+        started = time.monotonic()
         setup = prepare(cluster, spec, work, args, expected)
+        data["prepare_s"] = time.monotonic() - started
+        log(f"rendered once and namespace ready in {data['prepare_s']:.1f} s (not timed)")
         data["objects"] = sum(1 for _ in setup.manifests.rglob("*.yaml"))
         for index in range(args.repeat):
             data["runs"].append({})
             run_repeat(setup, index, data["runs"][-1])
         finished = True
     finally:
+        note_stop(cluster, data["runs"])
         if args.keep_cluster:
             log(f"cluster kept: KUBECONFIG={cluster.kubeconfig}; stop it with local_cluster_state=absent and -e '{cluster.vars}'")
         else:
