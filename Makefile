@@ -37,9 +37,11 @@ demo: cluster
 
 ## The example application as real pods on real kubelets (inventories/real-pods: a robot, two edge servers and a
 ## cloud VM as network-namespace nodes on this machine; as root; docs/real-nodes.md), the controller, and the
-## robot's simulated hardware until it has done CYCLES pick cycles.
+## robot's simulated hardware until it has done CYCLES pick cycles. The programs and the images are built before
+## Ansible starts, where their builds print progress lines.
 demo-real: setup
 	$(MAKE) binaries WITH_NODES=1
+	PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.local_images build
 	$(VENV)/ansible-playbook playbooks/local_cluster.yml -i $(REAL)
 	$(VENV)/ansible-playbook playbooks/deploy.yml -i $(REAL) -e rosdeployment_file=$(SPEC)
 	$(VENV)/ansible-playbook playbooks/controller.yml -i $(REAL)

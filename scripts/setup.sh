@@ -12,17 +12,25 @@ command -v "$PYTHON" >/dev/null 2>&1 || PYTHON=python3
   exit 1
 }
 
+# Long steps print a line every 30 s (KUBEROS_PROGRESS_INTERVAL) and their time when they end.
+# shellcheck source=SCRIPTDIR/../roles/local_cluster/files/progress.sh
+source roles/local_cluster/files/progress.sh
+
+# Installs the requirements file $1 (what they are: $2) into .venv.
+pip_install() {
+  echo "setup: installing $2 ($1)"
+  with_progress "installing $1" -- .venv/bin/python -m pip install --quiet --progress-bar off -r "$1"
+}
+
 stamp=.venv/.requirements.sha256
 want=$(cat requirements.txt requirements-ros.txt requirements-sim.txt | sha256sum | cut -d' ' -f1)
 if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
-  echo "setup: installing Python dependencies into .venv (first time: a few minutes)"
-  "$PYTHON" -m venv .venv
-  .venv/bin/python -m pip install --quiet --upgrade pip
-  .venv/bin/python -m pip install --quiet --progress-bar off -r requirements.txt
-  echo "setup: installing ROS 2 (rclpy, Fast DDS) wheels for the discovery tests"
-  .venv/bin/python -m pip install --quiet --progress-bar off -r requirements-ros.txt
-  echo "setup: installing the simulator's wheels (PyBullet, OMPL, toppra, matplotlib)"
-  .venv/bin/python -m pip install --quiet --progress-bar off -r requirements-sim.txt
+  echo "setup: installing Python dependencies into .venv (first time: a few minutes, much longer on a busy machine)"
+  with_progress "creating .venv" -- "$PYTHON" -m venv .venv
+  with_progress "upgrading pip" -- .venv/bin/python -m pip install --quiet --upgrade pip
+  pip_install requirements.txt "Ansible, the Kubernetes client and the test tools"
+  pip_install requirements-ros.txt "ROS 2 (rclpy, Fast DDS) wheels for the discovery tests"
+  pip_install requirements-sim.txt "the simulator's wheels (PyBullet, OMPL, toppra, matplotlib)"
   echo "$want" > "$stamp"
 fi
 
@@ -45,7 +53,8 @@ done
 if [ ${#missing[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "setup: installing ${missing[*]} (network namespace and latency probe tests)"
-    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}" >/dev/null; } ||
+    with_progress "installing ${#missing[@]} Debian packages with apt-get" -- \
+      bash -c 'apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null' apt "${missing[@]}" ||
       echo "setup: could not install ${missing[*]}; the tests that need them will be skipped" >&2
   else
     echo "setup: ${missing[*]} missing and not root with apt-get; the tests that need them will be skipped" >&2

@@ -86,6 +86,7 @@ import shutil
 import subprocess
 import sys
 import tarfile
+import threading
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_environment
@@ -179,6 +180,26 @@ def _run(command: list[str], *, timeout: float = BUILD_TIMEOUT, env: dict | None
     if done.returncode != 0:
         raise ImageBuildError(f"{what or command[0]} failed (exit {done.returncode}): {' '.join(command)}\n{output[-4000:]}")
     return output
+
+
+@contextlib.contextmanager
+def _progress(log, what: str):
+    """Log "still <what> ... 1m30s elapsed" every KUBEROS_PROGRESS_INTERVAL seconds (30) while the block runs."""
+    interval = float(os.environ.get("KUBEROS_PROGRESS_INTERVAL") or 30)
+    started, stop = time.monotonic(), threading.Event()
+
+    def tick() -> None:
+        while not stop.wait(interval):
+            elapsed = int(time.monotonic() - started)
+            log(f"local images:   still {what} ... {elapsed // 60}m{elapsed % 60:02d}s elapsed")
+
+    ticker = threading.Thread(target=tick, name=f"progress of {what}", daemon=True)
+    ticker.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        ticker.join()
 
 
 def _sha256(*parts: str | bytes) -> str:
@@ -423,10 +444,11 @@ def _build_base(images: str, key: str, lines: list[str], python: str, python_ver
 
     step = time.monotonic()
     log(f"local images: debootstrap {DEBIAN_SUITE} ({', '.join(DEBIAN_PACKAGES)}) from {DEBIAN_MIRROR}")
-    _run(
-        ["debootstrap", "--variant=minbase", f"--include={','.join(DEBIAN_PACKAGES)}", DEBIAN_SUITE, rootfs, DEBIAN_MIRROR],
-        what="debootstrap",
-    )
+    with _progress(log, f"debootstrap {DEBIAN_SUITE}"):
+        _run(
+            ["debootstrap", "--variant=minbase", f"--include={','.join(DEBIAN_PACKAGES)}", DEBIAN_SUITE, rootfs, DEBIAN_MIRROR],
+            what="debootstrap",
+        )
     log(f"local images: debootstrap done in {time.monotonic() - step:.0f}s")
     chroot_env = {"PATH": "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin", "LANG": "C.UTF-8", "HOME": "/root"}
     image_python = _chroot(rootfs, ["python3", "-c", "import sys; print('%d.%d' % sys.version_info[:2])"], chroot_env).strip()
@@ -440,13 +462,14 @@ def _build_base(images: str, key: str, lines: list[str], python: str, python_ver
     with open(requirements, "w", encoding="utf-8") as handle:
         handle.write("\n".join(lines) + "\n")
     log(f"local images: pip install {len(lines)} pinned distributions into {VENV}")
-    _run(
-        [
-            python, "-m", "pip", "install", "--quiet", "--no-deps", "--ignore-installed", "--no-compile",
-            "--no-warn-script-location", "--disable-pip-version-check", "--prefix", prefix, "-r", requirements,
-        ],
-        what="pip install into the image",
-    )  # fmt: skip
+    with _progress(log, f"installing {len(lines)} distributions into {VENV}"):
+        _run(
+            [
+                python, "-m", "pip", "install", "--quiet", "--no-deps", "--ignore-installed", "--no-compile",
+                "--no-warn-script-location", "--disable-pip-version-check", "--prefix", prefix, "-r", requirements,
+            ],
+            what="pip install into the image",
+        )  # fmt: skip
     fixed = _fix_shebangs(os.path.join(prefix, "bin"))
     log(f"local images: pip done in {time.monotonic() - step:.0f}s ({fixed} scripts pointed at {VENV}/bin/python3)")
 
@@ -457,7 +480,8 @@ def _build_base(images: str, key: str, lines: list[str], python: str, python_ver
     # image's paths. Unchecked-hash pycs: the layer's tar rounds mtimes to the second (timestamp pycs would be
     # stale for half the files), and the image's sources never change. Test directories are not imported.
     compile_options = ["-q", "-j", "0", "--invalidation-mode", "unchecked-hash", "-x", r"/tests?/", "-s", rootfs, "-p", "/"]
-    _run([python, "-m", "compileall", *compile_options, site_packages], what="byte-compiling the venv")
+    with _progress(log, "byte-compiling the venv"):
+        _run([python, "-m", "compileall", *compile_options, site_packages], what="byte-compiling the venv")
     log(f"local images: byte-compiled in {time.monotonic() - step:.0f}s")
 
     env = _image_environment(rootfs)
@@ -465,7 +489,8 @@ def _build_base(images: str, key: str, lines: list[str], python: str, python_ver
     log(f"local images: rootfs is {_mib(_size(rootfs))}; packing it (umoci repack)")
 
     step = time.monotonic()
-    _run(["umoci", "repack", "--image", f"{layout}:base", "--history.created_by", f"kuberos local_images base {key}", bundle])
+    with _progress(log, "packing the rootfs"):
+        _run(["umoci", "repack", "--image", f"{layout}:base", "--history.created_by", f"kuberos local_images base {key}", bundle])
     config = ["umoci", "config", "--image", f"{layout}:base", "--config.workingdir", APP_DIR]
     for name, value in env.items():
         config += ["--config.env", f"{name}={value}"]
@@ -817,7 +842,8 @@ def import_images(
         if current and current["digest"] == digest and current["unpacked"]:
             continue
         started = time.monotonic()
-        _run([*command, "images", "import", "--snapshotter", snapshotter, archive], what="ctr images import")
+        with _progress(log, f"importing {reference} into {address}"):
+            _run([*command, "images", "import", "--snapshotter", snapshotter, archive], what="ctr images import")
         if _qualified(name) != reference:
             _run([*command, "images", "tag", "--force", _qualified(name), reference], what="ctr images tag")
         done.append(f"imported {reference} ({digest}) from {archive} in {time.monotonic() - started:.1f}s")

@@ -8,9 +8,12 @@
 #   ${KUBEROS_CACHE_DIR:-$HOME/.cache/kuberos}/bin/<program>-<version>
 # The Go module cache and build cache live under the same directory
 # (go/mod, go/build), so CI can cache one directory. Run `--help` for options.
+# Every long step prints a line at least every 30 s (KUBEROS_PROGRESS_INTERVAL) and its time when it ends.
 set -euo pipefail
 
 SCRIPT_NAME=$(basename "$0")
+# shellcheck source=SCRIPTDIR/progress.sh
+source "$(dirname "${BASH_SOURCE[0]}")/progress.sh"
 
 usage() {
   cat <<EOF
@@ -38,6 +41,7 @@ Environment (defaults in brackets):
                        (the real-node tier of the local cluster, docs/real-nodes.md)
   KUBEROS_CACHE_DIR    cache root                  [\$HOME/.cache/kuberos]
   KUBEROS_BUILD_JOBS   go build -p value                      [2]
+  KUBEROS_PROGRESS_INTERVAL  seconds between progress lines of a long step [30]
   GO                   go command                 [go on PATH, else /usr/local/go/bin/go]
   GOPROXY, GOSUMDB, GOTOOLCHAIN are honoured (GOTOOLCHAIN defaults to local).
 
@@ -166,7 +170,7 @@ cd "$WORK_DIR"                          # never run go inside some other module
 # One build at a time per cache directory.
 if command -v flock >/dev/null 2>&1; then
   exec 9>"$CACHE_DIR/.build.lock"
-  flock -n 9 || { log "another build holds $CACHE_DIR/.build.lock; waiting"; flock 9; }
+  flock -n 9 || with_progress "waiting for another build to release $CACHE_DIR/.build.lock" -- flock 9
 fi
 
 STEP="starting"
@@ -214,6 +218,30 @@ run_logged() {
   return "$rc"
 }
 downloads_in() { local n; n=$(grep -c '^go: downloading' "$1" || true); echo "${n:-0} modules downloaded"; }
+in_dir() { local dir=$1; shift; (cd "$dir" && "$@"); }
+
+# The progress of a go build -v writing to $BUILD_LOG: packages compiled so far (of $PACKAGES_TOTAL, the
+# packages `go list -deps` found, when known; fewer are compiled when the Go build cache has the others).
+BUILD_LOG=/dev/null
+PACKAGES_TOTAL=""
+packages_compiled() {
+  local n
+  n=$(grep -vc '^go: ' "$BUILD_LOG" 2>/dev/null || true)
+  echo "${n:-0}${PACKAGES_TOTAL:+ of $PACKAGES_TOTAL} packages compiled"
+}
+packages_in() { grep -vc '^go: ' "$1" || true; }
+
+# How long a step takes with cold caches on 2 free cores, as measured (docs/local-cluster.md); shown with its
+# progress lines. Other work on the machine makes it much longer.
+about() {
+  local when="on 2 free cores with cold caches"
+  case $1 in
+    kubernetes) if [[ $2 == "kube-apiserver kube-controller-manager kube-scheduler" ]]; then echo "about 6 min $when"; fi ;;
+    etcd) echo "about 40 s $when" ;;
+    kwok) echo "about 1.5 min $when" ;;
+    coredns) echo "about 2 min $when" ;;
+  esac
+}
 
 wanted() { local p; for p in "${TODO[@]}"; do [[ $p == "$1" ]] && return 0; done; return 1; }
 
@@ -272,7 +300,7 @@ build_kubernetes() {
 
   STEP="downloading modules for ${todo[*]} $KUBERNETES_VERSION"
   log "$STEP..."
-  (cd "$wrap" && run_logged "$wrap.download.log" "$GO" list -mod=mod -deps -tags "$tags" "${pkgs[@]}") \
+  with_progress "$STEP" -- in_dir "$wrap" run_logged "$wrap.download.log" "$GO" list -mod=mod -deps -tags "$tags" "${pkgs[@]}" \
     || die "module download/resolution failed for k8s.io/kubernetes $KUBERNETES_VERSION (log: $wrap.download.log)"
   log "modules ready ($(downloads_in "$wrap.download.log"))"
   record_time "kubernetes modules (resolve+download)" $((SECONDS - t0))
@@ -294,12 +322,13 @@ build_kubernetes() {
   first=$(index_of "${todo[0]}"); last=$(index_of "${todo[-1]}")
   STEP="building ${todo[*]} $KUBERNETES_VERSION"
   log "building ${todo[*]} $KUBERNETES_VERSION ($first-$last/$TOTAL, one go build)..."
-  (cd "$wrap" && "$GO" build -mod=mod -p "$BUILD_JOBS" -trimpath -tags "$tags" \
-      -ldflags "$ldflags" -o "$out/" "${pkgs[@]}") \
-    || die "go build failed for ${todo[*]} $KUBERNETES_VERSION"
+  BUILD_LOG="$wrap.build.log" PACKAGES_TOTAL=$(packages_in "$wrap.download.log")
+  with_progress --about "$(about kubernetes "${todo[*]}")" --status packages_compiled "$STEP" -- \
+      in_dir "$wrap" run_logged "$BUILD_LOG" "$GO" build -v -mod=mod -p "$BUILD_JOBS" -trimpath -tags "$tags" \
+      -ldflags "$ldflags" -o "$out/" "${pkgs[@]}" \
+    || die "go build failed for ${todo[*]} $KUBERNETES_VERSION (log: $BUILD_LOG)"
   for p in "${todo[@]}"; do install_binary "$p" "$out/$p"; done
   record_time "kubernetes build (${todo[*]})" $((SECONDS - t1))
-  log "built ${todo[*]} $KUBERNETES_VERSION in $(fmt_secs $((SECONDS - t1))) (plus $(fmt_secs $((t1 - t0))) resolving/downloading)"
 }
 
 # --- etcd ----------------------------------------------------------------------
@@ -320,7 +349,7 @@ build_etcd() {
   mv -f "$wrap/go.mod.new" "$wrap/go.mod"
   STEP="downloading modules for etcd $ETCD_VERSION"
   log "$STEP..."
-  (cd "$wrap" && run_logged "$wrap.download.log" "$GO" list -mod=mod -deps "$mod") \
+  with_progress "$STEP" -- in_dir "$wrap" run_logged "$wrap.download.log" "$GO" list -mod=mod -deps "$mod" \
     || die "module download/resolution failed for etcd $ETCD_VERSION (log: $wrap.download.log)"
   log "modules ready ($(downloads_in "$wrap.download.log"))"
   record_time "etcd modules (resolve+download)" $((SECONDS - t0))
@@ -329,11 +358,13 @@ build_etcd() {
   out=$(mktemp -d "$BIN_DIR/.build-etcd.XXXXXX"); TMP_DIRS+=("$out")
   STEP="building etcd $ETCD_VERSION"
   log "building etcd $ETCD_VERSION ($(index_of etcd)/$TOTAL)..."
-  (cd "$wrap" && "$GO" build -mod=mod -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" -o "$out/etcd" "$mod") \
-    || die "go build failed for etcd $ETCD_VERSION"
+  BUILD_LOG="$wrap.build.log" PACKAGES_TOTAL=$(packages_in "$wrap.download.log")
+  with_progress --about "$(about etcd)" --status packages_compiled "$STEP" -- \
+      in_dir "$wrap" run_logged "$BUILD_LOG" "$GO" build -v -mod=mod -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" \
+      -o "$out/etcd" "$mod" \
+    || die "go build failed for etcd $ETCD_VERSION (log: $BUILD_LOG)"
   install_binary etcd "$out/etcd"
   record_time "etcd build" $((SECONDS - t1))
-  log "built etcd $ETCD_VERSION in $(fmt_secs $((SECONDS - t1))) (plus $(fmt_secs $((t1 - t0))) resolving/downloading)"
 }
 
 # --- kwok ----------------------------------------------------------------------
@@ -345,13 +376,14 @@ build_kwok() {
   STEP="building kwok $KWOK_VERSION"
   log "building kwok $KWOK_VERSION ($(index_of kwok)/$TOTAL, go install, download included)..."
   # go install pkg@version uses kwok's own go.mod (it has no replace directives).
-  local logfile="$WORK_DIR/kwok-$KWOK_VERSION.log"
-  run_logged "$logfile" env GOBIN="$out" "$GO" install -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" \
+  BUILD_LOG="$WORK_DIR/kwok-$KWOK_VERSION.log" PACKAGES_TOTAL=""
+  with_progress --about "$(about kwok)" --status packages_compiled "$STEP" -- \
+      run_logged "$BUILD_LOG" env GOBIN="$out" "$GO" install -v -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" \
       "sigs.k8s.io/kwok/cmd/kwok@$KWOK_VERSION" \
-    || die "go install failed for sigs.k8s.io/kwok/cmd/kwok@$KWOK_VERSION (log: $logfile)"
+    || die "go install failed for sigs.k8s.io/kwok/cmd/kwok@$KWOK_VERSION (log: $BUILD_LOG)"
   install_binary kwok "$out/kwok"
   record_time "kwok (download+build)" $((SECONDS - t0))
-  log "built kwok $KWOK_VERSION in $(fmt_secs $((SECONDS - t0))) ($(downloads_in "$logfile"))"
+  log "kwok: $(downloads_in "$BUILD_LOG")"
 }
 
 # --- CoreDNS -------------------------------------------------------------------
@@ -395,18 +427,21 @@ func main() { coremain.Run() }
 GO
   STEP="downloading modules for CoreDNS $COREDNS_VERSION"
   log "$STEP..."
-  (cd "$wrap" && run_logged "$wrap.download.log" "$GO" mod tidy) \
+  with_progress "$STEP" -- in_dir "$wrap" run_logged "$wrap.download.log" "$GO" mod tidy \
     || die "module download/resolution failed for CoreDNS $COREDNS_VERSION (log: $wrap.download.log)"
   log "modules ready ($(downloads_in "$wrap.download.log"))"
+  record_time "coredns modules (resolve+download)" $((SECONDS - t0))
   local t1=$SECONDS out
   out=$(mktemp -d "$BIN_DIR/.build-coredns.XXXXXX"); TMP_DIRS+=("$out")
   STEP="building CoreDNS $COREDNS_VERSION"
   log "building CoreDNS $COREDNS_VERSION ($(index_of coredns)/$TOTAL)..."
-  (cd "$wrap" && "$GO" build -mod=mod -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" -o "$out/coredns" .) \
-    || die "go build failed for CoreDNS $COREDNS_VERSION"
+  BUILD_LOG="$wrap.build.log" PACKAGES_TOTAL=""
+  with_progress --about "$(about coredns)" --status packages_compiled "$STEP" -- \
+      in_dir "$wrap" run_logged "$BUILD_LOG" "$GO" build -v -mod=mod -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" \
+      -o "$out/coredns" . \
+    || die "go build failed for CoreDNS $COREDNS_VERSION (log: $BUILD_LOG)"
   install_binary coredns "$out/coredns"
   record_time "coredns build" $((SECONDS - t1))
-  log "built CoreDNS $COREDNS_VERSION in $(fmt_secs $((SECONDS - t1))) (plus $(fmt_secs $((t1 - t0))) resolving/downloading)"
 }
 
 build_kubernetes
