@@ -59,22 +59,13 @@ def venv_tool(name: str) -> str:
 
 @functools.cache
 def inventory_raw(path: str = "inventories/local") -> dict:
-    """Read an inventory with Ansible's own inventory manager, then the fleet_inventory filter."""
-    from ansible.inventory.manager import InventoryManager
-    from ansible.parsing.dataloader import DataLoader
-    from ansible.vars.manager import VariableManager
+    """Read an inventory with Ansible's own inventory command, then the core (as the simulator does)."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.ansible_inventory import read_inventory
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 
-    from ansible_collections.kuberos.platform.plugins.filter.fleet_inventory import fleet_inventory
-
-    loader = DataLoader()
-    manager = InventoryManager(loader=loader, sources=[os.path.join(ROOT, path)])
-    variables = VariableManager(loader=loader, inventory=manager)
-    groups = {name: [h.name for h in group.get_hosts()] for name, group in manager.groups.items()}
-    hostvars = {}
-    for host in manager.get_hosts():
-        values = variables.get_vars(host=host, include_hostvars=False)
-        hostvars[host.name] = {k: v for k, v in values.items() if k.startswith("kuberos_")}
-    return fleet_inventory(groups, hostvars)
+    raw = read_inventory(os.path.join(ROOT, path))
+    load_inventory(raw, source=path)
+    return raw
 
 
 def playbook(name, *extra, inventory="inventories/local", timeout=1800):

@@ -1,6 +1,6 @@
 # Copyright: KubeROS contributors
 # GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
-"""Calico's objects: a thin adapter over module_utils/kuberos/calico.py."""
+"""Calico's objects: a thin adapter over module_utils/kuberos_cluster/calico.py."""
 
 from __future__ import annotations
 
@@ -90,7 +90,7 @@ _value:
   elements: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.calico import calico_objects, settings_from
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.calico import calico_objects, settings_from
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 

@@ -1,6 +1,6 @@
 # Copyright: KubeROS contributors
 # GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
-"""Node objects from the inventory: a thin adapter over module_utils/kuberos/cluster_nodes.py."""
+"""Node objects from the inventory: a thin adapter over module_utils/kuberos_cluster/cluster_nodes.py."""
 
 from __future__ import annotations
 
@@ -46,8 +46,8 @@ _value:
   elements: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import cluster_nodes as build_nodes
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cluster_nodes import cluster_nodes as build_nodes
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 

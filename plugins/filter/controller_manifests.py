@@ -1,4 +1,4 @@
-"""The in-cluster KubeROS controller's objects: a thin adapter over module_utils/kuberos/controller_manifests.py."""
+"""The in-cluster KubeROS controller's objects: a thin adapter over module_utils/kuberos_controller/manifests.py."""
 
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ _value:
   elements: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controller_manifests import controller_objects
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import controller_objects
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 

@@ -39,28 +39,14 @@ _value:
   type: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import (
-    CLUSTERS_GROUP,
-    HOST_VARS,
-    TIER_GROUPS,
-    load_inventory,
-)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory, raw_inventory
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import plain
 
 
 @reports_kuberos_errors
 def fleet_inventory(groups, hostvars):
-    members = {group: sorted(groups.get(group, [])) for group in TIER_GROUPS}
-    if groups.get(CLUSTERS_GROUP):
-        members[CLUSTERS_GROUP] = sorted(groups[CLUSTERS_GROUP])
-    hosts = {}
-    defaults = {}
-    for host in sorted({h for names in members.values() for h in names}):
-        host_vars = hostvars[host]
-        hosts[host] = {key: plain(host_vars[key]) for key in HOST_VARS if key in host_vars}
-        defaults = hosts[host].pop("kuberos_default_latency_ms", defaults) or defaults
-    raw = {"hosts": hosts, "groups": members, "default_latency_ms": defaults}
+    raw = plain(raw_inventory(groups, hostvars))
     load_inventory(raw)  # validates: every problem named by host and variable
     return raw
 

@@ -1,6 +1,6 @@
 # Copyright: KubeROS contributors
 # GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
-"""The kubeadm configuration of one host: a thin adapter over module_utils/kuberos/kubeadm_config.py."""
+"""The kubeadm configuration of one host: a thin adapter over module_utils/kuberos_cluster/kubeadm_config.py."""
 
 from __future__ import annotations
 
@@ -138,9 +138,9 @@ _value:
       type: str
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import kubeadm_config as core
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster import kubeadm_config as core
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import host_address, plain
 

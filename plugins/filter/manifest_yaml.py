@@ -36,7 +36,7 @@ _value:
 
 import json
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import dump_object
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
 
 
 def manifest_yaml(objects):

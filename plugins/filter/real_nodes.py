@@ -1,6 +1,6 @@
 # Copyright: KubeROS contributors
 # GNU General Public License v3.0+ (see https://www.gnu.org/licenses/gpl-3.0.txt)
-"""The local cluster's real nodes: a thin adapter over module_utils/kuberos/cluster_nodes.py."""
+"""The local cluster's real nodes: a thin adapter over module_utils/kuberos_cluster/cluster_nodes.py."""
 
 from __future__ import annotations
 
@@ -38,9 +38,9 @@ _value:
   type: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import real_node_names
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import real_nodes as plan
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cluster_nodes import real_node_names
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cluster_nodes import real_nodes as plan
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import plain
 

@@ -33,8 +33,8 @@ _value:
   elements: dict
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import robot_taints as build_taints
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cluster_nodes import robot_taints as build_taints
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 

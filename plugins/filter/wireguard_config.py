@@ -78,7 +78,7 @@ _value:
   type: str
 """
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.vpn import build_vpn, wg_quick_config
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.vpn import build_vpn, wg_quick_config
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 
 

@@ -43,14 +43,15 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     MODULE,
     bridge_secret_name,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantities import parse_cpu, parse_memory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name, record_placement
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import RenderDirError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement, place_modules
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployments, name_clash_problems
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import compare, deploy_table
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
+from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
 from ansible_collections.kuberos.platform.plugins.module_utils.render_pass import render_to_dir
-from ansible_collections.kuberos.platform.plugins.module_utils.status_table import compare, status_table
 
 APPLY_TYPE = "application/apply-patch+yaml"
 REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid, forbidden by a policy, a conflict)
@@ -479,7 +480,7 @@ class DeployPass:
                 break
             time.sleep(0.5)
         self._lap("wait")
-        return {"rows": rows, "ready": ready, "table": status_table(rows)}
+        return {"rows": rows, "ready": ready, "table": deploy_table(rows)}
 
     # --- undeploy ----------------------------------------------------------------------------------------------------
 

@@ -8,8 +8,6 @@ authenticate with certificates, anonymous access is off.
 
 from __future__ import annotations
 
-import datetime
-import ipaddress
 import json
 import os
 import signal
@@ -20,20 +18,11 @@ from dataclasses import dataclass, field
 
 from ansible.module_utils.urls import open_url
 
+from ansible_collections.kuberos.platform.plugins.module_utils import pki
 from ansible_collections.kuberos.platform.plugins.module_utils.background_process import alive
 
 COMPONENTS = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler", "kwok")
 SERVICE_CIDR = "10.96.0.0/16"
-
-
-def _write_private_key(path: str, private) -> None:
-    from cryptography.hazmat.primitives import serialization
-
-    with open(path, "wb") as handle:
-        os.fchmod(handle.fileno(), 0o600)
-        handle.write(
-            private.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption())
-        )
 
 
 @dataclass
@@ -71,42 +60,14 @@ class LocalControlPlane:
     def issue_certificate(self, name: str, cn: str, org: str | None = None, server: bool = False) -> None:
         """``pki/<name>.crt`` and ``.key`` signed by the cluster CA: a client certificate (CN is the user, O the
         group), or the API server's serving certificate."""
-        from cryptography import x509
-        from cryptography.hazmat.primitives import hashes, serialization
-        from cryptography.hazmat.primitives.asymmetric import ec
-        from cryptography.x509.oid import NameOID
-
-        pki = self.path("pki")
-        with open(os.path.join(pki, "ca.key"), "rb") as handle:
-            ca_key = serialization.load_pem_private_key(handle.read(), password=None)
-        with open(os.path.join(pki, "ca.crt"), "rb") as handle:
-            ca = x509.load_pem_x509_certificate(handle.read())
-        attrs = [x509.NameAttribute(NameOID.COMMON_NAME, cn)]
-        if org:
-            attrs.append(x509.NameAttribute(NameOID.ORGANIZATION_NAME, org))
-        now = datetime.datetime.now(datetime.UTC)
-        leaf_key = ec.generate_private_key(ec.SECP256R1())
-        builder = (
-            x509.CertificateBuilder()
-            .subject_name(x509.Name(attrs))
-            .issuer_name(ca.subject)
-            .public_key(leaf_key.public_key())
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(now - datetime.timedelta(minutes=5))
-            .not_valid_after(now + datetime.timedelta(days=365))
-            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-        )
-        if server:
-            sans = [x509.DNSName(n) for n in ("localhost", "kubernetes", "kubernetes.default", "kubernetes.default.svc")]
-            sans += [x509.IPAddress(ipaddress.ip_address(a)) for a in ("127.0.0.1", "10.96.0.1")]
-            builder = builder.add_extension(x509.SubjectAlternativeName(sans), critical=False).add_extension(
-                x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.SERVER_AUTH]), critical=False
-            )
-        else:
-            builder = builder.add_extension(x509.ExtendedKeyUsage([x509.oid.ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False)
-        _write_private_key(os.path.join(pki, f"{name}.key"), leaf_key)
-        with open(os.path.join(pki, f"{name}.crt"), "wb") as handle:
-            handle.write(builder.sign(ca_key, hashes.SHA256()).public_bytes(serialization.Encoding.PEM))
+        ca, ca_key = pki.load_ca(self.path("pki", "ca.crt"), self.path("pki", "ca.key"))
+        alt_names = ("localhost", "kubernetes", "kubernetes.default", "kubernetes.default.svc", "127.0.0.1", "10.96.0.1")
+        cert, key = pki.issue(
+            ca, ca_key, cn, usage=pki.SERVER if server else pki.CLIENT, days=365, organization=org,
+            alt_names=alt_names if server else (),
+        )  # fmt: skip
+        pki.write_pem(self.path("pki", f"{name}.key"), key)
+        pki.write_pem(self.path("pki", f"{name}.crt"), cert)
 
     def ensure_certificate(self, name: str, cn: str, org: str | None = None, server: str | None = None) -> str:
         """A client certificate, made once, and a kubeconfig for it (``<name>.kubeconfig``, reaching the API
@@ -118,49 +79,15 @@ class LocalControlPlane:
 
     def ensure_pki(self) -> bool:
         """CA, serving and client certificates, service-account keys and kubeconfigs; True if created."""
-        from cryptography import x509
-        from cryptography.hazmat.primitives import hashes, serialization
-        from cryptography.hazmat.primitives.asymmetric import ec, rsa
-        from cryptography.x509.oid import NameOID
+        from cryptography.hazmat.primitives.asymmetric import rsa
 
-        pki = self.path("pki")
-        if os.path.exists(os.path.join(pki, "done")):
+        pki_dir = self.path("pki")
+        if os.path.exists(os.path.join(pki_dir, "done")):
             return False
-        os.makedirs(pki, mode=0o700, exist_ok=True)
-        now = datetime.datetime.now(datetime.UTC)
-
-        def key():
-            return ec.generate_private_key(ec.SECP256R1())
-
-        def write_key(name, private):
-            _write_private_key(os.path.join(pki, name), private)
-
-        def write_cert(name, cert):
-            with open(os.path.join(pki, name), "wb") as handle:
-                handle.write(cert.public_bytes(serialization.Encoding.PEM))
-
-        def name_of(cn, org=None):
-            attrs = [x509.NameAttribute(NameOID.COMMON_NAME, cn)]
-            if org:
-                attrs.append(x509.NameAttribute(NameOID.ORGANIZATION_NAME, org))
-            return x509.Name(attrs)
-
-        ca_key = key()
-        ca_name = name_of("kuberos-local-ca")
-        ca = (
-            x509.CertificateBuilder()
-            .subject_name(ca_name)
-            .issuer_name(ca_name)
-            .public_key(ca_key.public_key())
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(now - datetime.timedelta(minutes=5))
-            .not_valid_after(now + datetime.timedelta(days=3650))
-            .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
-            .add_extension(x509.KeyUsage(True, False, False, False, False, True, True, False, False), critical=True)
-            .sign(ca_key, hashes.SHA256())
-        )
-        write_key("ca.key", ca_key)
-        write_cert("ca.crt", ca)
+        os.makedirs(pki_dir, mode=0o700, exist_ok=True)
+        ca, ca_key = pki.new_ca("kuberos-local-ca", days=3650)
+        pki.write_pem(os.path.join(pki_dir, "ca.key"), ca_key)
+        pki.write_pem(os.path.join(pki_dir, "ca.crt"), ca)
 
         self.issue_certificate("apiserver", "kube-apiserver", server=True)
         self.issue_certificate("admin", "kuberos-admin", "system:masters")
@@ -170,15 +97,12 @@ class LocalControlPlane:
         # The API server's client certificate towards kubelets (logs, exec, port-forward on real nodes).
         self.issue_certificate("apiserver-kubelet-client", "kube-apiserver-kubelet-client", "system:masters")
         sa_key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
-        write_key("sa.key", sa_key)
-        with open(os.path.join(pki, "sa.pub"), "wb") as handle:
-            handle.write(
-                sa_key.public_key().public_bytes(serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo)
-            )
+        pki.write_pem(os.path.join(pki_dir, "sa.key"), sa_key)
+        pki.write_pem(os.path.join(pki_dir, "sa.pub"), sa_key.public_key())
         for user in ("admin", "controller-manager", "scheduler", "kwok"):
             target = self.kubeconfig if user == "admin" else self.path(f"{user}.kubeconfig")
             self._write_kubeconfig(target, user)
-        with open(os.path.join(pki, "done"), "w", encoding="utf-8") as handle:
+        with open(os.path.join(pki_dir, "done"), "w", encoding="utf-8") as handle:
             handle.write("ok\n")
         self.log.append("generated certificates and kubeconfigs")
         return True

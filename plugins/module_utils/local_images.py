@@ -120,7 +120,7 @@ IMAGE_DISTRIBUTIONS = (
     "protobuf",
     "cryptography",
     "PyYAML",
-    # the controller (plugins/module_utils/kuberos_controller.py and the kuberos core)
+    # the controller (plugins/module_utils/kuberos_controller and the kuberos core)
     "kubernetes",
     "jsonschema",
 )

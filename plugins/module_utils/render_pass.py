@@ -12,11 +12,12 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     render_deployment,
     render_remote,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, catalog_configmap
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import apply_plan, plan_render_dir
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement, placement_table
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table
 from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
+from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import apply_plan, plan_render_dir
 
 
 def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[dict]:
@@ -25,9 +26,9 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
     import os
 
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FLEET
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT, DEPLOYMENT, MANAGED_BY
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import dump_object
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
 
     files = []

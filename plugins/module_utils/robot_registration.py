@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import read_text
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.third_party import yaml
+from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import read_text
 
 try:
     import paramiko

@@ -174,9 +174,9 @@ from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import explain
 from ansible_collections.kuberos.platform.plugins.module_utils.deploy_pass import DeployPass
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import RenderDirError
 from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
+from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),

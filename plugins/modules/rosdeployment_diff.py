@@ -127,8 +127,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff impo
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name, record_placement
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 
 WORKERS = 4  # reads and dry runs side by side; the API server does the work

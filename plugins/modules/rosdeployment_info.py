@@ -69,8 +69,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     explain,
     running_modules,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import compare, deploy_table
 from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
-from ansible_collections.kuberos.platform.plugins.module_utils.status_table import compare, status_table
 
 
 def main():
@@ -97,7 +97,7 @@ def main():
             time.sleep(1)
     except Exception as exc:  # connection and configuration problems: one clear line, no traceback
         module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
-    result = {"changed": False, "rows": rows, "table": status_table(rows), "ready": ready}
+    result = {"changed": False, "rows": rows, "table": deploy_table(rows), "ready": ready}
     if module.params["wait_timeout"] and not ready:
         waiting = [f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" for r in rows if not r["ready"]]
         module.fail_json(

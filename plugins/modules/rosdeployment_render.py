@@ -128,11 +128,11 @@ from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import RenderDirError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
 from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
+from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
 from ansible_collections.kuberos.platform.plugins.module_utils.render_pass import render_to_dir
 
 ARGUMENT_SPEC = dict(

@@ -11,7 +11,7 @@ import time
 import pytest
 from helpers import playbook
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.calico import CalicoSettings, calico_objects
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.calico import CalicoSettings, calico_objects
 
 pytestmark = pytest.mark.cluster
 

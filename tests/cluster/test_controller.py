@@ -171,7 +171,7 @@ class Fleet:
 
     def problems(self, allow_stranded=()) -> list[str]:
         """Everything that breaks the invariant now (empty when it holds)."""
-        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import replace_modules
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.replacement import replace_modules
 
         record = self.record()
         placed = self.placed()
@@ -472,7 +472,7 @@ def test_the_in_cluster_rights_are_enough_for_a_move_and_no_more(fleet, tmp_path
     import yaml
     from kubernetes import client
 
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controller_manifests import NAME
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import NAME
 
     def in_cluster(state):
         settings = {

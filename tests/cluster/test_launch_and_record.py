@@ -43,13 +43,13 @@ def _apply(core, body: dict, manager: str = "kuberos"):
 
 
 def test_launch_lines_are_containers_and_the_record_is_bounded(cluster, spec, tmp_path):
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantities import parse_cpu, parse_memory
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
         fingerprint,
         parse_record,
         restrict_placement,
     )
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployments
 
     core, _apps, _discovery = cluster.clients()

@@ -10,7 +10,7 @@ import pytest
 from helpers import TEST_PORTS
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import cluster_nodes
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cluster_nodes import cluster_nodes
 
 pytestmark = pytest.mark.cluster
 

@@ -23,7 +23,7 @@ from cryptography import x509
 from helpers import ROOT, built_kubeadm, venv_tool
 
 from ansible_collections.kuberos.platform.plugins.filter.kubeadm_config import kubeadm_config
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.kubeadm_config import to_yaml
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.kubeadm_config import to_yaml
 
 ENDPOINT = "k8s.site.example:6443"
 HARDWARE = {"kuberos_cpu": 4, "kuberos_memory": "8Gi"}

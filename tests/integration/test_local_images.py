@@ -73,7 +73,7 @@ print("executable", sys.executable)
 
 ENTRY_IMPORTS = """
 import sys
-import ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller
+import ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.cli
 import ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.core
 import ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.ros_side
 import kubernetes.client, grpc, cryptography, yaml, jsonschema
@@ -288,7 +288,7 @@ def test_ros_image_configuration(built, ros_image):
     assert not config["config"].get("Entrypoint") and not config["config"].get("Cmd")
     top = layers[-1]
     assert "opt/kuberos/kuberos_pnp/planner.py" in top
-    assert "opt/kuberos/ansible_collections/kuberos/platform/plugins/module_utils/kuberos_controller.py" in top
+    assert "opt/kuberos/ansible_collections/kuberos/platform/plugins/module_utils/kuberos_controller/controller.py" in top
     assert not [name for name in top if "__pycache__" in name or name.endswith(".pyc")]
 
 

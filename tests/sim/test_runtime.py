@@ -33,9 +33,10 @@ from kuberos_sim.runtime.delays import one_way_delays_ms  # noqa: E402
 from kuberos_sim.runtime.rendered import load_rendered  # noqa: E402
 from test_discovery_netns import LISTENER, TALKER, TOPIC, require_ros  # noqa: E402
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, render_files, service  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils import render_dir  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, service  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError  # noqa: E402
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import placement_table  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table  # noqa: E402
 
 pytestmark = pytest.mark.sim
 
@@ -74,7 +75,7 @@ def render(spec: dict, inventory_raw: dict, directory: str) -> str:
     """Render a spec as the render module does: manifests/ and placement.json under directory."""
     deployments, placement = service.load_and_place(spec, inventory_raw)
     objects = manifests.render_deployment(deployments, placement, manifests.RenderOptions())
-    render_files.apply_plan(render_files.plan_render_dir(directory, objects, placement.to_dict(), placement_table(placement)))
+    render_dir.apply_plan(render_dir.plan_render_dir(directory, objects, placement.to_dict(), placement_table(placement)))
     return directory
 
 

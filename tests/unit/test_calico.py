@@ -10,7 +10,8 @@ import kubernetes_validate
 import pytest
 
 from ansible_collections.kuberos.platform.plugins.filter.calico_manifests import calico_manifests
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.calico import (
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.calico import (
     CALICO_KINDS,
     CalicoSettings,
     calico_objects,
@@ -18,7 +19,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.calico im
     settings_from,
     tolerates,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 
 KUBERNETES_VERSION = "1.34"
 REQUIRED_KINDS = {

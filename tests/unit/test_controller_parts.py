@@ -5,14 +5,15 @@ from __future__ import annotations
 import json
 import threading
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.controller_manifests import (
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.controller import RTT_ANNOTATION, Controller
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import (
     FLEET_RULES,
     LEASE_ROLE,
     LEASE_RULES,
     READ_RULES,
     controller_objects,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import RTT_ANNOTATION, Controller, Store
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store
 
 
 def _node(name, labels=None, annotations=None, ready="True", since="2026-11-22T01:00:00Z"):

@@ -16,7 +16,11 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff impo
     parameter_changes,
     summary_text,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import DiscoveryServer, Instance, Placement
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import (
+    DiscoveryServer,
+    Instance,
+    Placement,
+)
 
 
 def deployment(name="app-planner-fetch-1", image="x/planner:1", env=None, node="edge-1", version=None):

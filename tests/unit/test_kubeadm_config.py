@@ -7,8 +7,8 @@ import yaml
 from ansible.errors import AnsibleFilterError
 
 from ansible_collections.kuberos.platform.plugins.filter.kubeadm_config import kubeadm_config as kubeadm_config_filter
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import kubeadm_config as core
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster import kubeadm_config as core
 
 HARDWARE = {"kuberos_cpu": 4, "kuberos_memory": "8Gi"}
 RAW = {

@@ -7,7 +7,12 @@ from __future__ import annotations
 
 import pytest
 
-from ansible_collections.kuberos.platform.plugins.module_utils.leader_election import LeaderElector, NotLeader, Timings, judge
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.leader_election import (
+    LeaderElector,
+    NotLeader,
+    Timings,
+    judge,
+)
 
 T = Timings(duration_s=6, renew_deadline_s=4, retry_s=1)
 

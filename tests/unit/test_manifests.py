@@ -19,9 +19,10 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     render_deployment,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.render_files import apply_plan, plan_render_dir
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules, placement_table
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table
+from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import apply_plan, plan_render_dir
 
 KUBERNETES_VERSION = "1.34"
 GOLDEN = os.path.join(os.path.dirname(__file__), "golden")

@@ -8,11 +8,11 @@ from hypothesis import strategies as st
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import PlacementError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import (
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import (
     DISCOVERY_CPU_MILLIS,
     DISCOVERY_MEMORY_BYTES,
-    place_modules,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployments, parse_rosdeployment
 
 DEVICES = ["camera", "lidar", "gripper"]

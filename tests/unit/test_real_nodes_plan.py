@@ -9,14 +9,14 @@ from helpers import inventory_raw
 
 from ansible_collections.kuberos.platform.plugins.module_utils import delay_fabric
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.cluster_nodes import (
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cluster_nodes import (
     cluster_nodes,
     real_node_names,
     real_nodes,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.link_delays import rtt_ms
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.link_delays import rtt_ms
 
 
 def test_the_real_pods_site_is_four_real_nodes_with_labels_taints_and_delays():

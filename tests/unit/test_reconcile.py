@@ -19,11 +19,11 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile
     Settings,
     decide,
     status_rows,
-    status_table,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, pack_text, parse_record
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import replace_modules
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.replacement import replace_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_and_place
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import controller_table
 
 SPEC = "examples/pick-and-place.yml"
 
@@ -241,7 +241,7 @@ def test_status_rows_and_table(record):
     assert by[("fetch-1", "perception")]["phase"] == "Running"
     assert by[("fetch-2", "controller")]["phase"] == "Stranded"
     assert by[("fetch-2", "perception")]["phase"] == "Missing"
-    table = status_table("pick-and-place", rows)
+    table = controller_table("pick-and-place", rows)
     assert "from edge-9: node edge-9 is NotReady" in table and "robot down" in table
 
 

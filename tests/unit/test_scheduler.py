@@ -6,12 +6,10 @@ import pytest
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import PlacementError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import (
-    Placement,
-    place_modules,
-    placement_table,
-)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import parse_rosdeployment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table
 
 
 def site(robots=2, edge=2, cloud=2, edge_cpu=8, cloud_cpu=16, cloud_gpu=1, fleet="f", **extra_hosts):

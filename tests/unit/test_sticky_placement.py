@@ -11,7 +11,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     discovery_from_deployments,
     render_deployment,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Placement, place_modules
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
 
 PNP = "examples/pick-and-place.yml"

@@ -138,7 +138,7 @@ def test_a_cluster_the_inventory_does_not_offer_is_a_clear_error(raw, spec_data,
 
 
 def test_the_controller_leaves_modules_of_a_third_party_cluster_to_that_cluster(raw, root):
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import replace_modules
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.replacement import replace_modules
 
     deployments, placement = load_and_place(f"{root}/{SPEC}", raw)
     result = replace_modules(deployments, load_inventory(raw), placement, unavailable={"edge-1": "down", "edge-2": "down"})

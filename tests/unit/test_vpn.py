@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.vpn import build_vpn, wg_quick_config
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.vpn import build_vpn, wg_quick_config
 
 KEYS = {
     "edge-1": "Ej8k9GLVGs4akKTXsu7XF60Qj95y6GfVkshIMlYy2Q0=",

@@ -44,11 +44,10 @@ from .validation import (
     schema_problems,
     strict_validator,
 )
-from .yaml_source import MAX_DEPTH, MAX_NODES, Document, format_path, load_documents, read_text
+from .yaml_source import MAX_DEPTH, MAX_NODES, Document, format_path, load_documents, path_exists, read_text, yaml_files
 
 CATALOG_KIND = "RosModuleCatalog"
 DEFAULT_DIRECTORY = "catalog"  # inside the inventory: inventories/<site>/catalog/
-EXTENSIONS = (".yml", ".yaml")
 MAX_FILES = 1000
 DIGEST = r"^(sha256:[0-9a-f]{64}|sha512:[0-9a-f]{128})$"
 ROS_DISTRO = r"^[a-z][a-z0-9_-]*$"
@@ -602,21 +601,6 @@ def _read(path: str, display: str, problems: list[Problem]) -> str | None:
         return None
 
 
-def _files(path: str, display: str, problems: list[Problem]) -> list[tuple[str, str]]:
-    if not os.path.isdir(path):
-        return [(path, display)]
-    try:
-        names = sorted(os.listdir(path))
-    except OSError as exc:
-        problems.append(Problem(display, "", f"cannot read the directory: {exc.strerror or exc}"))
-        return []
-    names = [n for n in names if n.endswith(EXTENSIONS) and not n.startswith(".") and os.path.isfile(os.path.join(path, n))]
-    if len(names) > MAX_FILES:
-        problems.append(Problem(display, "", f"more than {MAX_FILES} catalog files"))
-        return []
-    return [(os.path.join(path, n), os.path.join(display, n)) for n in names]
-
-
 def load_catalog(path, display: str | None = None) -> Catalog:
     """The catalog at ``path`` (a directory of YAML files, or one file); errors name ``display``.
 
@@ -625,12 +609,12 @@ def load_catalog(path, display: str | None = None) -> Catalog:
     """
     path = os.fspath(path)
     display = display or path
-    if not os.path.exists(path):
+    if not path_exists(path):
         return Catalog((), display, missing=True)
     problems: list[Problem] = []
     found: list[tuple[CatalogEntry, Document, tuple]] = []
     declared: dict[str, str] = {}
-    for file_path, file_display in _files(path, display, problems):
+    for file_path, file_display in yaml_files(path, display, problems, MAX_FILES, "catalog files"):
         text = _read(file_path, file_display, problems)
         if text is None:
             continue

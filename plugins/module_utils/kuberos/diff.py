@@ -20,10 +20,10 @@ import binascii
 import hashlib
 
 from .errors import SpecError
+from .manifest_yaml import dump_object
 from .manifests import VERSION, params_configmap_name
+from .placement import Placement
 from .record import RECORD_LABEL, REVISION_LABEL, record_placement
-from .render_files import dump_object
-from .scheduler import Placement
 from .third_party import yaml
 
 SERVER_FIELDS = ("managedFields", "resourceVersion", "generation", "uid", "creationTimestamp", "selfLink")

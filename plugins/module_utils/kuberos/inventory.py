@@ -242,6 +242,28 @@ def _control_character_problems(raw: dict, source: str, limit: int = 20) -> list
     return problems
 
 
+def model_groups(groups: dict) -> dict[str, list[str]]:
+    """The groups of the resource model (tiers, and third-party clusters when there are any), sorted."""
+    members = {group: sorted(groups.get(group) or []) for group in TIER_GROUPS}
+    if groups.get(CLUSTERS_GROUP):
+        members[CLUSTERS_GROUP] = sorted(groups[CLUSTERS_GROUP])
+    return members
+
+
+def raw_inventory(groups: dict, hostvars) -> dict:
+    """The plain-data form ``load_inventory`` reads, from an inventory's groups (name -> host names, every
+    descendant's hosts included) and its hosts' variables (host -> variables; only the resource model's are read,
+    so a lazy mapping is asked for nothing else)."""
+    members = model_groups(groups)
+    hosts = {}
+    defaults = {}
+    for host in sorted({h for names in members.values() for h in names}):
+        host_vars = hostvars[host]
+        hosts[host] = {key: host_vars[key] for key in HOST_VARS if key in host_vars}
+        defaults = hosts[host].pop("kuberos_default_latency_ms", defaults) or defaults
+    return {"hosts": hosts, "groups": members, "default_latency_ms": defaults}
+
+
 def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
     """Build the resource model from inventory data; every problem at once."""
     problems: list[Problem] = []

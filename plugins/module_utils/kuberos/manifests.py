@@ -15,8 +15,7 @@ from dataclasses import dataclass
 from . import labels as node_labels
 from . import naming
 from .launch import container_name, launch_argv, split_amount
-from .quantities import format_cpu, format_memory
-from .scheduler import (
+from .placement import (
     BRIDGE_CPU_MILLIS,
     BRIDGE_MEMORY_BYTES,
     DISCOVERY_CPU_MILLIS,
@@ -26,6 +25,7 @@ from .scheduler import (
     Instance,
     Placement,
 )
+from .quantities import format_cpu, format_memory
 from .spec import RosDeployment, RosModule
 from .third_party import yaml
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from xml.sax.saxutils import escape
 
-from .scheduler import Placement
+from .placement import Placement
 
 TIERS = ("onboard", "edge", "cloud")
 TITLES = {"onboard": "Robots (onboard)", "edge": "Edge", "cloud": "Cloud"}

@@ -19,8 +19,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from .placement import Instance, Replacement
 from .record import Record
-from .scheduler import Instance, Replacement, replace_modules
+from .replacement import replace_modules
 
 
 @dataclass(frozen=True)
@@ -264,19 +265,3 @@ def status_rows(record: Record, cluster: ClusterView, stranded: dict[str, str], 
             )
     rows.sort(key=lambda r: (r["robot"] == "-", r["robot"], r["module"]))
     return rows
-
-
-def status_table(deployment: str, rows: list[dict]) -> str:
-    header = ("ROBOT", "MODULE", "VERSION", "NODE", "PHASE", "LAST MOVE")
-    lines = []
-    for r in rows:
-        move = r["last_move"]
-        text = f"{move['at']} from {move['from']}: {move['why']}" if move else ""
-        if r["note"]:
-            text = (text + "; " if text else "") + r["note"]
-        lines.append((r["robot"], r["module"], r.get("version", "") or "-", r["node"], r["phase"], text))
-    widths = [max(len(str(row[i])) for row in [header, *lines]) for i in range(len(header) - 1)]
-    out = [f"RosDeployment {deployment}"]
-    for row in [header, *lines]:
-        out.append("  ".join([*(str(c).ljust(w) for c, w in zip(row, widths, strict=False)), str(row[-1])]).rstrip())
-    return "\n".join(out)

@@ -30,7 +30,7 @@ from . import naming
 from .errors import Problem, SpecError
 from .inventory import Inventory, load_inventory
 from .manifests import COMPONENT, DEPLOYMENT, MANAGED_BY, RenderOptions
-from .scheduler import Placement
+from .placement import Placement
 from .spec import RosDeployment, load_rosdeployments
 from .third_party import yaml
 

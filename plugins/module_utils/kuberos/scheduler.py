@@ -1,4 +1,4 @@
-"""Placement of every module of every robot, and of each fleet's discovery servers.
+"""The scheduler: placement of every module of every robot, and of each fleet's discovery servers.
 
 ``place_modules(deployments, inventory, allocated)`` is pure and deterministic:
 
@@ -16,171 +16,23 @@ account of why each candidate was rejected.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
-
-from . import naming, quantities
+from . import naming
 from .catalog import catalog_problems_against_inventory
 from .errors import PlacementError, Problem, SpecError, did_you_mean
 from .inventory import Inventory, Node
+from .placement import (
+    BRIDGE_CPU_MILLIS,
+    BRIDGE_MEMORY_BYTES,
+    DISCOVERY_CPU_MILLIS,
+    DISCOVERY_MEMORY_BYTES,
+    BridgeServer,
+    DiscoveryServer,
+    Instance,
+    Placement,
+    initial_free,
+    node_summaries,
+)
 from .spec import RosDeployment, RosModule, name_clash_problems
-
-DISCOVERY_CPU_MILLIS = 100
-DISCOVERY_MEMORY_BYTES = 64 * 1024**2
-BRIDGE_CPU_MILLIS = 200
-BRIDGE_MEMORY_BYTES = 256 * 1024**2
-PLACEMENT_API_VERSION = "kuberos.io/v1alpha1"
-
-
-@dataclass
-class _Free:
-    cpu: int
-    memory: int
-    gpu: int
-    pods: int
-
-
-@dataclass(frozen=True)
-class Instance:
-    """One running copy of a module: where it runs and which robots it serves."""
-
-    name: str
-    deployment: str
-    fleet: str
-    namespace: str
-    module: str
-    node: str
-    tier: str
-    robots: tuple[str, ...]
-    reason: str
-    latency_ms: float
-    cpu_millis: int
-    memory_bytes: int
-    gpu: int
-    shared: bool = False
-    cluster: str = ""  # a third-party cluster it runs in (then ``node`` is that cluster's name)
-
-
-@dataclass(frozen=True)
-class BridgeServer:
-    """The main cluster's end of the KubeROS-Bridge to one third-party cluster, for one fleet."""
-
-    fleet: str
-    namespace: str
-    cluster: str
-    name: str
-    node: str
-    tier: str
-    reason: str
-    node_port: int = naming.BRIDGE_NODE_PORT  # the NodePort the third-party cluster connects to
-
-
-@dataclass(frozen=True)
-class DiscoveryServer:
-    fleet: str
-    namespace: str
-    server_id: int
-    name: str
-    node: str
-    tier: str
-    port: int
-    reason: str
-
-
-@dataclass
-class Placement:
-    instances: list[Instance] = field(default_factory=list)
-    discovery: dict[str, list[DiscoveryServer]] = field(default_factory=dict)
-    deployments: list[dict] = field(default_factory=list)
-    # Nodes the deployments could use, with capacity and what is left free after this placement.
-    nodes: list[dict] = field(default_factory=list)
-    bridges: dict[str, list[BridgeServer]] = field(default_factory=dict)  # fleet -> its bridge servers
-
-    def rows(self) -> list[dict]:
-        """One row per (robot, module): the answer to 'where does this run for that robot?'."""
-        rows = []
-        for inst in self.instances:
-            for robot in inst.robots:
-                rows.append(
-                    {
-                        "deployment": inst.deployment,
-                        "fleet": inst.fleet,
-                        "robot": robot,
-                        "module": inst.module,
-                        "instance": inst.name,
-                        "node": inst.node,
-                        "tier": inst.tier,
-                        "robots": list(inst.robots),
-                        "shared": inst.shared,
-                        "reason": inst.reason,
-                        "cluster": inst.cluster,
-                    }
-                )
-        rows.sort(key=lambda r: (r["deployment"], r["robot"], r["module"]))
-        return rows
-
-    def to_dict(self) -> dict:
-        return {
-            "apiVersion": PLACEMENT_API_VERSION,
-            "kind": "Placement",
-            "deployments": self.deployments,
-            "discovery": [
-                {
-                    "fleet": fleet,
-                    "namespace": servers[0].namespace,
-                    "port": servers[0].port,
-                    "servers": [
-                        {"id": s.server_id, "name": s.name, "node": s.node, "tier": s.tier, "reason": s.reason} for s in servers
-                    ],
-                }
-                for fleet, servers in self.discovery.items()
-            ],
-            "instances": [
-                {**{k: v for k, v in asdict(inst).items() if k not in ("robots",)}, "robots": list(inst.robots)}
-                for inst in self.instances
-            ],
-            "placements": self.rows(),
-            "nodes": self.nodes,
-            "bridges": [asdict(b) for servers in self.bridges.values() for b in servers],
-        }
-
-    @classmethod
-    def from_dict(cls, data: dict) -> Placement:
-        """Read back ``to_dict`` output (e.g. a placement.json, or a filter result)."""
-        try:
-            instances = [Instance(**{**inst, "robots": tuple(inst["robots"])}) for inst in data["instances"]]
-            discovery = {
-                entry["fleet"]: [
-                    DiscoveryServer(
-                        entry["fleet"], entry["namespace"], s["id"], s["name"], s["node"], s["tier"], entry["port"], s["reason"]
-                    )
-                    for s in entry["servers"]
-                ]
-                for entry in data["discovery"]
-            }
-            bridges: dict[str, list[BridgeServer]] = {}
-            for entry in data.get("bridges", []):
-                bridges.setdefault(entry["fleet"], []).append(BridgeServer(**entry))
-        except (KeyError, TypeError) as exc:
-            raise SpecError([Problem("placement", "", f"not a placement produced by place_modules ({exc!r})")]) from None
-        return cls(instances, discovery, list(data.get("deployments", [])), list(data.get("nodes", [])), bridges)
-
-
-def _initial_free(inventory: Inventory, allocated: dict | None) -> dict[str, _Free]:
-    free = {n.name: _Free(n.cpu_millis, n.memory_bytes, n.gpu, n.pods) for n in inventory.nodes.values()}
-    problems = []
-    for node, used in sorted((allocated or {}).items()):
-        if node not in free:
-            continue  # workloads on nodes outside the inventory do not constrain placement
-        try:
-            free[node].cpu -= quantities.parse_cpu(used.get("cpu", 0))
-            free[node].memory -= quantities.parse_memory(used.get("memory", 0))
-            free[node].gpu -= int(used.get("gpu", 0))
-            free[node].pods -= int(used.get("pods", 0))
-        except (ValueError, AttributeError, TypeError) as exc:
-            problems.append(Problem("allocated", node, f"{used!r} is not valid; expected cpu, memory, gpu and pods ({exc})"))
-    if problems:
-        raise SpecError(problems, title="invalid allocation data")
-    return free
 
 
 def _fmt_cpu(millis: int) -> str:
@@ -191,10 +43,12 @@ def _fmt_mem(size: int) -> str:
     return f"{size / 1024**3:.3g}Gi" if size >= 1024**3 else f"{size / 1024**2:.3g}Mi"
 
 
-class _Scheduler:
+class Scheduler:
+    """The placer's state during one placement: free capacity per node, ruled-out nodes, and failures."""
+
     def __init__(self, inventory: Inventory, allocated: dict | None, unavailable: dict[str, str] | None = None):
         self.inventory = inventory
-        self.free = _initial_free(inventory, allocated)
+        self.free = initial_free(inventory, allocated)
         self.failures: list[str] = []
         # Nodes nothing may be placed on (e.g. NotReady), and for the instance being placed, nodes it must avoid.
         self.unavailable = dict(unavailable or {})
@@ -540,7 +394,7 @@ def _kept_instance(previous: Instance, module: RosModule, robots=None, reason=No
     )  # fmt: skip
 
 
-def _keep_previous(scheduler: _Scheduler, deployments: list[RosDeployment], targets: dict[str, tuple], previous: Placement):
+def _keep_previous(scheduler: Scheduler, deployments: list[RosDeployment], targets: dict[str, tuple], previous: Placement):
     """Sticky placement: every instance of ``previous`` that still fits where it runs stays there.
 
     An instance stays when its deployment and module still exist, it still serves one of the targeted robots, its
@@ -574,7 +428,7 @@ def _keep_previous(scheduler: _Scheduler, deployments: list[RosDeployment], targ
         scheduler.kept[inst.name] = _kept_instance(inst, module, robots)
 
 
-def _kept_discovery(scheduler: _Scheduler, previous: Placement | None, fleet: str) -> dict[int, DiscoveryServer]:
+def _kept_discovery(scheduler: Scheduler, previous: Placement | None, fleet: str) -> dict[int, DiscoveryServer]:
     """The fleet's discovery servers that stay where they run (their node is in the inventory and available)."""
     kept = {}
     for server in previous.discovery.get(fleet, []) if previous else []:
@@ -590,7 +444,7 @@ def _kept_discovery(scheduler: _Scheduler, previous: Placement | None, fleet: st
     return kept
 
 
-def _check_against_inventory(deployments: list[RosDeployment], inventory: Inventory) -> list[Problem]:
+def check_against_inventory(deployments: list[RosDeployment], inventory: Inventory) -> list[Problem]:
     problems = []
     ports: dict[str, tuple[int, str]] = {}
     for dep in deployments:
@@ -674,7 +528,7 @@ def place_modules(
     ``previous`` is what runs now (the deployments' records and the fleets' live discovery servers): what still
     fits where it runs stays there (see ``_keep_previous``), and a fleet's discovery servers are the fleet's, kept
     on their nodes and never fewer than run now. ``allocated`` must then leave out what ``previous`` holds."""
-    problems = _check_against_inventory(deployments, inventory)
+    problems = check_against_inventory(deployments, inventory)
     running = {f: s[0].port for f, s in (previous.discovery.items() if previous else ()) if s}
     for dep in deployments:
         if dep.fleet in running and dep.discovery_port != running[dep.fleet]:
@@ -689,7 +543,7 @@ def place_modules(
             )
     if problems:
         raise SpecError(problems, title="the RosDeployment does not match the inventory")
-    scheduler = _Scheduler(inventory, allocated, unavailable)
+    scheduler = Scheduler(inventory, allocated, unavailable)
     placement = Placement()
     fleets: dict[str, list[RosDeployment]] = {}
     for dep in deployments:
@@ -724,236 +578,5 @@ def place_modules(
             scheduler.place_module(dep, module, robots, placement.instances)
     if scheduler.failures:
         raise PlacementError(scheduler.failures)
-    placement.nodes = _node_summaries(inventory, scheduler.free, placement)
+    placement.nodes = node_summaries(inventory, scheduler.free, placement)
     return placement
-
-
-@dataclass(frozen=True)
-class Move:
-    """An instance (or a discovery server) that left its node, and why."""
-
-    namespace: str
-    instance: str
-    deployment: str
-    module: str
-    robots: tuple[str, ...]
-    from_node: str
-    to_node: str
-    why: str
-
-
-@dataclass(frozen=True)
-class Stranded:
-    """An instance whose node is ruled out but that has nowhere to go; it stays where it was."""
-
-    namespace: str
-    instance: str
-    deployment: str
-    module: str
-    robots: tuple[str, ...]
-    node: str
-    why: str
-
-
-@dataclass
-class Replacement:
-    placement: Placement
-    moves: list[Move] = field(default_factory=list)
-    stranded: list[Stranded] = field(default_factory=list)
-
-
-def replace_modules(
-    deployments: list[RosDeployment],
-    inventory: Inventory,
-    previous: Placement,
-    allocated: dict | None = None,
-    unavailable: dict[str, str] | None = None,
-    avoid: dict[str, dict[str, str]] | None = None,
-    hold: frozenset | set = frozenset(),
-) -> Replacement:
-    """Keep every instance of ``previous`` where it is unless its node is ruled out, and move only those.
-
-    A node is ruled out for an instance when it is ``unavailable`` (node name -> why, e.g. NotReady),
-    when ``avoid[instance]`` names it (e.g. the pod keeps failing there), when it left the inventory,
-    or when the module's hard requirements no longer hold there (e.g. a measured latency above
-    ``max_latency``). Kept instances keep their resources first; the others are placed again with the
-    same rules as ``place_modules``. An instance that has no other feasible node (onboard modules of a
-    robot whose computer is down, or no capacity anywhere) stays on its node and is reported as
-    stranded, so one fault never removes a running module. Discovery servers move the same way.
-    Instances named in ``hold`` stay where they are whatever their node (a fault not yet confirmed).
-    """
-    problems = _check_against_inventory(deployments, inventory)
-    if problems:
-        raise SpecError(problems, title="the RosDeployment does not match the inventory")
-    avoid = avoid or {}
-    scheduler = _Scheduler(inventory, allocated, unavailable)
-    modules = {(d.name, m.name): (d, m) for d in deployments for m in d.modules}
-    result = Replacement(Placement(deployments=list(previous.deployments), bridges=dict(previous.bridges)))
-
-    def ruled_out(name: str, node: str, module: RosModule | None, robots) -> str | None:
-        if name in hold and node in inventory.nodes:
-            return None
-        if node not in inventory.nodes:
-            return f"node {node} is no longer in the inventory"
-        why = scheduler.unavailable.get(node) or avoid.get(name, {}).get(node)
-        if why:
-            return why
-        return scheduler.requirement_rejection(inventory.nodes[node], module, robots)
-
-    # 1. What stays keeps its resources before anything moves.
-    kept_discovery: dict[str, dict[int, DiscoveryServer]] = {}
-    leaving_discovery: dict[str, dict[int, tuple[DiscoveryServer, str]]] = {}
-    for fleet, servers in previous.discovery.items():
-        for server in servers:
-            why = ruled_out(server.name, server.node, None, ())
-            if why is None:
-                kept_discovery.setdefault(fleet, {})[server.server_id] = server
-                scheduler.take(server.node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
-            else:
-                leaving_discovery.setdefault(fleet, {})[server.server_id] = (server, why)
-    slots: list[Instance | None] = []
-    leaving: list[tuple[int, Instance, str]] = []
-    for inst in previous.instances:
-        found = modules.get((inst.deployment, inst.module))
-        if found is None:
-            continue  # the module is gone from the spec: deploying again prunes it, moving is not our job
-        if inst.cluster:
-            slots.append(inst)  # a third-party cluster places it on its own nodes
-            continue
-        why = ruled_out(inst.name, inst.node, found[1], inst.robots)
-        if why is None:
-            slots.append(inst)
-            if inst.node in scheduler.free:
-                scheduler.take(inst.node, inst.cpu_millis, inst.memory_bytes, inst.gpu)
-        else:
-            leaving.append((len(slots), inst, why))
-            slots.append(None)
-
-    # 2. Discovery servers, then module instances, go to the best other node.
-    for fleet, servers in previous.discovery.items():
-        moving = leaving_discovery.get(fleet, {})
-        if not moving:
-            result.placement.discovery[fleet] = servers
-            continue
-        placed = scheduler.place_discovery(fleet, len(servers), servers[0].port, kept_discovery.get(fleet, {}))
-        scheduler.failures.clear()
-        by_id = {s.server_id: s for s in placed}
-        final = []
-        for server in servers:
-            new = by_id.get(server.server_id)
-            if server.server_id in moving and new is not None:
-                why = moving[server.server_id][1]
-                new = DiscoveryServer(
-                    new.fleet,
-                    new.namespace,
-                    new.server_id,
-                    new.name,
-                    new.node,
-                    new.tier,
-                    new.port,
-                    f"moved from {server.node} ({why}); {new.reason}",
-                )
-                result.moves.append(Move(new.namespace, new.name, "", "discovery-server", (), server.node, new.node, why))
-            elif server.server_id in moving:
-                new = server
-                scheduler.take(server.node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
-                result.stranded.append(
-                    Stranded(
-                        server.namespace,
-                        server.name,
-                        "",
-                        "discovery-server",
-                        (),
-                        server.node,
-                        f"{moving[server.server_id][1]}; no other node",
-                    )
-                )
-            final.append(new)
-        result.placement.discovery[fleet] = final
-    for index, inst, why in leaving:
-        dep, module = modules[(inst.deployment, inst.module)]
-        res = module.resources
-        scheduler.avoid = dict(avoid.get(inst.name, {}))
-        scheduler.avoid.setdefault(inst.node, why)
-        node, tier, latency, detail = scheduler.choose(dep, module, inst.robots)
-        scheduler.avoid = {}
-        if node is None:
-            if inst.node in scheduler.free:
-                scheduler.take(inst.node, inst.cpu_millis, inst.memory_bytes, inst.gpu)
-            stay = "onboard modules stay with their robot" if module.requirements.onboard else "no other feasible node"
-            accounts = [a for a in detail if not a.startswith(f"{inst.node} ")]
-            result.stranded.append(
-                Stranded(
-                    inst.namespace,
-                    inst.name,
-                    inst.deployment,
-                    inst.module,
-                    inst.robots,
-                    inst.node,
-                    "; ".join([why, stay, *accounts[:5]]),
-                )
-            )
-            slots[index] = inst
-            continue
-        slots[index] = Instance(
-            inst.name,
-            inst.deployment,
-            inst.fleet,
-            inst.namespace,
-            inst.module,
-            node.name,
-            tier,
-            inst.robots,
-            f"moved from {inst.node} ({why}); {detail}",
-            latency,
-            res.cpu_millis,
-            res.memory_bytes,
-            res.gpu,
-            inst.shared,
-        )
-        result.moves.append(Move(inst.namespace, inst.name, inst.deployment, inst.module, inst.robots, inst.node, node.name, why))
-    result.placement.instances = [inst for inst in slots if inst is not None]
-    result.placement.nodes = _node_summaries(inventory, scheduler.free, result.placement)
-    return result
-
-
-def _node_summaries(inventory: Inventory, free: dict[str, _Free], placement: Placement) -> list[dict]:
-    robots = {r for dep in placement.deployments for r in dep["robots"]}
-    fleets = {dep["fleet"] for dep in placement.deployments}
-    summaries = []
-    for node in inventory.nodes.values():
-        if node.tier == "onboard" and node.robot not in robots:
-            continue
-        if node.tier != "onboard" and not any(node.serves_fleet(f) for f in fleets):
-            continue
-        left = free[node.name]
-        summaries.append(
-            {
-                "name": node.name,
-                "tier": node.tier,
-                "robot": node.robot,
-                "fleet": node.fleet,
-                "cpu_millis": node.cpu_millis,
-                "memory_bytes": node.memory_bytes,
-                "gpu": node.gpu,
-                "free_cpu_millis": left.cpu,
-                "free_memory_bytes": left.memory,
-                "free_gpu": left.gpu,
-            }
-        )
-    return summaries
-
-
-def placement_table(placement: Placement) -> str:
-    """A fixed-width table of where every module of every robot runs, and the discovery servers."""
-    header = ("DEPLOYMENT", "ROBOT", "MODULE", "TIER", "NODE", "REASON")
-    rows = [(r["deployment"], r["robot"], r["module"], r["tier"], r["node"], r["reason"]) for r in placement.rows()]
-    for fleet, servers in placement.discovery.items():
-        for s in servers:
-            rows.append((f"(fleet {fleet})", "-", s.name, s.tier, s.node, s.reason))
-    widths = [max(len(str(row[i])) for row in [header, *rows]) for i in range(len(header) - 1)]
-    lines = []
-    for row in [header, *rows]:
-        cells = [str(cell).ljust(width) for cell, width in zip(row, widths, strict=False)]
-        lines.append("  ".join([*cells, str(row[-1])]).rstrip())
-    return "\n".join(lines)

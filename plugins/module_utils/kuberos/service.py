@@ -10,7 +10,8 @@ import os
 
 from .errors import Problem, SpecError
 from .inventory import load_inventory
-from .scheduler import Placement, place_modules
+from .placement import Placement
+from .scheduler import place_modules
 from .spec import RosDeployment, load_rosdeployment_file, parse_rosdeployment
 
 

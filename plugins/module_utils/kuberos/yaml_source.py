@@ -17,6 +17,7 @@ from .errors import Problem, SpecError
 from .third_party import yaml
 
 MAX_BYTES = 1024 * 1024
+YAML_EXTENSIONS = (".yml", ".yaml")
 MAX_NODES = 100_000  # nodes of one document, each alias counted again as the nodes it stands for
 MAX_FILE_NODES = 50_000  # nodes (keys included) written in one file: bounds the work before a refusal
 MAX_DEPTH = 64
@@ -216,6 +217,27 @@ def read_text(path: str, display: str, what: str = "file") -> str:
         raise SpecError(
             [Problem(display, "", f"not UTF-8 text (byte {exc.start})", line)], title=f"{display} is not valid"
         ) from None
+
+
+def path_exists(path: str) -> bool:
+    return os.path.exists(path)
+
+
+def yaml_files(path: str, display: str, problems: list[Problem], limit: int, what: str) -> list[tuple[str, str]]:
+    """``path`` when it is a file, else the YAML files of the directory (sorted, no hidden ones), each with its
+    display name; a problem (and nothing) when the directory cannot be read or holds more than ``limit``."""
+    if not os.path.isdir(path):
+        return [(path, display)]
+    try:
+        names = sorted(os.listdir(path))
+    except OSError as exc:
+        problems.append(Problem(display, "", f"cannot read the directory: {exc.strerror or exc}"))
+        return []
+    names = [n for n in names if n.endswith(YAML_EXTENSIONS) and not n.startswith(".") and os.path.isfile(os.path.join(path, n))]
+    if len(names) > limit:
+        problems.append(Problem(display, "", f"more than {limit} {what}"))
+        return []
+    return [(os.path.join(path, n), os.path.join(display, n)) for n in names]
 
 
 def _line_of(starts: list[int], position: int) -> int:

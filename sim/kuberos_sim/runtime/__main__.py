@@ -10,7 +10,6 @@ per host and the fabric's figures. Bad input is reported as file, field and reas
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import sys
 import tempfile
@@ -22,30 +21,10 @@ from .runtime import DEFAULT_CPU_SCALE, ProcessExitedError, Runtime
 
 def load_inventory_file(path: str):
     """An Ansible inventory (file or directory) as the resource model, read as the collection reads it."""
-    from ansible.errors import AnsibleError
-    from ansible.inventory.manager import InventoryManager
-    from ansible.parsing.dataloader import DataLoader
-    from ansible.vars.manager import VariableManager
-
-    from ansible_collections.kuberos.platform.plugins.filter.fleet_inventory import fleet_inventory
+    from ansible_collections.kuberos.platform.plugins.module_utils.ansible_inventory import read_inventory
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 
-    if not os.path.exists(path):
-        raise ValueError(f"{path}: no such inventory file or directory")
-    loader = DataLoader()
-    try:
-        manager = InventoryManager(loader=loader, sources=[path])
-        variables = VariableManager(loader=loader, inventory=manager)
-        groups = {name: [h.name for h in group.get_hosts()] for name, group in manager.groups.items()}
-        hostvars = {
-            host.name: {
-                k: v for k, v in variables.get_vars(host=host, include_hostvars=False).items() if k.startswith("kuberos_")
-            }
-            for host in manager.get_hosts()
-        }
-        return load_inventory(fleet_inventory(groups, hostvars), source=path)
-    except AnsibleError as error:
-        raise ValueError(f"{path}: not a usable inventory: {error}") from error
+    return load_inventory(read_inventory(path), source=path)
 
 
 def host_table(runtime: Runtime) -> str:

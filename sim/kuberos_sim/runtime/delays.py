@@ -1,7 +1,7 @@
 """The emulated round-trip time between two nodes: the rule lives in the collection's pure core
-(plugins/module_utils/kuberos/link_delays.py), shared with the local cluster's real nodes."""
+(plugins/module_utils/kuberos_cluster/link_delays.py), shared with the local cluster's real nodes."""
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.link_delays import (  # noqa: F401
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.link_delays import (  # noqa: F401
     LAN_RTT_MS,
     one_way_delays_ms,
     rtt_ms,

@@ -1,7 +1,7 @@
 """A rendered directory read back: the Deployments, Services and ConfigMaps the runtime runs, as rendered.
 
 ``load_rendered(root)`` reads ``root/manifests/<namespace>/<kind>-<name>.yaml`` (what
-``render_files.plan_render_dir`` writes) and checks what the runtime relies on: every Deployment pinned to a
+``render_dir.plan_render_dir`` writes) and checks what the runtime relies on: every Deployment pinned to a
 node (``nodeSelector: device.kuberos.io/hostname``), containers with a command, environment entries it can
 resolve, and volumes it can materialize (configMap, emptyDir). Every problem is reported at once, naming
 the file, the field and the reason (``SpecError``). Nothing is re-derived from the spec or the placement.

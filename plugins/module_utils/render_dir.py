@@ -1,6 +1,6 @@
-"""Writing rendered objects to a directory: one YAML file per object, written only when changed.
+"""The render directory: one YAML file per object, written only when changed (an I/O helper of the deploy).
 
-Pure file logic (no Ansible): ``plan_render_dir`` says what would change; ``apply_plan`` does it.
+No Ansible: ``plan_render_dir`` says what would change; ``apply_plan`` does it.
 A directory is only pruned when it carries the marker file KubeROS writes, so that pointing
 the render directory at an unrelated folder never deletes anything.
 """
@@ -12,7 +12,7 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 
-from .third_party import yaml
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
 
 MARKER = ".kuberos-render"
 MANIFEST_DIR = "manifests"
@@ -23,26 +23,6 @@ PRUNED_DIRS = (MANIFEST_DIR, CLUSTERS_DIR)
 def object_path(obj: dict) -> str:
     namespace = obj["metadata"].get("namespace") or "_cluster"
     return os.path.join(MANIFEST_DIR, namespace, f"{obj['kind'].lower()}-{obj['metadata']['name']}.yaml")
-
-
-def _represent_str(dumper: yaml.SafeDumper, data: str):
-    style = "|" if "\n" in data and not data.endswith((" ", "\t")) else None
-    return dumper.represent_scalar("tag:yaml.org,2002:str", data, style=style)
-
-
-if yaml is not None:  # without PyYAML (third_party.py) nothing here is used: the modules check for it first
-
-    class _NoAliasDumper(yaml.SafeDumper):
-        """Writes repeated values in full: manifests are read by people, not only by parsers."""
-
-        def ignore_aliases(self, data):
-            return True
-
-    _NoAliasDumper.add_representer(str, _represent_str)
-
-
-def dump_object(obj: dict) -> str:
-    return yaml.dump(obj, Dumper=_NoAliasDumper, sort_keys=False, default_flow_style=False, width=120)
 
 
 @dataclass

@@ -17,10 +17,10 @@ import ipaddress
 import re
 from dataclasses import dataclass, field
 
-from . import labels
-from .errors import Problem, SpecError, describe
-from .inventory import Inventory, Node
-from .third_party import yaml
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import Inventory, Node
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.third_party import yaml
 
 API_VERSION = "kubeadm.k8s.io/v1beta4"
 KUBELET_API_VERSION = "kubelet.config.k8s.io/v1beta1"

@@ -3,11 +3,12 @@ manager), and whole simulated nodes with capacity for the local cluster (kwok)."
 
 from __future__ import annotations
 
-from . import labels
-from .errors import Problem, SpecError, describe
-from .inventory import Inventory, Node
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import Inventory, Node
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantities import format_cpu, format_memory
+
 from .link_delays import one_way_delays_ms
-from .quantities import format_cpu, format_memory
 
 KWOK_ANNOTATION = "kwok.x-k8s.io/node"
 

@@ -15,7 +15,7 @@ fault's grace period ends, it runs one pass per record:
 4. report: a Kubernetes Event per move or stranded module, and the status ConfigMap
    ``kuberos-status-<deployment>`` (a table and JSON per robot and module: node, phase, pod, last move).
 
-Run it as a process: ``python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller
+Run it as a process (``cli.py``): ``python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller
 --kubeconfig FILE`` (``--once`` for a single pass; in a pod, without ``--kubeconfig``, it uses the
 ServiceAccount). Measured round-trip times come from the robot nodes' ``kuberos.io/rtt-ms``
 annotation: JSON mapping a node's inventory name to milliseconds.
@@ -27,19 +27,14 @@ while this replica's right to act lasts, with a client-side timeout of the time 
 
 from __future__ import annotations
 
-import argparse
 import concurrent.futures
 import datetime
 import json
 import logging
 import os
-import signal
-import socket
-import sys
 import threading
 import time
 
-from ansible_collections.kuberos.platform.plugins.module_utils import leader_election
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
@@ -59,7 +54,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile
     Settings,
     decide,
     status_rows,
-    status_table,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
     RECORD_LABEL,
@@ -71,6 +65,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
     placement_patch,
     status_name,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import controller_table
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import leader_election
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, object_key
 
 RTT_ANNOTATION = "kuberos.io/rtt-ms"
 WRITERS = 4  # parallel requests when a pass re-pins, deletes or reports several things
@@ -107,92 +104,6 @@ def _failpoint(name: str) -> bool:
             return False
         return True
     return False
-
-
-def _key(obj: dict) -> tuple[str, str]:
-    meta = obj["metadata"]
-    return meta.get("namespace", ""), meta["name"]
-
-
-class Store:
-    """A watched set of objects of one kind: list, then watch, relist on errors; thread-safe reads."""
-
-    def __init__(self, name: str, list_call, changed: threading.Event, **selector):
-        self.name = name
-        self.list_call = list_call
-        self.selector = selector
-        self.changed = changed
-        self.items: dict[tuple[str, str], dict] = {}
-        self.synced = threading.Event()
-        self.lock = threading.Lock()
-        self.errors = 0
-
-    def snapshot(self) -> list[dict]:
-        with self.lock:
-            return list(self.items.values())
-
-    def relist(self) -> str:
-        response = self.list_call(_preload_content=False, **self.selector)
-        body = json.loads(response.data)
-        with self.lock:
-            self.items = {_key(item): item for item in body.get("items", [])}
-        self.synced.set()
-        self.changed.set()
-        return body["metadata"]["resourceVersion"]
-
-    def run(self, stop: threading.Event) -> None:
-        from kubernetes.client.exceptions import ApiException
-        from kubernetes.watch.watch import iter_resp_lines
-
-        backoff = 0.2
-        version = None
-        while not stop.is_set():
-            try:
-                if version is None:
-                    version = self.relist()
-                    backoff = 0.2
-                response = self.list_call(
-                    watch=True, resource_version=version, timeout_seconds=60, allow_watch_bookmarks=True,
-                    _preload_content=False, _request_timeout=90, **self.selector,
-                )  # fmt: skip
-                try:
-                    for line in iter_resp_lines(response):
-                        if stop.is_set():
-                            break
-                        version = self.handle(json.loads(line), version)
-                        if version is None:
-                            break  # 410 Gone or another error event: relist
-                finally:
-                    response.release_conn()
-            except ApiException as exc:
-                self.errors += 1
-                version = None
-                log.warning("watch %s: %s %s; relisting in %.1f s", self.name, exc.status, exc.reason, backoff)
-                stop.wait(backoff)
-                backoff = min(backoff * 2, 5.0)
-            except Exception as exc:  # connection refused, reset, timeouts: the API server may be restarting
-                self.errors += 1
-                version = None
-                log.warning("watch %s: %s; relisting in %.1f s", self.name, exc.__class__.__name__, backoff)
-                stop.wait(backoff)
-                backoff = min(backoff * 2, 5.0)
-
-    def handle(self, event: dict, version: str) -> str | None:
-        """Apply one watch event; returns the resourceVersion to continue from, or None to relist."""
-        kind, obj = event.get("type"), event.get("object") or {}
-        if kind == "ERROR":
-            log.info("watch %s: %s; relisting", self.name, obj.get("message", obj))
-            return None
-        version = obj.get("metadata", {}).get("resourceVersion", version)
-        if kind == "BOOKMARK":
-            return version
-        with self.lock:
-            if kind == "DELETED":
-                self.items.pop(_key(obj), None)
-            else:
-                self.items[_key(obj)] = obj
-        self.changed.set()
-        return version
 
 
 def _pod_requests(pod: dict) -> dict:
@@ -333,7 +244,7 @@ class Controller:
         return {n: {**e, "cpu": f"{e['cpu']}m"} for n, e in used.items()}
 
     def _record(self, configmap: dict) -> Record | None:
-        key = _key(configmap)
+        key = object_key(configmap)
         version = configmap["metadata"].get("resourceVersion", "")
         cached = self.parsed.get(key)
         if cached and cached[0] == version:
@@ -384,12 +295,12 @@ class Controller:
         if record.writer != WRITER_CONTROLLER:
             return 0
         wanted = render_deployment(record.deployments, record.placement, record.options)
-        live = {_key(d): d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace}
+        live = {object_key(d): d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace}
         calls = []
         for obj in wanted:
             if obj["kind"] != "Deployment":
                 continue
-            current = live.get(_key(obj))
+            current = live.get(object_key(obj))
             if current is None:
                 continue  # not created yet (deploy is applying) or removed (undeploy): not the controller's to create
             want = obj["spec"]["template"]["spec"]["nodeSelector"]
@@ -460,7 +371,7 @@ class Controller:
     def _write_status(self, record: Record, view: ClusterView, stranded: dict[str, str], waiting: list[str]) -> str:
         key = (record.namespace, record.name)
         rows = status_rows(record, view, stranded, self.history.get(key, {}))
-        table = status_table(record.deployment + (f" (revision {record.revision})" if record.revision else ""), rows)
+        table = controller_table(record.deployment + (f" (revision {record.revision})" if record.revision else ""), rows)
         content = json.dumps({"rows": rows, "waiting": waiting}, sort_keys=True)
         if self.status_written.get(key) == content:
             return table
@@ -590,13 +501,13 @@ class Controller:
         view = self.cluster_view()
         now = time.time()
         wake = []
-        for configmap in sorted(self.records.snapshot(), key=_key):
+        for configmap in sorted(self.records.snapshot(), key=object_key):
             try:
                 at = self.reconcile_record(configmap, view, now)
             except leader_election.NotLeader:
                 raise
             except KuberosError as exc:
-                log.error("record %s/%s: %s", *_key(configmap), exc)
+                log.error("record %s/%s: %s", *object_key(configmap), exc)
                 continue
             if at is not None:
                 wake.append(at)
@@ -675,97 +586,3 @@ class Controller:
             if not ready or ready.get("status") != "True":
                 return f"node {node_name} is NotReady"
         return None
-
-
-def build_api_client(kubeconfig: str | None):
-    from kubernetes import client, config
-
-    if kubeconfig:
-        return config.new_client_from_config(config_file=kubeconfig)
-    config.load_incluster_config()
-    return client.ApiClient()
-
-
-def parse_args(argv=None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="kuberos-controller",
-        description="Keep every module of every RosDeployment placed well: move modules off nodes that fail, "
-        "pods that keep failing and links whose measured latency breaks max_latency.",
-    )
-    parser.add_argument("--kubeconfig", help="kubeconfig file (default: the pod's ServiceAccount)")
-    parser.add_argument("--once", action="store_true", help="run one reconcile pass and exit")
-    parser.add_argument("--grace", type=float, default=Settings.grace_s, help="seconds a fault must last before modules move")
-    parser.add_argument(
-        "--restart-threshold", type=int, default=Settings.restart_threshold, help="restarts that count as failing"
-    )
-    parser.add_argument(
-        "--cooldown", type=float, default=Settings.cooldown_s, help="seconds before a moved module may move again"
-    )
-    parser.add_argument("--resync", type=float, default=30.0, help="seconds between passes without any change")
-    election = parser.add_argument_group(
-        "leader election", "several replicas may run; only the holder of a coordination.k8s.io Lease acts (docs/controller.md)"
-    )
-    election.add_argument(
-        "--no-leader-elect", dest="leader_elect", action="store_false",
-        help="act without a Lease (one replica only; --once never takes one)",
-    )  # fmt: skip
-    election.add_argument("--lease-name", default=LEASE_NAME, help="name of the Lease (default %(default)s)")
-    election.add_argument(
-        "--lease-namespace", default=LEASE_NAMESPACE, help="namespace of the Lease, created when missing (default %(default)s)"
-    )
-    election.add_argument(
-        "--lease-duration", type=float, default=leader_election.Timings.duration_s,
-        help="whole seconds others wait after the last renewal they saw before taking the Lease (default %(default)g)",
-    )  # fmt: skip
-    election.add_argument(
-        "--renew-deadline", type=float, default=leader_election.Timings.renew_deadline_s,
-        help="seconds the leader acts after its last successful renewal; below --lease-duration (default %(default)g)",
-    )  # fmt: skip
-    election.add_argument(
-        "--retry-period", type=float, default=leader_election.Timings.retry_s,
-        help="seconds between tries to take or renew the Lease (default %(default)g)",
-    )  # fmt: skip
-    election.add_argument(
-        "--identity", default=os.environ.get("POD_NAME", ""),
-        help="this replica's name in the Lease (default: $POD_NAME, else host_pid)",
-    )  # fmt: skip
-    election.add_argument(
-        "--node-name", default=os.environ.get("KUBEROS_NODE_NAME", ""),
-        help="the node this replica runs on ($KUBEROS_NODE_NAME); while it is NotReady the replica does not lead",
-    )  # fmt: skip
-    parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    return parser.parse_args(argv)
-
-
-def main(argv=None) -> int:
-    # A command line program's entry point (python -m ...), not code a module runs: it prints and exits.
-    # pylint: disable=ansible-bad-function
-    args = parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(message)s", stream=sys.stderr)
-    settings = Settings(grace_s=args.grace, restart_threshold=args.restart_threshold, cooldown_s=args.cooldown)
-    timings = leader_election.Timings(args.lease_duration, args.renew_deadline, args.retry_period)
-    if args.leader_elect and not args.once and timings.problems():
-        print("kuberos-controller: " + "; ".join(timings.problems()), file=sys.stderr)
-        return 2
-    try:
-        api_client = build_api_client(args.kubeconfig)
-    except Exception as exc:
-        print(f"kuberos-controller: cannot reach the cluster: {exc}", file=sys.stderr)
-        return 2
-    if args.once:
-        Controller(api_client, settings, args.resync).run_once()
-        return 0
-    controller = Controller(api_client, settings, args.resync, identity=args.identity or f"{socket.gethostname()}_{os.getpid()}")
-    if args.leader_elect:
-        controller.elector = leader_election.LeaderElector(
-            api_client, args.lease_namespace, args.lease_name, controller.identity, timings,
-            on_change=lambda leading: controller.changed.set(), stand_down=lambda: controller.stand_down(args.node_name),
-        )  # fmt: skip
-    signal.signal(signal.SIGTERM, lambda *_: (controller.stop_event.set(), controller.changed.set()))
-    signal.signal(signal.SIGINT, lambda *_: (controller.stop_event.set(), controller.changed.set()))
-    controller.run()
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())  # pylint: disable=ansible-bad-function

@@ -15,8 +15,8 @@ PodDisruptionBudget keeps one replica through voluntary evictions such as a node
 
 from __future__ import annotations
 
-from . import naming
-from .manifests import MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
 
 NAME = "kuberos-controller"
 READ_ROLE = "kuberos-controller-read"

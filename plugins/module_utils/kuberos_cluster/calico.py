@@ -22,8 +22,8 @@ import json
 import re
 from dataclasses import dataclass
 
-from .errors import Problem, SpecError, describe, did_you_mean
-from .manifests import MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe, did_you_mean
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
 
 GROUP = "crd.projectcalico.org"
 CRD_API = "apiextensions.k8s.io/v1"

@@ -17,7 +17,7 @@ import ipaddress
 import re
 from dataclasses import dataclass
 
-from .errors import Problem, SpecError, did_you_mean
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, did_you_mean
 
 SOURCE = "wireguard"
 INTERFACE_NAME = re.compile(r"^[A-Za-z0-9_=+.-]{1,15}$")

@@ -1,0 +1,114 @@
+"""Where every module of every robot runs: the one table format people read, for the three moments they read it.
+
+- ``placement_table``: what the scheduler decided, with its reasons (render, ``place_modules``);
+- ``compare`` + ``deploy_table``: what runs against what was placed, after a deploy (``rosdeployment``,
+  ``rosdeployment_info``; the pods come from ``cluster_state.running_modules``);
+- ``controller_table``: what the controller reports per record (version, phase, last move; ``reconcile.status_rows``).
+
+Pure: plain rows in, text out.
+"""
+
+from __future__ import annotations
+
+from .placement import Placement
+
+
+def format_table(header: tuple, rows: list[tuple]) -> str:
+    """Fixed-width columns, two spaces apart; the last column is not padded and no line ends in spaces."""
+    lines = [header, *rows]
+    widths = [max(len(str(line[i])) for line in lines) for i in range(len(header) - 1)]
+    return "\n".join(
+        "  ".join([*(str(c).ljust(w) for c, w in zip(line, widths, strict=False)), str(line[-1])]).rstrip() for line in lines
+    )
+
+
+def placement_table(placement: Placement) -> str:
+    """A fixed-width table of where every module of every robot runs, and the discovery servers."""
+    header = ("DEPLOYMENT", "ROBOT", "MODULE", "TIER", "NODE", "REASON")
+    rows = [(r["deployment"], r["robot"], r["module"], r["tier"], r["node"], r["reason"]) for r in placement.rows()]
+    for fleet, servers in placement.discovery.items():
+        for s in servers:
+            rows.append((f"(fleet {fleet})", "-", s.name, s.tier, s.node, s.reason))
+    return format_table(header, rows)
+
+
+def _fleet_rows(placement: dict) -> list[dict]:
+    """The placed rows of a placement's plain data, with each fleet's discovery and bridge servers."""
+    wanted = list(placement["placements"])
+    for entry in placement.get("discovery", []):
+        for server in entry["servers"]:
+            wanted.append(
+                {"deployment": f"(fleet {entry['fleet']})", "fleet": entry["fleet"], "robot": "-", "module": server["name"],
+                 "tier": server["tier"], "node": server["node"], "instance": server["name"]}
+            )  # fmt: skip
+    for entry in placement.get("bridges", []):
+        wanted.append(
+            {"deployment": f"(fleet {entry['fleet']})", "fleet": entry["fleet"], "robot": "-", "module": entry["name"],
+             "tier": entry["tier"], "node": entry["node"], "instance": entry["name"]}
+        )  # fmt: skip
+    return wanted
+
+
+def compare(placement: dict, pods: list[dict]) -> list[dict]:
+    by_instance: dict[str, list[dict]] = {}
+    for pod in pods:
+        by_instance.setdefault((pod["fleet"], pod["instance"]), []).append(pod)
+    """One row per placed (robot, module) and fleet server: where it was placed and where its pod runs."""
+    rows = []
+    for row in _fleet_rows(placement):
+        if row.get("cluster"):
+            # Runs in a third-party cluster: applied and watched there, not here.
+            rows.append(
+                {"deployment": row["deployment"], "robot": row["robot"], "module": row["module"], "tier": row["tier"],
+                 "placed_node": row["node"], "node": row["node"], "phase": "Remote", "ready": True, "pod": None}
+            )  # fmt: skip
+            continue
+        live = by_instance.get((row["fleet"], row["instance"]), [])
+        pod = next((p for p in live if p["ready"]), live[0] if live else None)
+        rows.append(
+            {
+                "deployment": row["deployment"],
+                "robot": row["robot"],
+                "module": row["module"],
+                "tier": row["tier"],
+                "placed_node": row["node"],
+                "node": pod["node"] if pod else None,
+                "phase": pod["phase"] if pod else "Missing",
+                "ready": bool(pod and pod["ready"] and pod["node"] == row["node"]),
+                "pod": pod["pod"] if pod else None,
+            }
+        )
+    return rows
+
+
+def deploy_table(rows: list[dict]) -> str:
+    """The table a deploy prints: every row of ``compare``."""
+    header = ("DEPLOYMENT", "ROBOT", "MODULE", "TIER", "NODE (CLUSTER)", "PHASE", "PLACED ON")
+    return format_table(
+        header,
+        [
+            (
+                r["deployment"],
+                r["robot"],
+                r["module"],
+                r["tier"],
+                r["node"] or "-",
+                r["phase"] + ("" if r["ready"] or r["phase"] != "Running" else " (not ready)"),
+                "same" if r["node"] == r["placed_node"] else r["placed_node"],
+            )
+            for r in rows
+        ],
+    )
+
+
+def controller_table(deployment: str, rows: list[dict]) -> str:
+    """The table of the controller's status ConfigMap: one record's rows (``reconcile.status_rows``)."""
+    header = ("ROBOT", "MODULE", "VERSION", "NODE", "PHASE", "LAST MOVE")
+    lines = []
+    for r in rows:
+        move = r["last_move"]
+        text = f"{move['at']} from {move['from']}: {move['why']}" if move else ""
+        if r["note"]:
+            text = (text + "; " if text else "") + r["note"]
+        lines.append((r["robot"], r["module"], r.get("version", "") or "-", r["node"], r["phase"], text))
+    return f"RosDeployment {deployment}\n" + format_table(header, lines)
