@@ -264,6 +264,166 @@ def raw_inventory(groups: dict, hostvars) -> dict:
     return {"hosts": hosts, "groups": members, "default_latency_ms": defaults}
 
 
+def _latency_defaults(raw: dict, source: str, problems: list[Problem]) -> dict[str, float]:
+    """Each tier's latency to the robots (``kuberos_default_latency_ms``) over the built-in defaults."""
+    defaults = dict(DEFAULT_LATENCY_MS)
+    given = raw.get("default_latency_ms") or {}
+    if not isinstance(given, dict):
+        problems.append(
+            Problem(
+                source,
+                "kuberos_default_latency_ms",
+                f"{describe(given)} is not valid; expected a mapping of tier to latency, e.g. {{edge: 5, cloud: 40}}",
+            )
+        )
+        given = {}
+    for tier, value in given.items():
+        if tier not in defaults:
+            problems.append(
+                Problem(
+                    source,
+                    f"kuberos_default_latency_ms.{tier}",
+                    f"unknown tier{did_you_mean(tier, defaults)}; expected onboard, edge or cloud",
+                )
+            )
+            continue
+        try:
+            defaults[tier] = quantities.parse_latency_ms(value)
+        except ValueError as exc:
+            problems.append(Problem(source, f"kuberos_default_latency_ms.{tier}", f"{describe(value)} is not valid; {exc}"))
+    return defaults
+
+
+class _Loader:
+    """One reading of an inventory: every host becomes a node (robots also a robot), every problem collected."""
+
+    def __init__(self, source: str, groups: dict, defaults: dict, problems: list[Problem]):
+        self.source = source
+        self.groups = groups
+        self.defaults = defaults
+        self.problems = problems
+        self.nodes: dict[str, Node] = {}
+        self.robots: dict[str, Robot] = {}
+        self.links: dict[str, tuple[str, dict]] = {}
+        self.host_to_node: dict[str, str] = {}
+
+    def problem(self, host: str, var: str, message: str) -> None:
+        self.problems.append(_host_problem(self.source, host, var, message))
+
+    def capacity(self, host: str, hv: dict) -> dict:
+        """The node fields every tier has: name, tier, CPU, memory, GPUs, pods, architecture and devices."""
+        source, problems = self.source, self.problems
+        tier = _tier_of(host, self.groups, source, problems)
+        node_name = _name(hv.get("kuberos_node_name", host), source, host, "kuberos_node_name", problems, "node name")
+        if node_name in self.nodes:
+            self.problem(
+                host, "kuberos_node_name", f"'{node_name}' is already the node name of another host; expected unique node names"
+            )
+        self.host_to_node[host] = node_name
+        cpu = _parse_number(hv.get("kuberos_cpu"), quantities.parse_cpu, source, host, "kuberos_cpu", problems)
+        memory = _parse_number(hv.get("kuberos_memory"), quantities.parse_memory, source, host, "kuberos_memory", problems)
+        gpu = _count(hv.get("kuberos_gpu"), source, host, "kuberos_gpu", problems, 0)
+        for var, amount in (("kuberos_cpu", cpu), ("kuberos_memory", memory)):
+            if amount == 0 and hv.get(var) is not None and not any(p.path == f"hosts.{host}.{var}" for p in problems):
+                self.problem(host, var, "must be more than zero")
+        pods = _count(hv.get("kuberos_pods"), source, host, "kuberos_pods", problems, 110)
+        arch = hv.get("kuberos_arch", "amd64")
+        if not isinstance(arch, str) or not _LABEL_VALUE.fullmatch(arch):
+            self.problem(host, "kuberos_arch", f"{describe(arch)} is not valid; expected e.g. amd64 or arm64")
+        devices = _string_list(hv.get("kuberos_devices"), source, host, "kuberos_devices", problems)
+        for device in devices:
+            if not _NAME.fullmatch(device):
+                self.problem(
+                    host, "kuberos_devices",
+                    f"{describe(device)} is not valid; expected device names of lowercase letters, digits and '-'",
+                )  # fmt: skip
+        return dict(
+            name=node_name, tier=tier, cpu_millis=cpu, memory_bytes=memory, gpu=gpu, pods=pods, arch=str(arch),
+            devices=frozenset(devices),
+        )  # fmt: skip
+
+    def robot(self, host: str, hv: dict, common: dict) -> None:
+        """A robot's own computer: an onboard node of its fleet, and the robot with its link overrides."""
+        robot = _name(hv.get("kuberos_robot", host), self.source, host, "kuberos_robot", self.problems, "robot name")
+        fleet = hv.get("kuberos_fleet")
+        if fleet is None:
+            self.problem(host, "kuberos_fleet", "is required for a robot; expected the name of its fleet")
+        else:
+            fleet = _name(fleet, self.source, host, "kuberos_fleet", self.problems, "fleet name")
+        if robot in self.robots:
+            self.problem(host, "kuberos_robot", f"'{robot}' names another robot already; expected unique robot names")
+        name = common["name"]
+        self.nodes[name] = Node(**common, robot=robot, fleet=fleet, shared=False, resource_group=str(fleet), latency_ms=0.0)
+        self.robots[robot] = Robot(robot, str(fleet), name)
+        link = hv.get("kuberos_link_latency_ms") or {}
+        if not isinstance(link, dict):
+            self.problem(
+                host, "kuberos_link_latency_ms", f"{describe(link)} is not valid; expected a mapping of node names to latencies"
+            )
+            link = {}
+        self.links[robot] = (host, link)
+
+    def site_node(self, host: str, hv: dict, common: dict) -> None:
+        """An edge server or cloud VM: the fleets it serves, whether it is shared, its latency and resource group."""
+        tier = common["tier"]
+        fleets = _string_list(hv.get("kuberos_fleets"), self.source, host, "kuberos_fleets", self.problems)
+        shared = hv.get("kuberos_shared", not fleets)
+        if not isinstance(shared, bool):
+            self.problem(host, "kuberos_shared", f"{describe(shared)} is not valid; expected true or false")
+            shared = False
+        latency = _parse_number(
+            hv.get("kuberos_latency_ms"), quantities.parse_latency_ms, self.source, host, "kuberos_latency_ms",
+            self.problems, default=self.defaults[tier],
+        )  # fmt: skip
+        group = hv.get("kuberos_resource_group", tier)
+        if not isinstance(group, str) or not _LABEL_VALUE.fullmatch(group):
+            self.problem(
+                host, "kuberos_resource_group",
+                f"{describe(group)} is not valid; expected a name of letters, digits, '-', '_' and '.'",
+            )  # fmt: skip
+        self.nodes[common["name"]] = Node(**common, fleets=fleets, shared=shared, resource_group=str(group), latency_ms=latency)
+
+    def host(self, host: str, hv) -> None:
+        if not isinstance(hv, dict):
+            self.problem(host, "", f"{describe(hv)} is not valid; expected a mapping of variables")
+            return
+        common = self.capacity(host, hv)
+        if common["tier"] == "onboard":
+            self.robot(host, hv, common)
+        else:
+            self.site_node(host, hv, common)
+
+    def check_fleets(self, known_fleets: set) -> None:
+        """Every fleet a server names is a fleet of some robot."""
+        for node in self.nodes.values():
+            for fleet in node.fleets:
+                if fleet not in known_fleets:
+                    host = next(h for h, n in self.host_to_node.items() if n == node.name)
+                    self.problem(
+                        host, "kuberos_fleets", f"'{fleet}' is not a fleet of any robot{did_you_mean(fleet, known_fleets)}"
+                    )
+
+    def resolved_robots(self) -> dict[str, Robot]:
+        """The robots with their link overrides (``kuberos_link_latency_ms``) named by node."""
+        resolved: dict[str, Robot] = {}
+        for name, robot in self.robots.items():
+            host, link = self.links[name]
+            overrides = []
+            for target, value in sorted(link.items(), key=lambda kv: str(kv[0])):
+                node_name = self.host_to_node.get(target, target)
+                var = f"kuberos_link_latency_ms.{target}"
+                if node_name not in self.nodes:
+                    known = list(self.host_to_node) + list(self.nodes)
+                    self.problem(host, var, f"is not a host or node in the inventory{did_you_mean(target, known)}")
+                    continue
+                try:
+                    overrides.append((node_name, quantities.parse_latency_ms(value)))
+                except ValueError as exc:
+                    self.problem(host, var, f"{describe(value)} is not valid; {exc}")
+            resolved[name] = Robot(robot.name, robot.fleet, robot.node, tuple(overrides))
+        return resolved
+
+
 def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
     """Build the resource model from inventory data; every problem at once."""
     problems: list[Problem] = []
@@ -279,188 +439,20 @@ def load_inventory(raw: dict, source: str = "inventory") -> Inventory:
         )
         hosts = {}
     groups = _groups(raw.get("groups") or {}, source, problems)
-    defaults = dict(DEFAULT_LATENCY_MS)
-    given_defaults = raw.get("default_latency_ms") or {}
-    if not isinstance(given_defaults, dict):
-        problems.append(
-            Problem(
-                source,
-                "kuberos_default_latency_ms",
-                f"{describe(given_defaults)} is not valid; expected a mapping of tier to latency, e.g. {{edge: 5, cloud: 40}}",
-            )
-        )
-        given_defaults = {}
-    for tier, value in given_defaults.items():
-        if tier not in defaults:
-            problems.append(
-                Problem(
-                    source,
-                    f"kuberos_default_latency_ms.{tier}",
-                    f"unknown tier{did_you_mean(tier, defaults)}; expected onboard, edge or cloud",
-                )
-            )
-            continue
-        try:
-            defaults[tier] = quantities.parse_latency_ms(value)
-        except ValueError as exc:
-            problems.append(Problem(source, f"kuberos_default_latency_ms.{tier}", f"{describe(value)} is not valid; {exc}"))
+    defaults = _latency_defaults(raw, source, problems)
     members = sorted({h for g in TIER_GROUPS for h in groups[g]})
     if not members:
         problems.append(Problem(source, "groups", "no hosts in the groups robots, edge or cloud; expected at least one robot"))
-
-    nodes: dict[str, Node] = {}
-    robots: dict[str, Robot] = {}
-    links: dict[str, tuple[str, dict]] = {}
-    host_to_node: dict[str, str] = {}
+    loader = _Loader(source, groups, defaults, problems)
     for host in members:
-        hv = hosts.get(host) or {}
-        if not isinstance(hv, dict):
-            problems.append(_host_problem(source, host, "", f"{describe(hv)} is not valid; expected a mapping of variables"))
-            continue
-        tier = _tier_of(host, groups, source, problems)
-        node_name = _name(hv.get("kuberos_node_name", host), source, host, "kuberos_node_name", problems, "node name")
-        if node_name in nodes:
-            problems.append(
-                _host_problem(
-                    source,
-                    host,
-                    "kuberos_node_name",
-                    f"'{node_name}' is already the node name of another host; expected unique node names",
-                )
-            )
-        host_to_node[host] = node_name
-        cpu = _parse_number(hv.get("kuberos_cpu"), quantities.parse_cpu, source, host, "kuberos_cpu", problems)
-        memory = _parse_number(hv.get("kuberos_memory"), quantities.parse_memory, source, host, "kuberos_memory", problems)
-        gpu = _count(hv.get("kuberos_gpu"), source, host, "kuberos_gpu", problems, 0)
-        for var, amount in (("kuberos_cpu", cpu), ("kuberos_memory", memory)):
-            if amount == 0 and hv.get(var) is not None and not any(p.path == f"hosts.{host}.{var}" for p in problems):
-                problems.append(_host_problem(source, host, var, "must be more than zero"))
-        pods = _count(hv.get("kuberos_pods"), source, host, "kuberos_pods", problems, 110)
-        arch = hv.get("kuberos_arch", "amd64")
-        if not isinstance(arch, str) or not _LABEL_VALUE.fullmatch(arch):
-            problems.append(
-                _host_problem(source, host, "kuberos_arch", f"{describe(arch)} is not valid; expected e.g. amd64 or arm64")
-            )
-        devices = _string_list(hv.get("kuberos_devices"), source, host, "kuberos_devices", problems)
-        for device in devices:
-            if not _NAME.fullmatch(device):
-                problems.append(
-                    _host_problem(
-                        source,
-                        host,
-                        "kuberos_devices",
-                        f"{describe(device)} is not valid; expected device names of lowercase letters, digits and '-'",
-                    )
-                )
-        common = dict(
-            name=node_name,
-            tier=tier,
-            cpu_millis=cpu,
-            memory_bytes=memory,
-            gpu=gpu,
-            pods=pods,
-            arch=str(arch),
-            devices=frozenset(devices),
-        )
-        if tier == "onboard":
-            robot = _name(hv.get("kuberos_robot", host), source, host, "kuberos_robot", problems, "robot name")
-            fleet = hv.get("kuberos_fleet")
-            if fleet is None:
-                problems.append(
-                    _host_problem(source, host, "kuberos_fleet", "is required for a robot; expected the name of its fleet")
-                )
-            else:
-                fleet = _name(fleet, source, host, "kuberos_fleet", problems, "fleet name")
-            if robot in robots:
-                problems.append(
-                    _host_problem(
-                        source, host, "kuberos_robot", f"'{robot}' names another robot already; expected unique robot names"
-                    )
-                )
-            nodes[node_name] = Node(**common, robot=robot, fleet=fleet, shared=False, resource_group=str(fleet), latency_ms=0.0)
-            robots[robot] = Robot(robot, str(fleet), node_name)
-            link = hv.get("kuberos_link_latency_ms") or {}
-            if not isinstance(link, dict):
-                problems.append(
-                    _host_problem(
-                        source,
-                        host,
-                        "kuberos_link_latency_ms",
-                        f"{describe(link)} is not valid; expected a mapping of node names to latencies",
-                    )
-                )
-                link = {}
-            links[robot] = (host, link)
-        else:
-            fleets = _string_list(hv.get("kuberos_fleets"), source, host, "kuberos_fleets", problems)
-            shared = hv.get("kuberos_shared", not fleets)
-            if not isinstance(shared, bool):
-                problems.append(
-                    _host_problem(source, host, "kuberos_shared", f"{describe(shared)} is not valid; expected true or false")
-                )
-                shared = False
-            latency = _parse_number(
-                hv.get("kuberos_latency_ms"),
-                quantities.parse_latency_ms,
-                source,
-                host,
-                "kuberos_latency_ms",
-                problems,
-                default=defaults[tier],
-            )
-            group = hv.get("kuberos_resource_group", tier)
-            if not isinstance(group, str) or not _LABEL_VALUE.fullmatch(group):
-                problems.append(
-                    _host_problem(
-                        source,
-                        host,
-                        "kuberos_resource_group",
-                        f"{describe(group)} is not valid; expected a name of letters, digits, '-', '_' and '.'",
-                    )
-                )
-            nodes[node_name] = Node(**common, fleets=fleets, shared=shared, resource_group=str(group), latency_ms=latency)
-
-    known_fleets = {r.fleet for r in robots.values()}
-    for node in nodes.values():
-        for fleet in node.fleets:
-            if fleet not in known_fleets:
-                host = next(h for h, n in host_to_node.items() if n == node.name)
-                problems.append(
-                    _host_problem(
-                        source,
-                        host,
-                        "kuberos_fleets",
-                        f"'{fleet}' is not a fleet of any robot{did_you_mean(fleet, known_fleets)}",
-                    )
-                )
-
-    resolved: dict[str, Robot] = {}
-    for name, robot in robots.items():
-        host, link = links[name]
-        overrides = []
-        for target, value in sorted(link.items(), key=lambda kv: str(kv[0])):
-            node_name = host_to_node.get(target, target)
-            if node_name not in nodes:
-                problems.append(
-                    _host_problem(
-                        source,
-                        host,
-                        f"kuberos_link_latency_ms.{target}",
-                        f"is not a host or node in the inventory{did_you_mean(target, list(host_to_node) + list(nodes))}",
-                    )
-                )
-                continue
-            try:
-                overrides.append((node_name, quantities.parse_latency_ms(value)))
-            except ValueError as exc:
-                problems.append(
-                    _host_problem(source, host, f"kuberos_link_latency_ms.{target}", f"{describe(value)} is not valid; {exc}")
-                )
-        resolved[name] = Robot(robot.name, robot.fleet, robot.node, tuple(overrides))
-    clusters = _clusters(raw, hosts, source, defaults, known_fleets, set(nodes), problems)
+        loader.host(host, hosts.get(host) or {})
+    known_fleets = {r.fleet for r in loader.robots.values()}
+    loader.check_fleets(known_fleets)
+    robots = loader.resolved_robots()
+    clusters = _clusters(raw, hosts, source, defaults, known_fleets, set(loader.nodes), problems)
     if problems:
         raise SpecError(problems, title=f"{source} is not a valid KubeROS inventory")
-    return Inventory(nodes, resolved, clusters)
+    return Inventory(loader.nodes, robots, clusters)
 
 
 def _clusters(raw, hosts, source, defaults, known_fleets, node_names, problems) -> dict[str, ExternalCluster]:
