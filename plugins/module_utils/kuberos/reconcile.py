@@ -11,7 +11,7 @@ one, else from when the controller first saw it) before anything moves: a blip d
 Moved instances never move back on their own (placements are sticky), a node a pod kept failing on
 is avoided for ``avoid_s``, and an instance moved for a latency or pod fault waits ``cooldown_s``
 before it may move again for such a fault, so nothing ping-pongs. Node loss is never delayed by the
-cooldown. Re-placement uses ``scheduler.replace_modules``: the same rules as deploy.
+cooldown. Re-placement uses ``replacement.replace_modules``: the same rules as deploy.
 """
 
 from __future__ import annotations
