@@ -168,3 +168,17 @@ def test_change_summary_names_moves_starts_stops_and_changes():
 def test_summary_names_what_the_cluster_refused():
     text = summary_text([], [], {"unchanged": 3}, check_mode=True, refused={"Deployment n/a": "forbidden by policy p"})
     assert text.splitlines()[-1] == "  refused by the cluster's dry run: Deployment n/a: forbidden by policy p"
+
+
+def test_object_diff_compares_data_before_it_dumps(monkeypatch):
+    """A re-run compares hundreds of unchanged objects: they are compared as data and never dumped to YAML."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import diff
+
+    dumped = []
+    monkeypatch.setattr(diff, "dump_object", lambda obj: dumped.append(obj) or repr(obj))
+    live = {"kind": "ConfigMap", "apiVersion": "v1", "metadata": {"name": "a", "namespace": "n"}, "data": {"x": "1"}}
+    reordered = {"data": {"x": "1"}, "metadata": {"namespace": "n", "name": "a"}, "apiVersion": "v1", "kind": "ConfigMap"}
+    assert object_diff(live, reordered) is None and dumped == []
+    changed = {**live, "data": {"x": "2"}}
+    entry = object_diff(live, changed)
+    assert entry is not None and len(dumped) == 2 and entry["after"] != entry["before"]

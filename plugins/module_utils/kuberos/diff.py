@@ -80,8 +80,12 @@ def object_diff(before: dict | None, after: dict | None) -> dict | None:
     """One entry of Ansible's diff list for one object (cleaned first), or None when nothing differs.
     ``before`` is the live object (None: new, and ``after`` is shown as rendered); ``after`` what the cluster would
     hold (None: removed)."""
-    old = dump_object(clean_object(before)) if before is not None else ""
-    new = dump_object(clean_object(after)) if after is not None else ""
+    cleaned_before = clean_object(before) if before is not None else None
+    cleaned_after = clean_object(after) if after is not None else None
+    if cleaned_before == cleaned_after:
+        return None  # compared as data: an unchanged object is never dumped (a re-run compares hundreds)
+    old = dump_object(cleaned_before) if cleaned_before is not None else ""
+    new = dump_object(cleaned_after) if cleaned_after is not None else ""
     if old == new:
         return None
     label = object_label(after if after is not None else before)
