@@ -233,7 +233,16 @@ class DeployPass:
         self.clients = api_clients(self.params["kubeconfig"])
         names = [d.name for d in self.deployments]
         fleets = [d.fleet for d in self.deployments]
-        allocated = node_allocations(self.clients, names, fleets)
+        self.local = Target(Api(self.clients, self.params["field_manager"]), [], [])
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:  # the reads are independent: side by side
+            reads = [
+                pool.submit(node_allocations, self.clients, names, fleets),
+                pool.submit(unavailable_nodes, self.clients, list(self.inventory.nodes)),
+                pool.submit(previous_placement, self.clients, [{"name": d.name, "fleet": d.fleet} for d in self.deployments]),
+            ]
+            # Every object of the fleets' namespaces, read now so that a name clash stops the deploy before it renders.
+            self.local.read(pool, {naming.fleet_namespace(d.fleet) for d in self.deployments})
+            allocated, self.unavailable, self.previous = (read.result() for read in reads)
         for node, extra in (self.params.get("allocated") or {}).items():
             entry = allocated.setdefault(node, {"cpu": "0m", "memory": 0, "gpu": 0, "pods": 0})
             entry["cpu"] = f"{parse_cpu(str(entry['cpu'])) + parse_cpu(str(extra.get('cpu', '0')))}m"
@@ -241,12 +250,6 @@ class DeployPass:
             entry["gpu"] = int(entry["gpu"]) + int(extra.get("gpu", 0))
             entry["pods"] = int(entry["pods"]) + int(extra.get("pods", 0))
         self.allocated = allocated
-        self.unavailable = unavailable_nodes(self.clients, list(self.inventory.nodes))
-        self.previous = previous_placement(self.clients, [{"name": d.name, "fleet": d.fleet} for d in self.deployments])
-        # Every object of the fleets' namespaces, read now so that a name clash stops the deploy before it renders.
-        self.local = Target(Api(self.clients, self.params["field_manager"]), [], [])
-        with ThreadPoolExecutor(max_workers=self.workers) as pool:
-            self.local.read(pool, {naming.fleet_namespace(d.fleet) for d in self.deployments})
         self._check_names(self.local)
         self._lap("read the cluster")
 

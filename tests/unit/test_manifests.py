@@ -189,3 +189,28 @@ def test_readme_picture_is_current(root):
         golden = handle.read()
     with open(os.path.join(root, "docs", "images", "placement-pick-and-place.svg"), encoding="utf-8") as handle:
         assert handle.read() == golden, "copy tests/unit/golden/pick-and-place/placement.svg to docs/images/"
+
+
+def test_libyaml_and_python_emitters_write_the_same_text():
+    """Rendered files come from libyaml's emitter when PyYAML has it; they must read as the pure-Python one writes."""
+    import glob
+
+    import yaml
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifest_yaml
+
+    assert yaml.__with_libyaml__ and manifest_yaml.DUMPER is not manifest_yaml.PURE_DUMPER
+    objects = [
+        doc
+        for path in sorted(glob.glob(os.path.join(GOLDEN, "**", "*.yaml"), recursive=True))
+        for doc in yaml.safe_load_all(open(path, encoding="utf-8"))
+        if isinstance(doc, dict)
+    ]
+    objects.append(
+        {"text": "multi\nline\n", "trailing": "a \nb", "long": " ".join(["word"] * 80), "unicode": "é 🤖", "bell": "\x07",
+         "crlf": "a\r\nb", "quoted": "x: y", "special": ["yes", "~", "0x1f", "*a", "&b", "%c", "@d", "#e"], "empty": {},
+         "none": None, "numbers": [1, 1.5, 10**20, True]}
+    )  # fmt: skip
+    assert len(objects) > 40
+    for obj in objects:
+        assert manifest_yaml.dump_object(obj) == manifest_yaml.dump_object(obj, manifest_yaml.PURE_DUMPER)
