@@ -172,3 +172,14 @@ def test_test_files_have_unique_names():
             if name.startswith("test_") and name.endswith(".py"):
                 names.setdefault(name, []).append(os.path.relpath(os.path.join(folder, name), ROOT))
     assert {n: p for n, p in names.items() if len(p) > 1} == {}
+
+
+def test_only_the_collection_link_is_a_tracked_link():
+    """A link in git (a .venv, a cache) points at this machine; only .collections' link to the checkout is portable."""
+    import subprocess
+
+    listing = subprocess.run(["git", "ls-files", "-s"], cwd=ROOT, capture_output=True, text=True, check=False)
+    if listing.returncode != 0:
+        pytest.skip("not a git checkout")
+    links = sorted(line.split("\t", 1)[1] for line in listing.stdout.splitlines() if line.startswith("120000 "))
+    assert links == [".collections/ansible_collections/kuberos/platform"]
