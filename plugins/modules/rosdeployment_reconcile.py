@@ -75,7 +75,8 @@ def main():
         import os
 
         from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import Settings
-        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.cli import Controller, build_api_client
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.cli import build_api_client
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.controller import Controller
 
         if not os.path.exists(params["kubeconfig"]):
             raise ClusterUnreachable(f"no kubeconfig at {params['kubeconfig']}")

@@ -44,7 +44,7 @@ from .validation import (
     schema_problems,
     strict_validator,
 )
-from .yaml_source import MAX_DEPTH, MAX_NODES, Document, format_path, load_documents, path_exists, read_text, yaml_files
+from .yaml_source import MAX_DEPTH, MAX_NODES, Document, format_path, load_documents, read_text, yaml_files
 
 CATALOG_KIND = "RosModuleCatalog"
 DEFAULT_DIRECTORY = "catalog"  # inside the inventory: inventories/<site>/catalog/
@@ -609,7 +609,7 @@ def load_catalog(path, display: str | None = None) -> Catalog:
     """
     path = os.fspath(path)
     display = display or path
-    if not path_exists(path):
+    if not os.path.exists(path):
         return Catalog((), display, missing=True)
     problems: list[Problem] = []
     found: list[tuple[CatalogEntry, Document, tuple]] = []

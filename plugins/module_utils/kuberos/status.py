@@ -32,28 +32,26 @@ def placement_table(placement: Placement) -> str:
     return format_table(header, rows)
 
 
+def _server_row(fleet: str, name: str, tier: str, node: str) -> dict:
+    """A fleet's discovery or bridge server as a placed row."""
+    return {"deployment": f"(fleet {fleet})", "fleet": fleet, "robot": "-", "module": name, "tier": tier, "node": node,
+            "instance": name}  # fmt: skip
+
+
 def _fleet_rows(placement: dict) -> list[dict]:
     """The placed rows of a placement's plain data, with each fleet's discovery and bridge servers."""
     wanted = list(placement["placements"])
     for entry in placement.get("discovery", []):
-        for server in entry["servers"]:
-            wanted.append(
-                {"deployment": f"(fleet {entry['fleet']})", "fleet": entry["fleet"], "robot": "-", "module": server["name"],
-                 "tier": server["tier"], "node": server["node"], "instance": server["name"]}
-            )  # fmt: skip
-    for entry in placement.get("bridges", []):
-        wanted.append(
-            {"deployment": f"(fleet {entry['fleet']})", "fleet": entry["fleet"], "robot": "-", "module": entry["name"],
-             "tier": entry["tier"], "node": entry["node"], "instance": entry["name"]}
-        )  # fmt: skip
+        wanted.extend(_server_row(entry["fleet"], s["name"], s["tier"], s["node"]) for s in entry["servers"])
+    wanted.extend(_server_row(b["fleet"], b["name"], b["tier"], b["node"]) for b in placement.get("bridges", []))
     return wanted
 
 
 def compare(placement: dict, pods: list[dict]) -> list[dict]:
-    by_instance: dict[str, list[dict]] = {}
+    """One row per placed (robot, module) and fleet server: where it was placed and where its pod runs."""
+    by_instance: dict[tuple[str, str], list[dict]] = {}
     for pod in pods:
         by_instance.setdefault((pod["fleet"], pod["instance"]), []).append(pod)
-    """One row per placed (robot, module) and fleet server: where it was placed and where its pod runs."""
     rows = []
     for row in _fleet_rows(placement):
         if row.get("cluster"):

@@ -219,10 +219,6 @@ def read_text(path: str, display: str, what: str = "file") -> str:
         ) from None
 
 
-def path_exists(path: str) -> bool:
-    return os.path.exists(path)
-
-
 def yaml_files(path: str, display: str, problems: list[Problem], limit: int, what: str) -> list[tuple[str, str]]:
     """``path`` when it is a file, else the YAML files of the directory (sorted, no hidden ones), each with its
     display name; a problem (and nothing) when the directory cannot be read or holds more than ``limit``."""
