@@ -61,6 +61,23 @@ if [ ${#missing[@]} -gt 0 ]; then
   fi
 fi
 
+# The monitoring and dashboard tests: a real Prometheus (and promtool for the alerting rules) scrapes the controller,
+# and a headless Chromium driven by chromedriver loads the dashboard. Without recommends: no node exporter, no desktop.
+browser=()
+command -v prometheus >/dev/null 2>&1 || browser+=(prometheus)
+command -v chromium >/dev/null 2>&1 || browser+=(chromium)
+command -v chromedriver >/dev/null 2>&1 || browser+=(chromium-driver)
+if [ ${#browser[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing ${browser[*]} (the monitoring and dashboard tests)"
+    with_progress "installing ${#browser[@]} Debian packages with apt-get" -- \
+      bash -c 'apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "$@" >/dev/null' apt \
+      "${browser[@]}" || echo "setup: could not install ${browser[*]}; the tests that need them will be skipped" >&2
+  else
+    echo "setup: ${browser[*]} missing and not root with apt-get; the tests that need them will be skipped" >&2
+  fi
+fi
+
 mkdir -p .collections/ansible_collections/kuberos
 ln -sfn ../../.. .collections/ansible_collections/kuberos/platform
 

@@ -56,6 +56,12 @@ options:
     type: list
     elements: str
     default: []
+  dashboard_port:
+    description:
+      - Port of the first replica's read-only dashboard and Prometheus C(/metrics) on 127.0.0.1; replica N serves
+        on O(dashboard_port) + N - 1. C(0) serves none.
+    type: int
+    default: 8611
   pythonpath:
     description: Directories that hold C(ansible_collections/kuberos/platform), for the controller's Python.
     type: list
@@ -123,6 +129,12 @@ command:
   returned: always
   type: list
   elements: str
+dashboards:
+  description: The address of every replica's dashboard (each serves C(/metrics) too), in order; empty when off.
+  returned: always
+  type: list
+  elements: str
+  sample: ["http://127.0.0.1:8611/", "http://127.0.0.1:8612/"]
 """
 
 import glob
@@ -155,6 +167,7 @@ ARGUMENT_SPEC = dict(
     renew_deadline=dict(type="float", default=4.0),
     retry_period=dict(type="float", default=1.0),
     node_names=dict(type="list", elements="str", default=[]),
+    dashboard_port=dict(type="int", default=8611),
 )
 
 
@@ -171,6 +184,7 @@ def command(params: dict, index: int = 1) -> list[str]:
         "--restart-threshold", str(params["restart_threshold"]), "--resync", f"{params['resync']:g}",
         "--log-level", params["log_level"], "--lease-duration", str(params["lease_duration"]),
         "--renew-deadline", f"{params['renew_deadline']:g}", "--retry-period", f"{params['retry_period']:g}",
+        "--dashboard-port", str(params["dashboard_port"] + index - 1 if params["dashboard_port"] else 0),
         *(["--node-name", node] if node else []),
     ]  # fmt: skip
 
@@ -196,13 +210,17 @@ def run(module: AnsibleModule) -> dict:
     state_dir = params["state_dir"]
     if params["replicas"] < 1:
         module.fail_json(msg=f"replicas must be 1 or more, not {params['replicas']}")
+    if params["dashboard_port"] and not 1024 <= params["dashboard_port"] <= 65536 - params["replicas"]:
+        module.fail_json(msg=f"dashboard_port must be 0 (none) or a port from 1024 to {65536 - params['replicas']}, "
+                         f"not {params['dashboard_port']}")  # fmt: skip
     if not params["renew_deadline"] < params["lease_duration"]:
         module.fail_json(
             msg=f"renew_deadline ({params['renew_deadline']:g} s) must be below lease_duration ({params['lease_duration']} s)"
         )
     wanted = {i: command(params, i) for i in range(1, params["replicas"] + 1)}
     logs = [replica_files(state_dir, i)[1] for i in wanted]
-    result = {"changed": False, "log": logs[0], "logs": logs, "command": wanted[1]}
+    dashboards = [f"http://127.0.0.1:{params['dashboard_port'] + i - 1}/" for i in wanted] if params["dashboard_port"] else []
+    result = {"changed": False, "log": logs[0], "logs": logs, "command": wanted[1], "dashboards": dashboards}
     pids_found = {
         i: background_process.running_pid(replica_files(state_dir, i)[0], is_controller) for i in replica_indexes(state_dir)
     }

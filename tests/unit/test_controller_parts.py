@@ -11,6 +11,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
     LEASE_ROLE,
     LEASE_RULES,
     READ_RULES,
+    REVIEW_RULES,
+    VIEWER_RULES,
     controller_objects,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store
@@ -62,6 +64,10 @@ def test_the_cluster_view_maps_nodes_readiness_rtt_and_pods():
     assert (pod.node, pod.restarts, pod.waiting_reason, pod.deleting) == ("edge-1", 4, "CrashLoopBackOff", True)
 
 
+def pod_labels(deployment: dict) -> dict:
+    return deployment["spec"]["template"]["metadata"]["labels"]
+
+
 def test_the_in_cluster_rights_are_narrow():
     objects = controller_objects("kuberos-system", "img", ["a", "b"], ["--grace", "5"])
     kinds = [o["kind"] for o in objects]
@@ -76,11 +82,25 @@ def test_the_in_cluster_rights_are_narrow():
     for rule in READ_RULES + FLEET_RULES + LEASE_RULES:
         assert "*" not in rule["verbs"] and "*" not in rule["resources"] and "secrets" not in rule["resources"]
     assert all(set(r["verbs"]) <= {"list", "watch"} for r in READ_RULES), "cluster-wide rights are read-only"
+    assert {(r["resources"][0], *r["verbs"]) for r in REVIEW_RULES} == {
+        ("tokenreviews", "create"),
+        ("subjectaccessreviews", "create"),
+    }, "the dashboard may only ask who a token is and what it may do (reviews are answered, not stored)"
+    read = next(o for o in objects if o["kind"] == "ClusterRole" and o["metadata"]["name"] == "kuberos-controller-read")
+    assert read["rules"] == READ_RULES + REVIEW_RULES
+    viewer = next(o for o in objects if o["kind"] == "ClusterRole" and o["rules"] == VIEWER_RULES)
+    assert all("resources" not in r and r["verbs"] == ["get"] for r in viewer["rules"]), "viewers read two URLs, nothing else"
+    service = next(o for o in objects if o["kind"] == "Service")
+    assert service["spec"]["ports"] == [{"name": "http", "port": 8611, "targetPort": "http", "protocol": "TCP"}]
     deployment = next(o for o in objects if o["kind"] == "Deployment")
     pod = deployment["spec"]["template"]["spec"]
     container = pod["containers"][0]
     assert deployment["spec"]["replicas"] == 2 and container["securityContext"]["runAsNonRoot"]
     assert container["args"][-2:] == ["--grace", "5"] and "--lease-namespace" in container["args"]
+    auth = container["args"].index("--dashboard-auth")
+    assert container["args"][auth + 1] == "kubernetes", "in a pod the dashboard listens on every address: tokens required"
+    assert container["ports"] == [{"name": "http", "containerPort": 8611, "protocol": "TCP"}]
+    assert service["spec"]["selector"].items() <= pod_labels(deployment).items()
     assert {e["name"] for e in container["env"]} == {"POD_NAME", "KUBEROS_NODE_NAME"}
     assert pod["affinity"]["podAntiAffinity"], "replicas spread over nodes where they can"
     assert "PodDisruptionBudget" in kinds

@@ -20,6 +20,19 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
     Controller,
 )
 
+DEFAULT_PORT = 8611
+
+
+def is_loopback(host: str) -> bool:
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
 
 def build_api_client(kubeconfig: str | None):
     from kubernetes import client, config
@@ -77,8 +90,57 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--node-name", default=os.environ.get("KUBEROS_NODE_NAME", ""),
         help="the node this replica runs on ($KUBEROS_NODE_NAME); while it is NotReady the replica does not lead",
     )  # fmt: skip
+    view = parser.add_argument_group(
+        "dashboard and /metrics", "a read-only live dashboard and Prometheus metrics (docs/dashboard.md)"
+    )
+    view.add_argument(
+        "--dashboard-port", type=int, default=DEFAULT_PORT,
+        help="port of the dashboard and /metrics (0: none; default %(default)s)",
+    )  # fmt: skip
+    view.add_argument(
+        "--dashboard-host", default="127.0.0.1",
+        help="address it listens on (default %(default)s); any other than loopback needs --dashboard-auth kubernetes",
+    )  # fmt: skip
+    view.add_argument(
+        "--dashboard-auth", choices=("none", "kubernetes"), default=None,
+        help="kubernetes: every request needs a bearer token that a TokenReview accepts and a SubjectAccessReview allows "
+        "to get /kuberos/dashboard (or /metrics); default: kubernetes in a pod (no --kubeconfig), none otherwise",
+    )  # fmt: skip
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if args.dashboard_auth is None:
+        args.dashboard_auth = "none" if args.kubeconfig else "kubernetes"
+    if args.dashboard_port and args.dashboard_auth == "none" and not is_loopback(args.dashboard_host):
+        parser.error(f"--dashboard-host {args.dashboard_host} is not a loopback address: it needs --dashboard-auth kubernetes")
+    if not 0 <= args.dashboard_port <= 65535:
+        parser.error(f"--dashboard-port {args.dashboard_port} is not a port (0 to 65535)")
+    return args
+
+
+def start_dashboard(controller, args, api_client):
+    """The dashboard and /metrics, or None when off or when its port cannot be had (the controller runs on)."""
+    if not args.dashboard_port:
+        return None
+    try:
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.auth import KubernetesAuth
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.dashboard import Dashboard
+
+        auth = KubernetesAuth(api_client) if args.dashboard_auth == "kubernetes" else None
+        dashboard = Dashboard(controller, args.dashboard_host, args.dashboard_port, auth)
+        dashboard.start()
+    except ImportError as exc:
+        logging.getLogger("kuberos.controller").error("dashboard off: %s (install aiohttp and prometheus_client)", exc)
+        return None
+    except OSError as exc:
+        logging.getLogger("kuberos.controller").error(
+            "dashboard off: cannot listen on %s:%s: %s", args.dashboard_host, args.dashboard_port, exc.strerror or exc
+        )
+        return None
+    logging.getLogger("kuberos.controller").info(
+        "dashboard on http://%s:%d/ (metrics on /metrics, %s)", args.dashboard_host, dashboard.port,
+        "bearer tokens checked with TokenReview and SubjectAccessReview" if dashboard.auth else "no login: loopback only",
+    )  # fmt: skip
+    return dashboard
 
 
 def main(argv=None) -> int:
@@ -105,7 +167,10 @@ def main(argv=None) -> int:
             api_client, args.lease_namespace, args.lease_name, controller.identity, timings,
             on_change=lambda leading: controller.changed.set(), stand_down=lambda: controller.stand_down(args.node_name),
         )  # fmt: skip
+    dashboard = start_dashboard(controller, args, api_client)
     signal.signal(signal.SIGTERM, lambda *_: (controller.stop_event.set(), controller.changed.set()))
     signal.signal(signal.SIGINT, lambda *_: (controller.stop_event.set(), controller.changed.set()))
     controller.run()
+    if dashboard is not None:
+        dashboard.stop()
     return 0

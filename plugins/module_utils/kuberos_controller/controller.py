@@ -151,6 +151,7 @@ class Controller:
         self.identity = identity or (elector.identity if elector else "")
         self.leading = False  # as of the last pass loop; without an elector the first loop turns it on
         self.lead_passes = 0  # completed passes since this replica last became the leader
+        self.metrics = None  # the dashboard's ControllerMetrics, when it serves /metrics: counts moves and pass times
 
     # -- fencing --------------------------------------------------------------------------------
     def _may_write(self) -> dict:
@@ -464,6 +465,8 @@ class Controller:
                     }
                     events.append((move.instance, "ModuleMoved", message, False))
                     self.moves += 1
+                    if self.metrics is not None:
+                        self.metrics.moved(move.why)
             for inst, why in stranded.items():
                 if self.reported.get(key, {}).get(inst) != why:
                     log.warning("%s/%s: %s stays on its node: %s", record.namespace, record.deployment, inst, why)
@@ -554,6 +557,8 @@ class Controller:
                 wake_at = time.time() + 1.0
                 continue
             self.lead_passes += 1
+            if self.metrics is not None:
+                self.metrics.reconcile.observe(time.monotonic() - started)
             if self.elector is not None and self.lead_passes == 1:
                 log.info(
                     "first pass as leader completed at %.3f (%.3f s)", time.time(), time.monotonic() - started

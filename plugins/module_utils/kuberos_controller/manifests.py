@@ -8,6 +8,12 @@ In its own namespace it may get, create and update Leases: the replicas elect th
 ``kuberos-controller`` (the controller's ``leader_election``). Nothing else: no Secrets, no node changes,
 no creating Deployments or pods, nothing in other namespaces.
 
+Every replica serves the read-only dashboard and ``/metrics`` on port 8611 (named ``http``), behind the Service
+``kuberos-controller``. There every request needs a Kubernetes bearer token: the controller asks the API
+server (TokenReview, SubjectAccessReview) whether it may ``get`` ``/kuberos/dashboard`` (or ``/metrics``). The
+ClusterRole ``kuberos-dashboard-viewer`` grants both; it is bound to the ServiceAccount of the same name, whose
+token a person gets with ``kubectl create token kuberos-dashboard-viewer -n kuberos-system``.
+
 Several replicas run (two by default), spread over nodes where possible, each knowing its pod's name (its
 identity in the Lease) and its node (a replica whose node is NotReady does not lead). A
 PodDisruptionBudget keeps one replica through voluntary evictions such as a node drain.
@@ -25,9 +31,18 @@ LEASE_ROLE = "kuberos-controller-lease"
 ENTRY = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller"
 
 READ_RULES = [
-    {"apiGroups": [""], "resources": ["nodes", "pods", "configmaps"], "verbs": ["list", "watch"]},
+    {"apiGroups": [""], "resources": ["nodes", "pods", "configmaps", "events"], "verbs": ["list", "watch"]},
     {"apiGroups": ["apps"], "resources": ["deployments"], "verbs": ["list", "watch"]},
 ]
+# The dashboard and /metrics ask the API server who a bearer token is and whether it may read them (reviews are
+# answered, not stored). Part of the read ClusterRole.
+REVIEW_RULES = [
+    {"apiGroups": ["authentication.k8s.io"], "resources": ["tokenreviews"], "verbs": ["create"]},
+    {"apiGroups": ["authorization.k8s.io"], "resources": ["subjectaccessreviews"], "verbs": ["create"]},
+]
+VIEWER_ROLE = "kuberos-dashboard-viewer"
+VIEWER_RULES = [{"nonResourceURLs": ["/kuberos/dashboard", "/metrics"], "verbs": ["get"]}]
+DASHBOARD_PORT = 8611
 FLEET_RULES = [
     {"apiGroups": [""], "resources": ["configmaps"], "verbs": ["get", "create", "patch"]},
     {"apiGroups": [""], "resources": ["pods"], "verbs": ["delete"]},
@@ -49,7 +64,7 @@ def controller_objects(namespace: str, image: str, fleets: list[str], args: list
             "apiVersion": "rbac.authorization.k8s.io/v1",
             "kind": "ClusterRole",
             "metadata": {"name": READ_ROLE, "labels": labels},
-            "rules": READ_RULES,
+            "rules": READ_RULES + REVIEW_RULES,
         },
         {
             "apiVersion": "rbac.authorization.k8s.io/v1",
@@ -76,6 +91,36 @@ def controller_objects(namespace: str, image: str, fleets: list[str], args: list
             "metadata": {"name": LEASE_ROLE, "namespace": namespace, "labels": labels},
             "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "Role", "name": LEASE_ROLE},
             "subjects": [subject],
+        },
+    ]
+    viewer = {"kind": "ServiceAccount", "name": VIEWER_ROLE, "namespace": namespace}
+    objects += [
+        {
+            "apiVersion": "v1",
+            "kind": "ServiceAccount",
+            "metadata": {"name": VIEWER_ROLE, "namespace": namespace, "labels": labels},
+        },
+        {
+            "apiVersion": "rbac.authorization.k8s.io/v1",
+            "kind": "ClusterRole",
+            "metadata": {"name": VIEWER_ROLE, "labels": labels},
+            "rules": VIEWER_RULES,
+        },
+        {
+            "apiVersion": "rbac.authorization.k8s.io/v1",
+            "kind": "ClusterRoleBinding",
+            "metadata": {"name": VIEWER_ROLE, "labels": labels},
+            "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": VIEWER_ROLE},
+            "subjects": [viewer],
+        },
+        {
+            "apiVersion": "v1",
+            "kind": "Service",
+            "metadata": {"name": NAME, "namespace": namespace, "labels": labels},
+            "spec": {
+                "selector": {"app.kubernetes.io/name": NAME},
+                "ports": [{"name": "http", "port": DASHBOARD_PORT, "targetPort": "http", "protocol": "TCP"}],
+            },
         },
     ]
     for fleet in sorted(set(fleets)):
@@ -119,7 +164,20 @@ def controller_objects(namespace: str, image: str, fleets: list[str], args: list
                             {
                                 "name": "controller",
                                 "image": image,
-                                "args": ["python", "-m", ENTRY, "--lease-namespace", namespace, *args],
+                                "args": [
+                                    "python",
+                                    "-m",
+                                    ENTRY,
+                                    "--lease-namespace",
+                                    namespace,
+                                    "--dashboard-host",
+                                    "0.0.0.0",
+                                    "--dashboard-auth",
+                                    "kubernetes",
+                                    *args,
+                                ],
+                                "ports": [{"name": "http", "containerPort": DASHBOARD_PORT, "protocol": "TCP"}],
+                                "readinessProbe": {"httpGet": {"path": "/healthz", "port": "http"}, "periodSeconds": 10},
                                 "env": [
                                     {"name": "POD_NAME", "valueFrom": {"fieldRef": {"fieldPath": "metadata.name"}}},
                                     {"name": "KUBEROS_NODE_NAME", "valueFrom": {"fieldRef": {"fieldPath": "spec.nodeName"}}},

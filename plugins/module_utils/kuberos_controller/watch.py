@@ -27,6 +27,7 @@ class Store:
         self.synced = threading.Event()
         self.lock = threading.Lock()
         self.errors = 0
+        self.generation = 0  # bumped on every change: the dashboard rebuilds its view when any store's moves on
 
     def snapshot(self) -> list[dict]:
         with self.lock:
@@ -37,6 +38,7 @@ class Store:
         body = json.loads(response.data)
         with self.lock:
             self.items = {object_key(item): item for item in body.get("items", [])}
+            self.generation += 1
         self.synced.set()
         self.changed.set()
         return body["metadata"]["resourceVersion"]
@@ -92,5 +94,6 @@ class Store:
                 self.items.pop(object_key(obj), None)
             else:
                 self.items[object_key(obj)] = obj
+            self.generation += 1
         self.changed.set()
         return version
