@@ -215,9 +215,9 @@ class Dashboard:
         asyncio.set_event_loop(self.loop)
         try:
             self.changed_async = asyncio.Event()
-            self.runner = web.AppRunner(self.app(), access_log=None, handle_signals=False)
+            self.runner = web.AppRunner(self.app(), access_log=None, handle_signals=False, shutdown_timeout=1.0)
             self.loop.run_until_complete(self.runner.setup())
-            site = web.TCPSite(self.runner, self.host, self.port, shutdown_timeout=1.0)
+            site = web.TCPSite(self.runner, self.host, self.port)
             self.loop.run_until_complete(site.start())
             if self.port == 0:
                 self.port = site._server.sockets[0].getsockname()[1]  # pylint: disable=protected-access
@@ -311,7 +311,8 @@ class Dashboard:
             try:
                 response = await handler(request)
             except web.HTTPException as exc:
-                return self._headers(exc)
+                self._headers(exc)
+                raise
             return self._headers(response)
 
         return guard

@@ -550,7 +550,7 @@ def live_placement(view: View, key: str, robots: set[str] | None = None) -> Plac
     used = {i.node for i in instances} | {s.node for servers in placement.discovery.values() for s in servers}
     nodes = []
     for row in view.resources:
-        if row["name"] not in used and not (row["robot"] and row["robot"] in shown):
+        if row["name"] not in used and not (row["robot"] and row["robot"] in (shown if robots is None else robots)):
             continue
         total, taken = row["allocatable"], row["allocated"]
         nodes.append(

@@ -1,0 +1,396 @@
+"""The dashboard's view and the controller's /metrics, from objects shaped as the API server serves them, and the
+dashboard's HTTP server itself (aiohttp on a loopback port) over stores filled by hand: filters, paging, hostile
+query strings, security headers, the live stream and the metrics text."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import pytest
+from prometheus_client import generate_latest
+from prometheus_client.parser import text_string_to_metric_families
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import INSTANCE, MANAGED_BY, RenderOptions
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import (
+    ClusterView,
+    NodeView,
+    PodView,
+    Settings,
+    latency_fault,
+    node_fault,
+    pod_fault,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, parse_record
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_and_place
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import dashboard_page
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.dashboard import Dashboard
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.metrics import ControllerMetrics, move_reason
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import (
+    Snapshot,
+    build_view,
+    live_placement,
+    page,
+    select,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, object_key
+
+SPEC = "examples/pick-and-place.yml"
+NAMESPACE = "kuberos-test-fleet"
+
+
+@pytest.fixture(scope="module")
+def deployed(local_raw, local_inventory, root):
+    """The example placed on the local inventory: (record ConfigMap, Record, node objects, pod objects)."""
+    deployments, placement = load_and_place(f"{root}/{SPEC}", local_raw)
+    with open(f"{root}/{SPEC}", encoding="utf-8") as handle:
+        text = handle.read()
+    _revision, configmap = build_records(text, SPEC, deployments, placement, local_raw, RenderOptions(), "kuberos")
+    configmap["metadata"]["resourceVersion"] = "1"
+    record = parse_record(configmap)
+    nodes = [node_object(n) for n in local_inventory.nodes.values()]
+    pods = [pod_object(i.name, i.node, f"{i.name}-1", "registry.example/x:0.1") for i in record.placement.instances]
+    pods += [pod_object(s.name, s.node, f"{s.name}-1", "ros:jazzy") for ss in record.placement.discovery.values() for s in ss]
+    return configmap, record, nodes, pods
+
+
+def node_object(node, ready=True, rtt=None) -> dict:
+    annotations = {"kuberos.io/rtt-ms": json.dumps(rtt)} if rtt else {}
+    return {
+        "metadata": {"name": node.name, "labels": node_labels.node_labels(node), "annotations": annotations},
+        "status": {
+            "allocatable": {
+                "cpu": f"{node.cpu_millis}m",
+                "memory": str(node.memory_bytes),
+                "pods": "110",
+                **({"nvidia.com/gpu": str(node.gpu)} if node.gpu else {}),
+            },
+            "conditions": [
+                {
+                    "type": "Ready",
+                    "status": "True" if ready else "Unknown",
+                    "reason": "" if ready else "NodeStatusUnknown",
+                    "lastTransitionTime": "2026-11-25T10:00:00Z",
+                }
+            ],
+        },
+    }
+
+
+def pod_object(instance, node, name, image, phase="Running", ready=True) -> dict:
+    return {
+        "metadata": {"name": name, "namespace": NAMESPACE, "labels": {INSTANCE: instance, MANAGED_BY: "kuberos"}},
+        "spec": {
+            "nodeName": node,
+            "containers": [{"image": image, "resources": {"requests": {"cpu": "250m", "memory": "128Mi"}}}],
+        },
+        "status": {
+            "phase": phase,
+            "conditions": [{"type": "Ready", "status": "True" if ready else "False"}],
+            "containerStatuses": [{"restartCount": 0, "state": {"running": {}}}],
+        },
+    }
+
+
+def snapshot(deployed, **changes) -> Snapshot:
+    configmap, record, nodes, pods = deployed
+    base = {"nodes": nodes, "pods": pods, "records": [(configmap, record, "")]}
+    return Snapshot(**{**base, **changes})
+
+
+def test_every_module_of_every_robot_is_shown_where_its_pod_runs(deployed):
+    _configmap, record, nodes, _pods = deployed
+    view = build_view(snapshot(deployed))
+    shown = {(r["robot"], r["module"]): (r["node"], r["phase"], r["version"]) for r in view.modules}
+    expected = {(r["robot"], r["module"]): (r["node"], "Running", "0.1") for r in record.placement.rows()}
+    assert shown == expected
+    assert view.summary["instances"] == len(record.placement.instances) and view.summary["stranded"] == 0
+    assert view.summary["nodes"] == view.summary["ready"] == len(nodes)
+    reasons = {r["instance"]: r["reason"] for r in view.modules}
+    assert all(reasons[i.name] == i.reason and i.reason for i in record.placement.instances), "the placement's reasons"
+    assert {f["fleet"] for f in view.fleets} == {"test-fleet", "warehouse-fleet"}, "every fleet of the inventory"
+    fleet = next(f for f in view.fleets if f["fleet"] == "test-fleet")
+    assert fleet["robots"] == ["fetch-1", "fetch-2"] and fleet["deployments"] == ["pick-and-place"]
+    assert [s["node"] for s in fleet["discovery"]] == [s.node for s in record.placement.discovery["test-fleet"]]
+    assert all(s["phase"] == "Running" for s in fleet["discovery"])
+
+
+def test_allocated_is_what_the_kubernetes_pods_on_a_node_request(deployed):
+    _configmap, record, _nodes, _pods = deployed
+    view = build_view(snapshot(deployed))
+    per_node: dict[str, int] = {}
+    for i in record.placement.instances:
+        per_node[i.node] = per_node.get(i.node, 0) + 1
+    for s in (s for ss in record.placement.discovery.values() for s in ss):
+        per_node[s.node] = per_node.get(s.node, 0) + 1
+    for row in view.resources:
+        count = per_node.get(row["name"], 0)
+        assert row["allocated"]["pods"] == count and row["allocated"]["cpu"] == pytest.approx(0.25 * count)
+        assert row["allocatable"]["pods"] == 110
+
+
+def test_a_move_a_stranding_a_pod_elsewhere_and_a_slow_link_show(deployed):
+    _configmap, record, nodes, pods = deployed
+    planner = next(i for i in record.placement.instances if i.module == "motion-planner")
+    onboard = next(i for i in record.placement.instances if i.tier == "onboard")
+    robot = planner.robots[0]
+    moved_pod = [p for p in pods if p["metadata"]["labels"][INSTANCE] != planner.name]
+    moved_pod.append(pod_object(planner.name, "edge-3", "elsewhere", "registry.example/x:0.2"))
+    status = {
+        "metadata": {"name": "kuberos-status-pick-and-place", "namespace": NAMESPACE},
+        "data": {
+            "status.json": json.dumps({"deployment": "pick-and-place", "rows": [{"instance": onboard.name, "note": "onboard"}]}),
+            "moves.json": json.dumps({planner.name: {"at": "2026-11-25T10:00:05Z", "from": "x", "to": planner.node, "why": "w"}}),
+        },
+    }
+    robot_node = next(n for n in nodes if (n["metadata"]["labels"].get(node_labels.ROBOT)) == robot)
+    slow = dict(
+        robot_node, metadata={**robot_node["metadata"], "annotations": {"kuberos.io/rtt-ms": json.dumps({planner.node: 999})}}
+    )
+    view = build_view(
+        snapshot(deployed, pods=moved_pod, statuses=[status], nodes=[slow if n is robot_node else n for n in nodes])
+    )
+    rows = {(r["robot"], r["module"]): r for r in view.modules}
+    row = rows[(robot, "motion-planner")]
+    assert row["phase"] == "Moving", "its pod runs on another node than the record says"
+    assert row["last_move"]["why"] == "w" and row["rtt_ms"] == 999 and row["over_latency"]
+    assert rows[(onboard.robots[0], onboard.module)]["phase"] == "Stranded"
+    assert view.summary["stranded"] == 1 and view.summary["over_latency"] == 1
+
+
+def test_node_failures_rollouts_and_controller_events_make_one_timeline(deployed):
+    configmap, _record, nodes, _pods = deployed
+    down = [node_object_like(n, ready=False) if n["metadata"]["name"] == "edge-1" else n for n in nodes]
+    rolling = parse_record(configmap)
+    rolling.rollout = {"revision": 2, "from": 1, "started": "2026-11-25T10:01:00Z", "instances": ["a", "b"]}
+    event = {
+        "metadata": {"name": "e1", "namespace": NAMESPACE, "creationTimestamp": "2026-11-25T10:02:00Z"},
+        "involvedObject": {"name": "pick-and-place-perception-fetch-1"},
+        "reason": "ModuleMoved", "message": "moved from edge-1 to edge-2", "type": "Normal",
+        "lastTimestamp": "2026-11-25T10:02:00Z",
+    }  # fmt: skip
+    view = build_view(snapshot(deployed, nodes=down, records=[(configmap, rolling, "")], events=[event]))
+    kinds = [(e["kind"], e["object"]) for e in view.events]
+    assert kinds[0] == ("move", "pick-and-place-perception-fetch-1"), "newest first"
+    assert ("rollout", "pick-and-place") in kinds and ("node", "edge-1") in kinds
+    (rollout,) = view.software["rollouts"]
+    assert (rollout["from"], rollout["to"], rollout["instances"]) == (1, 2, 2)
+
+
+def node_object_like(node: dict, ready: bool) -> dict:
+    copy = json.loads(json.dumps(node))
+    copy["status"]["conditions"][0].update(status="True" if ready else "Unknown", reason="NodeStatusUnknown")
+    return copy
+
+
+def test_an_unreadable_record_is_named_and_does_not_hide_the_others(deployed):
+    configmap, _record, _nodes, _pods = deployed
+    bad = {"metadata": {"name": "kuberos-record-broken", "namespace": NAMESPACE}, "data": {}}
+    view = build_view(snapshot(deployed, records=[(bad, None, "not a readable KubeROS record"), (configmap, _record, "")]))
+    assert view.summary["unreadable_records"] == [
+        {"namespace": NAMESPACE, "name": "kuberos-record-broken", "error": "not a readable KubeROS record"}
+    ]
+    assert view.modules, "the readable record is still shown"
+
+
+def test_the_live_map_shows_only_the_chosen_robots_on_live_capacity(deployed):
+    view = build_view(snapshot(deployed))
+    key = next(iter(view.placements))
+    part = live_placement(view, key, {"fetch-1"})
+    assert part.instances and all("fetch-1" in i.robots for i in part.instances)
+    names = {n["name"] for n in part.nodes}
+    assert {i.node for i in part.instances} <= names and "fetch-2" not in names
+    edge = next(n for n in part.nodes if n["name"] == "edge-1")
+    assert edge["free_cpu_millis"] < edge["cpu_millis"], "the pods' requests are taken off"
+
+
+@pytest.mark.parametrize(
+    "query",
+    [
+        {"page": "abc", "size": "-5"},
+        {"page": "999999999999", "size": "1e9"},
+        {"q": "\x00<script>alert(1)</script>", "phase": "Running"},
+        {"q": "ü" * 5000},
+        {"over_latency": "true"},
+    ],
+)
+def test_filters_and_paging_never_fail_on_odd_input(deployed, query):
+    view = build_view(snapshot(deployed))
+    found = select(view.modules, query, ("robot", "module"))
+    result = page(found, query.get("page"), query.get("size", 100))
+    assert 1 <= result["size"] <= 1000 and 0 <= result["page"] < result["pages"]
+    assert len(result["rows"]) <= result["size"]
+
+
+def test_search_and_exact_filters(deployed):
+    view = build_view(snapshot(deployed))
+    fields = ("robot", "module", "node")
+    assert {r["robot"] for r in select(view.modules, {"q": "FETCH-1"}, fields)} == {"fetch-1"}
+    assert {r["tier"] for r in select(view.modules, {"tier": "edge"}, fields)} == {"edge"}
+    assert select(view.modules, {"tier": "edge", "q": "controller"}, fields) == []
+    assert len(page(view.modules, 1, 3)["rows"]) == 3 and page(view.modules, 1, 3)["rows"][0] == view.modules[3]
+
+
+# -- metrics ------------------------------------------------------------------------------------------
+def test_a_moves_reason_label_comes_from_the_fault_the_controller_saw(deployed):
+    _configmap, record, _nodes, _pods = deployed
+    inst = next(i for i in record.placement.instances if i.module == "perception")
+    cluster = ClusterView(nodes={inst.node: NodeView(inst.node, False, "Ready=Unknown (NodeStatusUnknown)", 1.0)})
+    assert move_reason(node_fault(inst.node, cluster)[0]) == "node_failure"
+    assert move_reason(node_fault("gone", cluster)[0]) == "node_failure"
+    pod = PodView("p", NAMESPACE, inst.name, inst.node, "Running", False, 9, "CrashLoopBackOff", False)
+    failing = ClusterView(pods={inst.name: [pod]})
+    assert move_reason(pod_fault(inst, failing, Settings())) == "pod_failure"
+    slow = ClusterView(measured={inst.robots[0]: {inst.node: 1e6}})
+    assert move_reason(latency_fault(inst, record, slow)) == "latency"
+    assert move_reason("an operator asked") == "other"
+
+
+def metric_values(text: str) -> dict[tuple[str, frozenset], float]:
+    return {
+        (sample.name, frozenset(sample.labels.items())): sample.value
+        for family in text_string_to_metric_families(text)
+        for sample in family.samples
+    }
+
+
+def test_the_metrics_count_what_the_view_shows(deployed):
+    _configmap, record, nodes, _pods = deployed
+    planner = next(i for i in record.placement.instances if i.module == "motion-planner")
+    robot_node = next(n for n in nodes if n["metadata"]["labels"].get(node_labels.ROBOT) == planner.robots[0])
+    measured = json.loads(json.dumps(robot_node))
+    measured["metadata"]["annotations"] = {"kuberos.io/rtt-ms": json.dumps({planner.node: 12.5})}
+    view = build_view(snapshot(deployed, nodes=[measured if n is robot_node else n for n in nodes]))
+    metrics = ControllerMetrics(lambda: view, lambda: ("replica-a", True))
+    metrics.moved("node edge-1 is NotReady (Ready=Unknown)")
+    metrics.reconcile.observe(0.02)
+    values = metric_values(generate_latest(metrics.registry).decode())
+    running = sum(v for (n, labels), v in values.items() if n == "kuberos_module_instances" and ("phase", "Running") in labels)
+    assert running == len(record.placement.instances)
+    assert values[("kuberos_module_moves_total", frozenset({("reason", "node_failure")}))] == 1
+    assert values[("kuberos_module_moves_total", frozenset({("reason", "latency")}))] == 0, "every reason exists from the start"
+    assert values[("kuberos_controller_leader", frozenset({("identity", "replica-a")}))] == 1
+    assert values[("kuberos_reconcile_duration_seconds_count", frozenset())] == 1
+    edge = frozenset({("node", "edge-1"), ("resource", "cpu")})
+    assert values[("kuberos_node_allocatable", edge)] == 16 and values[("kuberos_node_allocated", edge)] > 0
+    labels = {("namespace", NAMESPACE), ("deployment", "pick-and-place"), ("module", "motion-planner")}
+    assert values[("kuberos_module_rtt_ms", frozenset(labels | {("robot", planner.robots[0]), ("node", planner.node)}))] == 12.5
+    assert values[("kuberos_module_max_latency_ms", frozenset(labels))] == 200
+    assert values[("kuberos_node_rtt_ms", frozenset({("node", planner.robots[0]), ("peer", planner.node)}))] == 12.5
+    assert sum(v for (n, _l), v in values.items() if n == "kuberos_module_stranded") == 0
+
+
+# -- the page's script ---------------------------------------------------------------------------------
+def test_the_page_never_turns_cluster_data_into_html():
+    for unsafe in ("innerHTML", "outerHTML", "insertAdjacentHTML", "document.write", "eval(", "new Function"):
+        assert unsafe not in dashboard_page.SCRIPT, unsafe
+    assert "<script>" not in dashboard_page.HTML, "no inline script: the Content-Security-Policy allows only /static/app.js"
+
+
+# -- the HTTP server ----------------------------------------------------------------------------------
+class HandFed:
+    """What the dashboard reads of a controller, with stores filled by the test instead of watches."""
+
+    def __init__(self, deployed):
+        configmap, _record, nodes, pods = deployed
+        self.changed = threading.Event()
+        self.stop_event = threading.Event()
+        self.nodes, self.pods, self.deployments, self.records = (
+            Store(name, None, self.changed) for name in ("nodes", "pods", "deployments", "records")
+        )
+        self.stores = (self.nodes, self.pods, self.deployments, self.records)
+        self.put(self.nodes, *nodes)
+        self.put(self.pods, *pods)
+        self.put(self.records, configmap)
+        self.core = None
+        self.identity, self.leading, self.elector, self.passes, self.moves = "hand-fed", True, None, 0, 0
+
+    @staticmethod
+    def put(store: Store, *objects: dict) -> None:
+        with store.lock:
+            for obj in objects:
+                store.items[object_key(obj)] = obj
+            store.generation += 1
+
+
+@pytest.fixture
+def served(deployed):
+    controller = HandFed(deployed)
+    dashboard = Dashboard(controller, "127.0.0.1", 0, watch_extra=False, refresh_s=0.05)
+    dashboard.start()
+    try:
+        yield controller, dashboard, f"http://127.0.0.1:{dashboard.port}"
+    finally:
+        controller.stop_event.set()
+        dashboard.stop()
+
+
+def fetch(url: str) -> tuple[int, dict, bytes]:
+    try:
+        with urllib.request.urlopen(url, timeout=5) as response:
+            return response.status, dict(response.headers), response.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, dict(exc.headers), exc.read()
+
+
+def wait_for_view(dashboard, generation=1, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while dashboard.view.generation < generation and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert dashboard.view.generation >= generation
+
+
+def test_the_server_answers_every_route_with_safe_headers(served):
+    _controller, dashboard, base = served
+    wait_for_view(dashboard)
+    for path in ("/", "/static/app.js", "/static/app.css", "/api/summary", "/api/modules", "/api/resources", "/api/fleets",
+                 "/api/software", "/api/events", "/api/placement.svg", "/metrics", "/healthz"):  # fmt: skip
+        status, headers, body = fetch(base + path)
+        assert status == 200, (path, body[:300])
+        assert headers["X-Content-Type-Options"] == "nosniff" and "default-src 'none'" in headers["Content-Security-Policy"]
+    status, _headers, body = fetch(base + "/api/modules?page=abc&size=-1&q=%00%3Cscript%3E&phase=Running")
+    assert status == 200 and json.loads(body)["size"] == 1
+    assert fetch(base + "/api/placement.svg?deployment=nope")[0] == 404
+    assert fetch(base + "/login")[0] == 200 and b"Sign in" not in fetch(base + "/login")[2], "no login without auth"
+
+
+def test_a_change_reaches_an_open_stream_within_the_update_window(served, deployed):
+    controller, dashboard, base = served
+    wait_for_view(dashboard)
+    _configmap, record, _nodes, pods = deployed
+    target = record.placement.instances[0]
+
+    async def listen():
+        reader, writer = await asyncio.open_connection("127.0.0.1", dashboard.port)
+        writer.write(b"GET /api/stream HTTP/1.1\r\nHost: x\r\n\r\n")
+        await writer.drain()
+        seen = []
+        changed_at = None
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            line = (await asyncio.wait_for(reader.readline(), 10)).decode()
+            if line.startswith("data: "):
+                seen.append(json.loads(line[6:])["generation"])
+                if len(seen) == 1:
+                    changed_at = time.monotonic()
+                    gone = [p for p in pods if p["metadata"]["labels"][INSTANCE] == target.name]
+                    with controller.pods.lock:
+                        for pod in gone:
+                            controller.pods.items.pop(object_key(pod))
+                        controller.pods.generation += 1
+                else:
+                    writer.close()
+                    return seen, time.monotonic() - changed_at
+        writer.close()
+        return seen, None
+
+    seen, delay = asyncio.run(listen())
+    assert len(seen) == 2 and seen[1] > seen[0], seen
+    assert delay is not None and delay < 2.0, f"a change took {delay} s to reach the page"
+    rows = json.loads(fetch(f"{base}/api/modules?q={target.robots[0]}&module={target.module}")[2])["rows"]
+    assert rows[0]["phase"] == "Missing", "the page refetches and sees the pod gone"
