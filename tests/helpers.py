@@ -127,6 +127,32 @@ PARTNER_PORTS = {
 PARTNER_PORTS = _shifted(PARTNER_PORTS)
 
 
+def free_ports(count: int = 1) -> int:
+    """The first of ``count`` consecutive TCP ports free on 127.0.0.1 now (a controller's replicas serve their
+    dashboards on consecutive ports)."""
+    import socket
+
+    for _ in range(50):
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            first = probe.getsockname()[1]
+        if first + count > 65535:
+            continue
+        taken = []
+        try:
+            for port in range(first, first + count):
+                held = socket.socket()
+                taken.append(held)
+                held.bind(("127.0.0.1", port))
+            return first
+        except OSError:
+            continue
+        finally:
+            for held in taken:
+                held.close()
+    raise RuntimeError(f"no {count} consecutive free ports on 127.0.0.1")
+
+
 class Cluster:
     """The local control plane on test ports, driven through the playbooks as a user would."""
 

@@ -23,7 +23,7 @@ import sys
 import time
 
 import pytest
-from helpers import inventory_raw, playbook
+from helpers import free_ports, inventory_raw, playbook
 
 pytestmark = pytest.mark.cluster
 
@@ -50,6 +50,11 @@ class Fleet:
         from kubernetes import client
 
         self.coordination = client.CoordinationV1Api(self.core.api_client)
+        self.dashboard_port = free_ports(2)  # the replicas' dashboards, never a developer's own controller's port
+
+    def dashboard(self, replica: int) -> str:
+        """The address of replica ``replica``'s (1-based) dashboard and /metrics."""
+        return f"http://127.0.0.1:{self.dashboard_port + replica - 1}/"
 
     # -- the controller, through its playbook ------------------------------------------------
     def controller(self, state="started", env=None, timeout=120):
@@ -58,6 +63,7 @@ class Fleet:
             "controller_state_dir": self.state_dir,
             "controller_grace": GRACE,
             "controller_state": state,
+            "controller_dashboard_port": self.dashboard_port,
         }
         old = {k: os.environ.get(k) for k in (env or {})}
         os.environ.update(env or {})

@@ -111,9 +111,9 @@ main { padding: 0 16px 24px; }
 .pager { margin-left: auto; display: flex; gap: 6px; align-items: center; color: var(--muted); }
 .pager button { padding: 2px 8px; }
 table { border-collapse: collapse; width: 100%; background: #fff; border: 1px solid var(--line); }
-th, td { text-align: left; padding: 4px 8px; border-bottom: 1px solid #eee; vertical-align: top; }
+th, td { text-align: left; padding: 4px 8px; border-bottom: 1px solid #eee; vertical-align: top; white-space: nowrap; }
 th { background: #eef1f5; position: sticky; top: 0; font-weight: 600; }
-td.why { max-width: 340px; overflow: hidden; text-overflow: ellipsis; white-space: nowrap; color: var(--muted); }
+td.why { max-width: 300px; overflow: hidden; text-overflow: ellipsis; color: var(--muted); }
 .phase { border-radius: 10px; padding: 1px 8px; font-size: 12px; color: #fff; background: #888; white-space: nowrap; }
 .phase.Running, .phase.Ready { background: var(--ok); } .phase.Pending, .phase.Moving { background: var(--warn); }
 .phase.Stranded, .phase.Missing, .phase.NotReady { background: var(--bad); } .phase.Remote { background: #5c6bc0; }
@@ -274,7 +274,7 @@ function renderFleets(data) {
   const cards = data.fleets.map(f => el('div', { class: 'fleet', 'data-fleet': f.fleet },
     el('h3', { text: `Fleet ${f.fleet}` }),
     el('div', { class: 'muted', text: `namespace ${f.namespace || '–'} · ${f.robots.length} robots · ` +
-      `${f.nodes.length} edge/cloud nodes · deployments: ${f.deployments.join(', ') || 'none'}` }),
+      `${f.nodes.length} edge/cloud nodes in use · deployments: ${f.deployments.join(', ') || 'none'}` }),
     el('table', null, el('thead', null, el('tr', null, ...['Discovery server', 'Node', 'Tier', 'Port', 'Phase'].map(t => el('th', { text: t })))),
       el('tbody', null, ...f.discovery.map(s => el('tr', { 'data-server': s.name },
         el('td', { text: `${s.name} (id ${s.id})` }), el('td', { class: 'node', text: s.node }), el('td', { text: s.tier }),

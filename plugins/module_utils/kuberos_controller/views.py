@@ -267,6 +267,8 @@ def _fleet_rows(snapshot: Snapshot, usable: list[Record], view: ClusterView, nod
         entry = fleets.setdefault(record.spec.fleet, {"fleet": record.spec.fleet, "robots": set(), "nodes": set()})
         entry.setdefault("deployments", set()).add(record.deployment)
         entry["namespace"] = record.namespace
+        entry["nodes"] |= {i.node for i in record.placement.instances if i.tier != "onboard" and not i.cluster}
+        entry["nodes"] |= {s.node for servers in record.placement.discovery.values() for s in servers}
         for fleet_servers in record.placement.discovery.values():
             for server in fleet_servers:
                 pods = view.pods.get(f"{server.namespace}/{server.name}", [])

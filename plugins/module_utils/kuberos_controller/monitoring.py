@@ -1,0 +1,146 @@
+"""Prometheus Operator objects for the in-cluster KubeROS controller: what scrapes it and the collection's rules.
+
+The controller serves ``/metrics`` on its port ``http``, and in the cluster it asks for a Kubernetes bearer token
+that may ``get`` the non-resource URL ``/metrics`` (checked with a TokenReview and a SubjectAccessReview). The
+ClusterRole ``kuberos-metrics-reader`` grants exactly that; whoever scrapes is bound to it:
+
+- the ServiceMonitor sends the token of the Prometheus pod's own ServiceAccount (``bearerTokenFile``): the user
+  binds that ServiceAccount to ``kuberos-metrics-reader`` (a ClusterRoleBinding; docs/monitoring.md);
+- the PodMonitor cannot read a file of the Prometheus pod (the Prometheus Operator leaves ``bearerTokenFile`` out
+  of PodMonitors on purpose), so it sends the token of a ServiceAccount of its own, ``kuberos-metrics-scraper``,
+  from a ``kubernetes.io/service-account-token`` Secret beside it; that ServiceAccount is bound to the reader here.
+
+The PrometheusRule carries the groups of ``roles/controller/files/prometheus/kuberos-rules.yml`` unchanged.
+Endpoints keep the metrics' own labels (``honorLabels``): the controller's ``namespace`` label names a fleet's
+namespace, not the controller's, and would otherwise be renamed ``exported_namespace`` by the scrape.
+"""
+
+from __future__ import annotations
+
+import copy
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import NAME
+
+API_VERSION = "monitoring.coreos.com/v1"
+READER_ROLE = "kuberos-metrics-reader"
+SCRAPER = "kuberos-metrics-scraper"
+SCRAPER_TOKEN = "kuberos-metrics-scraper-token"
+RULES_NAME = "kuberos"
+PORT = "http"
+PATH = "/metrics"
+INTERVAL = "15s"
+TOKEN_FILE = "/var/run/secrets/kubernetes.io/serviceaccount/token"
+READER_RULES = [{"nonResourceURLs": [PATH], "verbs": ["get"]}]
+SELECTOR = {"matchLabels": {"app.kubernetes.io/name": NAME}}
+
+
+def _checked_labels(labels) -> dict[str, str]:
+    if labels is None:
+        return {}
+    if not isinstance(labels, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in labels.items()):
+        raise SpecError([Problem("controller_monitoring", "labels", f"expected a mapping of strings, got {describe(labels)}")])
+    return dict(labels)
+
+
+def _checked_groups(rules) -> list:
+    groups = rules.get("groups") if isinstance(rules, dict) else None
+    if (
+        not isinstance(groups, list)
+        or not groups
+        or not all(isinstance(g, dict) and "name" in g and "rules" in g for g in groups)
+    ):
+        raise SpecError(
+            [Problem("controller_monitoring", "groups", "expected a Prometheus rule file: groups, each with a name and rules")]
+        )
+    return copy.deepcopy(groups)
+
+
+def monitoring_objects(
+    namespace: str,
+    rules: dict,
+    service_monitor: bool,
+    pod_monitor: bool,
+    prometheus_rule: bool,
+    labels: dict | None = None,
+) -> list[dict]:
+    """The objects, in apply order: with a ServiceMonitor or a PodMonitor the ClusterRole ``kuberos-metrics-reader``;
+    with a PodMonitor its ServiceAccount, token Secret and binding; the ServiceMonitor, the PodMonitor and the
+    PrometheusRule (``rules``: the parsed rule file, ``{"groups": [...]}``). ``labels`` are added to every object's
+    labels, for a Prometheus that selects its monitors and rules by label (kube-prometheus-stack: ``release``).
+    Nothing is asked for: no objects."""
+    extra = _checked_labels(labels)
+    own = {**extra, MANAGED_BY: "kuberos", "app.kubernetes.io/name": NAME}
+
+    def metadata(name: str, namespaced: bool = True, **more) -> dict:
+        return {"name": name, **({"namespace": namespace} if namespaced else {}), "labels": dict(own), **more}
+
+    groups = _checked_groups(rules) if prometheus_rule else None
+    endpoint = {"port": PORT, "path": PATH, "scheme": "http", "interval": INTERVAL, "honorLabels": True}
+    objects: list[dict] = []
+    if service_monitor or pod_monitor:
+        objects.append(
+            {
+                "apiVersion": "rbac.authorization.k8s.io/v1",
+                "kind": "ClusterRole",
+                "metadata": metadata(READER_ROLE, namespaced=False),
+                "rules": copy.deepcopy(READER_RULES),
+            }
+        )
+    if pod_monitor:
+        objects += [
+            {"apiVersion": "v1", "kind": "ServiceAccount", "metadata": metadata(SCRAPER)},
+            {
+                # Filled in by Kubernetes' token controller with a token of the ServiceAccount above.
+                "apiVersion": "v1",
+                "kind": "Secret",
+                "type": "kubernetes.io/service-account-token",
+                "metadata": metadata(SCRAPER_TOKEN, annotations={"kubernetes.io/service-account.name": SCRAPER}),
+            },
+            {
+                "apiVersion": "rbac.authorization.k8s.io/v1",
+                "kind": "ClusterRoleBinding",
+                "metadata": metadata(SCRAPER, namespaced=False),
+                "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": READER_ROLE},
+                "subjects": [{"kind": "ServiceAccount", "name": SCRAPER, "namespace": namespace}],
+            },
+        ]
+    if service_monitor:
+        objects.append(
+            {
+                "apiVersion": API_VERSION,
+                "kind": "ServiceMonitor",
+                "metadata": metadata(NAME),
+                "spec": {
+                    "selector": copy.deepcopy(SELECTOR),
+                    "namespaceSelector": {"matchNames": [namespace]},
+                    "endpoints": [{**endpoint, "bearerTokenFile": TOKEN_FILE}],
+                },
+            }
+        )
+    if pod_monitor:
+        objects.append(
+            {
+                "apiVersion": API_VERSION,
+                "kind": "PodMonitor",
+                "metadata": metadata(NAME),
+                "spec": {
+                    "selector": copy.deepcopy(SELECTOR),
+                    "namespaceSelector": {"matchNames": [namespace]},
+                    "podMetricsEndpoints": [
+                        {**endpoint, "authorization": {"type": "Bearer", "credentials": {"name": SCRAPER_TOKEN, "key": "token"}}}
+                    ],
+                },
+            }
+        )
+    if prometheus_rule:
+        objects.append(
+            {
+                "apiVersion": API_VERSION,
+                "kind": "PrometheusRule",
+                "metadata": metadata(RULES_NAME),
+                "spec": {"groups": groups},
+            }
+        )
+    return objects

@@ -1,0 +1,149 @@
+"""The collection's Prometheus rules (roles/controller/files/prometheus/kuberos-rules.yml): promtool accepts them,
+its unit tests (tests/unit/data/promtool/) pass, every alert is tested firing and not firing, and every metric
+the rules read is one the controller or a bridge exports."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+
+import pytest
+import yaml
+from helpers import ROOT
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.metrics import HELP as BRIDGE_HELP
+
+RULES = os.path.join(ROOT, "roles", "controller", "files", "prometheus", "kuberos-rules.yml")
+RULE_TESTS = os.path.join(ROOT, "tests", "unit", "data", "promtool", "kuberos-rules.test.yml")
+# What the controller exports (plugins/module_utils/kuberos_controller/metrics.py, docs/monitoring.md); a histogram
+# is read through its series.
+CONTROLLER_METRICS = {
+    "kuberos_module_instances",
+    "kuberos_module_moves_total",
+    "kuberos_module_stranded",
+    "kuberos_node_allocatable",
+    "kuberos_node_allocated",
+    "kuberos_node_ready",
+    "kuberos_node_rtt_ms",
+    "kuberos_module_rtt_ms",
+    "kuberos_module_max_latency_ms",
+    *(f"kuberos_reconcile_duration_seconds_{suffix}" for suffix in ("bucket", "sum", "count")),
+    "kuberos_controller_leader",
+}
+
+
+def _load(path: str) -> dict:
+    with open(path, encoding="utf-8") as handle:
+        return yaml.safe_load(handle)
+
+
+def _rules() -> list[dict]:
+    return [rule for group in _load(RULES)["groups"] for rule in group["rules"]]
+
+
+def _promtool() -> str:
+    path = shutil.which("promtool")
+    if not path:
+        message = "promtool is not installed (Debian's prometheus package; scripts/setup.sh installs it)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("command", "path"),
+    [(["check", "rules"], RULES), (["test", "rules"], RULE_TESTS)],
+    ids=["check-rules", "test-rules"],
+)
+def test_promtool_accepts_the_rules_and_their_unit_tests_pass(command, path):
+    result = subprocess.run([_promtool(), *command, path], cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, f"promtool {' '.join(command)} {os.path.relpath(path, ROOT)}:\n{result.stdout}{result.stderr}"
+
+
+def test_the_unit_tests_load_the_rule_file():
+    folder = os.path.dirname(RULE_TESTS)
+    files = [os.path.normpath(os.path.join(folder, name)) for name in _load(RULE_TESTS)["rule_files"]]
+    assert files == [RULES]
+
+
+def test_every_alert_is_tested_firing_and_not_firing():
+    alerts = {rule["alert"] for rule in _rules() if "alert" in rule}
+    assert alerts, "the rule file has alerts"
+    fired, quiet = set(), set()
+    for case in _load(RULE_TESTS)["tests"]:
+        for check in case.get("alert_rule_test", []):
+            (fired if check.get("exp_alerts") else quiet).add(check["alertname"])
+    assert sorted(alerts - fired) == [], "alerts never tested firing"
+    assert sorted(alerts - quiet) == [], "alerts never tested not firing"
+    assert sorted((fired | quiet) - alerts) == [], "tests of alerts the rule file does not have"
+
+
+def test_every_alert_has_a_severity_a_summary_and_a_description():
+    for rule in _rules():
+        if "alert" in rule:
+            assert rule["labels"]["severity"] in ("critical", "warning", "info"), rule["alert"]
+            assert {"summary", "description"} <= set(rule["annotations"]), rule["alert"]
+            assert re.fullmatch(r"KubeROS[A-Z][A-Za-z]+", rule["alert"])
+
+
+def test_every_recording_rule_is_tested():
+    records = {rule["record"] for rule in _rules() if "record" in rule}
+    tested = {check["expr"] for case in _load(RULE_TESTS)["tests"] for check in case.get("promql_expr_test", [])}
+    assert sorted(records - tested) == []
+
+
+# Enough of PromQL to find the metric names of an expression: strings, label matchers, durations, modifiers (offset,
+# @), the label lists of by/without/on/ignoring/group_left/group_right and numbers go; a name followed by "(" is a
+# function; keywords go.
+_STRING = re.compile(r'"(?:[^"\\]|\\.)*"|\'(?:[^\'\\]|\\.)*\'|`[^`]*`')
+_MATCHERS = re.compile(r"\{[^}]*\}")
+_RANGE = re.compile(r"\[[^\]]*\]")
+_MODIFIER = re.compile(r"\boffset\s+-?\w+|@\s*(start\(\)|end\(\)|[\d.]+)")
+_LABEL_LIST = re.compile(r"\b(by|without|on|ignoring|group_left|group_right)\s*\([^)]*\)")
+_NUMBER = re.compile(r"(?<![\w:])\d+(\.\d+)?(e[+-]?\d+)?")
+_NAME = re.compile(r"[a-zA-Z_:][a-zA-Z0-9_:]*")
+_KEYWORDS = {"and", "or", "unless", "bool", "offset", "inf", "nan", "atan2"}
+
+
+def metric_names(expr: str) -> set[str]:
+    text = _LABEL_LIST.sub(" ", _MODIFIER.sub(" ", _RANGE.sub(" ", _MATCHERS.sub(" ", _STRING.sub(" ", expr)))))
+    text = _NUMBER.sub(" ", text)
+    names = set()
+    for match in _NAME.finditer(text):
+        rest = text[match.end() :].lstrip()
+        if not rest.startswith("(") and match.group().lower() not in _KEYWORDS:
+            names.add(match.group())
+    return names
+
+
+def test_metric_names_are_found_in_expressions():
+    expr = 'sum by (reason) (max by (instance) (increase(a_total{x="y(z)"}[10m]))) > 5 or on (n) group_left () absent(b) * 2e3'
+    assert metric_names(expr) == {"a_total", "b"}
+    assert metric_names("max(kuberos:x:ratio offset 5m) > bool 0.5 unless up @ 1609746000") == {"kuberos:x:ratio", "up"}
+
+
+def test_the_rules_read_only_exported_metrics():
+    records = {rule["record"] for rule in _rules() if "record" in rule}
+    known = CONTROLLER_METRICS | set(BRIDGE_HELP) | records
+    used = {}
+    for rule in _rules():
+        name = rule.get("alert") or rule.get("record")
+        for metric in metric_names(str(rule["expr"])):
+            used.setdefault(metric, []).append(name)
+        for text in rule.get("annotations", {}).values():  # queries in annotation templates
+            for metric in re.findall(r"\bkuberos[a-z0-9_:]*", text):
+                used.setdefault(metric, []).append(name)
+    assert {m: rules for m, rules in used.items() if m not in known} == {}
+    assert "kuberos_controller_leader" in used and "kuberos_bridge_connected" in used
+
+
+def test_the_controller_exports_the_metrics_the_rules_know():
+    """CONTROLLER_METRICS above follows the controller's metrics.py (a counter or a histogram adds its suffixes)."""
+    path = os.path.join(ROOT, "plugins", "module_utils", "kuberos_controller", "metrics.py")
+    with open(path, encoding="utf-8") as handle:
+        source = handle.read()
+    families = {re.sub(r"_(total|bucket|sum|count)$", "", name) for name in CONTROLLER_METRICS}
+    assert sorted(f for f in families if f'"{f}"' not in source) == []
