@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-dashboard controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -106,6 +106,10 @@ bench-rollout: binaries
 bench-real-pods:
 	$(MAKE) binaries WITH_NODES=1
 	cd bench && ../$(VENV)/python bench_real_pods.py --cold-images --json results/real-pods.json
+
+## Dashboard and /metrics benchmark: 1,000 robots; first paint in Chromium, view builds, scrape cost (docs/dashboard.md).
+bench-dashboard: binaries
+	cd bench && ../$(VENV)/python bench_dashboard.py --robots 1000
 
 ## The pick-and-place fleet for real on this machine: one strategy, one fleet size (as root; docs/simulation.md).
 ##   make sim STRATEGY=edge-shared ROBOTS=4 RATE=12 CYCLES=3

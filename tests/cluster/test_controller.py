@@ -21,6 +21,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
 
 import pytest
 from helpers import free_ports, inventory_raw, playbook
@@ -467,6 +468,9 @@ ALLOWED = [
     ("delete", "", "pods", "kuberos-test-fleet"),
     ("create", "", "configmaps", "kuberos-test-fleet"),
     ("create", "", "events", "kuberos-test-fleet"),
+    ("watch", "", "events", ""),  # the dashboard's timeline
+    ("create", "authentication.k8s.io", "tokenreviews", ""),  # the dashboard's access control
+    ("create", "authorization.k8s.io", "subjectaccessreviews", ""),
 ]
 
 
@@ -515,7 +519,8 @@ def test_the_in_cluster_rights_are_enough_for_a_move_and_no_more(fleet, tmp_path
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p.endswith(".collections"))}
     with open(log, "wb") as out:
         process = subprocess.Popen(
-            [sys.executable, "-m", entry, "--kubeconfig", str(kubeconfig), "--grace", str(GRACE)],
+            [sys.executable, "-m", entry, "--kubeconfig", str(kubeconfig), "--grace", str(GRACE),
+             "--dashboard-port", str(fleet.dashboard_port)],
             stdout=out, stderr=subprocess.STDOUT, env=env,
         )  # fmt: skip
     node, leaving = fleet.busiest_edge()
@@ -527,6 +532,8 @@ def test_the_in_cluster_rights_are_enough_for_a_move_and_no_more(fleet, tmp_path
         assert node not in fleet.placed().values()
         rows = {r["instance"]: r for r in fleet.status()["rows"]}
         assert all(rows[i]["last_move"].get("from") == node for i in leaving), "it wrote the status"
+        with urllib.request.urlopen(fleet.dashboard(1) + "api/events?q=ModuleMoved", timeout=10) as response:
+            assert json.loads(response.read())["total"] >= len(leaving), "its dashboard reads the Events it wrote"
     finally:
         process.send_signal(signal.SIGTERM)
         process.wait(timeout=20)

@@ -335,6 +335,7 @@ async function refresh() {
     else if (state.tab === 'events') renderEvents(await get('/api/events?' + query('events')));
     else if (state.tab === 'map') await renderMap();
     state.shown = s.generation;
+    if (!document.body.dataset.firstPaintMs) document.body.dataset.firstPaintMs = String(Math.round(performance.now()));
     document.body.dataset.generation = String(s.generation);
     document.body.dataset.tab = state.tab;
     $('#live-text').textContent = `live · view ${s.generation} · ${new Date().toLocaleTimeString()}`;
