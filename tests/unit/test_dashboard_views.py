@@ -167,19 +167,23 @@ def test_node_failures_rollouts_and_controller_events_make_one_timeline(deployed
     configmap, _record, nodes, _pods = deployed
     down = [node_object_like(n, ready=False) if n["metadata"]["name"] == "edge-1" else n for n in nodes]
     rolling = parse_record(configmap)
-    rolling.rollout = {"revision": 2, "from": 1, "started": "2026-11-25T10:01:00Z", "instances": ["a", "b"]}
+    first, second = (i.name for i in rolling.placement.instances[:2])
+    rolling.rollout = {"revision": 2, "from": 1, "started": "2026-11-25T10:01:00Z", "instances": [first, second]}
+    pods = [p for p in _pods if p["metadata"]["labels"][INSTANCE] != first]
+    replaced = pod_object(first, rolling.placement.instances[0].node, "new", "registry.example/x:0.2")
+    replaced["metadata"]["creationTimestamp"] = "2026-11-25T10:01:30Z"  # a pod of the rollout's, Running
     event = {
         "metadata": {"name": "e1", "namespace": NAMESPACE, "creationTimestamp": "2026-11-25T10:02:00Z"},
         "involvedObject": {"name": "pick-and-place-perception-fetch-1"},
         "reason": "ModuleMoved", "message": "moved from edge-1 to edge-2", "type": "Normal",
         "lastTimestamp": "2026-11-25T10:02:00Z",
     }  # fmt: skip
-    view = build_view(snapshot(deployed, nodes=down, records=[(configmap, rolling, "")], events=[event]))
+    view = build_view(snapshot(deployed, nodes=down, pods=[*pods, replaced], records=[(configmap, rolling, "")], events=[event]))
     kinds = [(e["kind"], e["object"]) for e in view.events]
     assert kinds[0] == ("move", "pick-and-place-perception-fetch-1"), "newest first"
     assert ("rollout", "pick-and-place") in kinds and ("node", "edge-1") in kinds
     (rollout,) = view.software["rollouts"]
-    assert (rollout["from"], rollout["to"], rollout["instances"]) == (1, 2, 2)
+    assert (rollout["from"], rollout["to"], rollout["instances"], rollout["done"]) == (1, 2, 2, 1), "one replaced of two"
 
 
 def node_object_like(node: dict, ready: bool) -> dict:
@@ -338,11 +342,11 @@ def fetch(url: str) -> tuple[int, dict, bytes]:
         return exc.code, dict(exc.headers), exc.read()
 
 
-def wait_for_view(dashboard, generation=1, timeout=10.0):
-    deadline = time.monotonic() + timeout
-    while dashboard.view.generation < generation and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert dashboard.view.generation >= generation
+def wait_for_view(dashboard, generation=1):
+    """Nothing is built before somebody asks: the first request builds the view."""
+    assert dashboard.view.generation == 0
+    status, _headers, body = fetch(f"http://127.0.0.1:{dashboard.port}/api/summary")
+    assert status == 200 and json.loads(body)["generation"] >= generation
 
 
 def test_the_server_answers_every_route_with_safe_headers(served):
@@ -394,3 +398,18 @@ def test_a_change_reaches_an_open_stream_within_the_update_window(served, deploy
     assert delay is not None and delay < 2.0, f"a change took {delay} s to reach the page"
     rows = json.loads(fetch(f"{base}/api/modules?q={target.robots[0]}&module={target.module}")[2])["rows"]
     assert rows[0]["phase"] == "Missing", "the page refetches and sees the pod gone"
+
+
+def test_nothing_is_built_while_nobody_looks_but_node_transitions_are_noted(served, deployed):
+    controller, dashboard, base = served
+    wait_for_view(dashboard)
+    _configmap, _record, nodes, _pods = deployed
+    edge = next(n for n in nodes if n["metadata"]["name"] == "edge-2")
+    controller.put(controller.nodes, node_object_like(edge, ready=False))
+    time.sleep(0.5)
+    controller.put(controller.nodes, node_object_like(edge, ready=True))
+    time.sleep(0.5)
+    assert dashboard.view.generation == 1, "no page open, no scrape: no view built"
+    events = json.loads(fetch(base + "/api/events?q=edge-2")[2])["rows"]
+    assert [e["reason"] for e in events if e["kind"] == "node"] == ["NodeReady", "NodeNotReady"], events
+    assert dashboard.view.generation == 2, "the request built what it read"

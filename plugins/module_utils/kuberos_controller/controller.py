@@ -67,9 +67,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import controller_table
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import leader_election
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import RTT_ANNOTATION, pod_view
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, object_key
 
-RTT_ANNOTATION = "kuberos.io/rtt-ms"
 WRITERS = 4  # parallel requests when a pass re-pins, deletes or reports several things
 CONTROLLER_MANAGER = "kuberos-controller"
 LEASE_NAME = "kuberos-controller"
@@ -194,27 +194,9 @@ class Controller:
                 except (ValueError, TypeError, AttributeError):
                     log.warning("node %s: annotation %s is not a JSON mapping of node to ms: %.80r", name, RTT_ANNOTATION, rtt)
         for pod in self.pods.snapshot():
-            meta = pod["metadata"]
-            instance = (meta.get("labels") or {}).get(INSTANCE)
-            if not instance:
-                continue
-            status = pod.get("status", {})
-            statuses = status.get("containerStatuses") or []
-            waiting = next((s["state"]["waiting"].get("reason", "") for s in statuses if "waiting" in (s.get("state") or {})), "")
-            node = pod.get("spec", {}).get("nodeName") or ""
-            view.pods.setdefault(f"{meta.get('namespace')}/{instance}", []).append(
-                PodView(
-                    meta["name"],
-                    meta.get("namespace", ""),
-                    instance,
-                    names.get(node, node),
-                    status.get("phase", ""),
-                    any(c.get("type") == "Ready" and c.get("status") == "True" for c in status.get("conditions") or []),
-                    sum(int(s.get("restartCount", 0)) for s in statuses),
-                    waiting,
-                    bool(meta.get("deletionTimestamp")),
-                )
-            )
+            found = pod_view(pod, names)
+            if found is not None:
+                view.pods.setdefault(f"{found.namespace}/{found.instance}", []).append(found)
         return view
 
     @staticmethod

@@ -79,6 +79,7 @@ class Dashboard:
         self.view = View()
         self.signature: tuple = ()
         self.build_s = 0.0
+        self.building = threading.Lock()  # one build at a time (a request and the stream's loop may both ask)
         self.parsed: dict[tuple[str, str], tuple[str, object, str]] = {}
         self.node_ready: dict[str, bool] = {}
         self.node_log: list[dict] = []
@@ -181,14 +182,15 @@ class Dashboard:
 
     def refresh(self) -> bool:
         """Rebuild the view if anything it shows changed; True if it did (tests call it directly)."""
-        signature = self._signature()
-        if signature == self.signature:
-            return False
-        started = time.monotonic()
-        view = self.build(signature)
-        self.build_s = time.monotonic() - started
-        self.view, self.signature = view, signature
-        return True
+        with self.building:
+            signature = self._signature()
+            if signature == self.signature:
+                return False
+            started = time.monotonic()
+            view = self.build(signature)
+            self.build_s = time.monotonic() - started
+            self.view, self.signature = view, signature
+            return True
 
     # -- serving --------------------------------------------------------------------------------
     def start(self, timeout: float = 10.0) -> None:
@@ -233,18 +235,35 @@ class Dashboard:
             self.loop.run_until_complete(self.runner.cleanup())
             self.loop.close()
 
+    async def _fresh(self) -> None:
+        """Rebuild the view off the event loop if anything changed, and wake the open streams. Nothing is built while
+        nobody looks: a request or a scrape builds what it reads, an open page keeps the view current."""
+        if self._signature() == self.signature:
+            return
+        try:
+            built = await self.loop.run_in_executor(None, self.refresh)
+        except Exception as exc:  # a bad object must not stop the page: log it, keep the last view
+            log.warning("dashboard: view not rebuilt: %s: %s", exc.__class__.__name__, str(exc)[:300])
+            built = False
+        if built:
+            self.changed_async.set()
+            self.changed_async = asyncio.Event()
+
     async def _follow(self) -> None:
-        """Rebuild the view off the event loop when anything changed, and wake the open streams."""
+        """While a page is open (a stream), keep its view current: check every ``refresh_s``, at most once per build.
+        Node transitions are noted for the timeline even while nobody looks (a cheap pass over the nodes)."""
+        nodes_seen = -1
         while not self.controller.stop_event.is_set():
-            try:
-                built = await self.loop.run_in_executor(None, self.refresh)
-            except Exception as exc:  # a bad object must not stop the page: log it, keep the last view
-                log.warning("dashboard: view not rebuilt: %s: %s", exc.__class__.__name__, str(exc)[:300])
-                built = False
-            if built:
-                self.changed_async.set()
-                self.changed_async = asyncio.Event()
+            if self.streams:
+                await self._fresh()
+            elif self.controller.nodes.generation != nodes_seen:
+                nodes_seen = self.controller.nodes.generation
+                await self.loop.run_in_executor(None, self._note_nodes_now)
             await asyncio.sleep(max(self.refresh_s, self.build_s))
+
+    def _note_nodes_now(self) -> None:
+        with self.building:
+            self._note_nodes(self.controller.nodes.snapshot())
 
     def app(self):
         from aiohttp import web
@@ -378,6 +397,7 @@ class Dashboard:
         from aiohttp import web
         from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
+        await self._fresh()
         body = await asyncio.get_running_loop().run_in_executor(None, generate_latest, self.metrics.registry)
         return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE_LATEST})
 
@@ -387,17 +407,21 @@ class Dashboard:
         return web.json_response(data, dumps=lambda d: json.dumps(d, separators=(",", ":")))
 
     async def summary(self, request):
+        await self._fresh()
         view = self.view
         return self._json({"generation": view.generation, "built_at": view.built_at, "build_s": round(self.build_s, 4),
                            "auth": self.auth is not None, **view.summary})  # fmt: skip
 
     async def fleets(self, request):
+        await self._fresh()
         return self._json({"generation": self.view.generation, "fleets": self.view.fleets})
 
     async def software(self, request):
+        await self._fresh()
         return self._json({"generation": self.view.generation, **self.view.software})
 
     async def listing(self, request):
+        await self._fresh()
         view = self.view
         name = request.path.rsplit("/", 1)[1]
         keys, fields = LISTS[name]
@@ -418,6 +442,7 @@ class Dashboard:
     async def placement(self, request):
         from aiohttp import web
 
+        await self._fresh()
         view = self.view
         key = request.query.get("deployment", "") or next(iter(view.placements), "")
         placement = view.placements.get(key)
@@ -443,6 +468,7 @@ class Dashboard:
         response = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-store"})
         self._headers(response)
         await response.prepare(request)
+        await self._fresh()
         self.streams += 1
         try:
             sent = -1

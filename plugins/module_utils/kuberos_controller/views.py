@@ -166,37 +166,51 @@ def _node_rows(snapshot: Snapshot, names: dict[str, str]) -> tuple[list[dict], d
     return rows, {r["name"]: r for r in rows}
 
 
-def _cluster_view(snapshot: Snapshot, names: dict[str, str], nodes: dict[str, dict]) -> tuple[ClusterView, dict]:
+def _cluster_view(snapshot: Snapshot, names: dict[str, str], nodes: dict[str, dict]) -> tuple[ClusterView, dict, dict]:
+    """The reconciler's view of the cluster, each pod's image, and per instance when its newest pod that runs and is
+    Ready was created (a rollout has replaced an instance once such a pod is newer than the rollout)."""
     view = ClusterView()
+    started: dict[str, str] = {}
     for name, row in nodes.items():
         view.nodes[name] = NodeView(name, row["ready"], row["condition"], None)
         if row["robot"] and row["rtt_ms"]:
             view.measured[row["robot"]] = row["rtt_ms"]
     images: dict[str, str] = {}  # "namespace/pod" -> first container's image
     for pod in snapshot.pods:
-        meta = pod["metadata"]
-        instance = (meta.get("labels") or {}).get(INSTANCE)
-        if not instance:
+        found = pod_view(pod, names)
+        if found is None:
             continue
-        status = pod.get("status", {})
-        statuses = status.get("containerStatuses") or []
-        node = pod.get("spec", {}).get("nodeName") or ""
+        meta = pod["metadata"]
+        key = f"{found.namespace}/{found.instance}"
+        view.pods.setdefault(key, []).append(found)
         containers = pod.get("spec", {}).get("containers") or [{}]
-        images[f"{meta.get('namespace')}/{meta['name']}"] = containers[0].get("image", "")
-        view.pods.setdefault(f"{meta.get('namespace')}/{instance}", []).append(
-            PodView(
-                meta["name"],
-                meta.get("namespace", ""),
-                instance,
-                names.get(node, node),
-                status.get("phase", ""),
-                any(c.get("type") == "Ready" and c.get("status") == "True" for c in status.get("conditions") or []),
-                sum(int(s.get("restartCount", 0)) for s in statuses),
-                next((s["state"]["waiting"].get("reason", "") for s in statuses if "waiting" in (s.get("state") or {})), ""),
-                bool(meta.get("deletionTimestamp")),
-            )
-        )
-    return view, images
+        images[f"{found.namespace}/{found.name}"] = containers[0].get("image", "")
+        if found.ready and found.phase == "Running" and not found.deleting:
+            started[key] = max(started.get(key, ""), meta.get("creationTimestamp") or "")
+    return view, images, started
+
+
+def pod_view(pod: dict, names: dict[str, str]) -> PodView | None:
+    """What the reconciler needs of a KubeROS pod (None for a pod of no module instance); ``names`` maps Kubernetes node
+    names to inventory names."""
+    meta = pod["metadata"]
+    instance = (meta.get("labels") or {}).get(INSTANCE)
+    if not instance:
+        return None
+    status = pod.get("status", {})
+    statuses = status.get("containerStatuses") or []
+    node = pod.get("spec", {}).get("nodeName") or ""
+    return PodView(
+        meta["name"],
+        meta.get("namespace", ""),
+        instance,
+        names.get(node, node),
+        status.get("phase", ""),
+        any(c.get("type") == "Ready" and c.get("status") == "True" for c in status.get("conditions") or []),
+        sum(int(s.get("restartCount", 0)) for s in statuses),
+        next((s["state"]["waiting"].get("reason", "") for s in statuses if "waiting" in (s.get("state") or {})), ""),
+        bool(meta.get("deletionTimestamp")),
+    )
 
 
 def _status_of(snapshot: Snapshot) -> dict[tuple[str, str], dict]:
@@ -311,7 +325,7 @@ def _fleet_rows(snapshot: Snapshot, usable: list[Record], view: ClusterView, nod
     return rows
 
 
-def _software(snapshot: Snapshot, usable: list[Record], modules: list[dict]) -> dict:
+def _software(snapshot: Snapshot, usable: list[Record], modules: list[dict], started: dict[str, str]) -> dict:
     catalog: dict[str, dict] = {}
     for configmap in snapshot.catalogs:
         try:
@@ -354,11 +368,8 @@ def _software(snapshot: Snapshot, usable: list[Record], modules: list[dict]) -> 
         if not record.rollout:
             continue
         instances = [str(i) for i in record.rollout.get("instances") or []]
-        done = {
-            r["instance"]
-            for r in modules
-            if r["namespace"] == record.namespace and r["phase"] == "Running" and r["version"] == r["planned"]
-        }
+        since = str(record.rollout.get("started") or "")
+        done = {i for i in instances if since and started.get(f"{record.namespace}/{i}", "") >= since}
         rollouts.append(
             {
                 "namespace": record.namespace,
@@ -426,7 +437,8 @@ def _events(snapshot: Snapshot, usable: list[Record], nodes: list[dict]) -> list
                     "count": 1,
                 }
             )
-    timeline.sort(key=lambda e: e["at"] or "", reverse=True)
+    order = {id(entry): index for index, entry in enumerate(timeline)}  # at the same second, the later noted first
+    timeline.sort(key=lambda e: (e["at"] or "", order[id(e)]), reverse=True)
     return timeline[:MAX_EVENTS]
 
 
@@ -436,7 +448,7 @@ def build_view(snapshot: Snapshot, generation: int = 0, built_at: float = 0.0) -
         for n in snapshot.nodes
     }
     resources, by_name = _node_rows(snapshot, names)
-    view, images = _cluster_view(snapshot, names, by_name)
+    view, images, started = _cluster_view(snapshot, names, by_name)
     statuses = _status_of(snapshot)
     usable = sorted((r for _c, r, _e in snapshot.records if r is not None), key=lambda r: (r.namespace, r.deployment))
     modules: list[dict] = []
@@ -487,7 +499,7 @@ def build_view(snapshot: Snapshot, generation: int = 0, built_at: float = 0.0) -
         resources=resources,
         modules=modules,
         fleets=_fleet_rows(snapshot, usable, view, by_name),
-        software=_software(snapshot, usable, modules),
+        software=_software(snapshot, usable, modules, started),
         events=_events(snapshot, usable, resources),
         placements=placements,
         max_latency=limits,
