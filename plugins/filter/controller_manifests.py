@@ -10,7 +10,8 @@ description:
   - Returns the Namespace, ServiceAccount, a ClusterRole to list and watch nodes, pods, Deployments and ConfigMaps,
     a ClusterRole bound in each fleet namespace only (patch Deployments, delete pods, get/create/patch ConfigMaps,
     create Events), their bindings, a Role to get, create and update Leases in the controller's namespace (leader
-    election) and its binding, the controller's Deployment and, with more than one replica, a PodDisruptionBudget.
+    election) and its binding, the dashboard viewer's ServiceAccount, ClusterRole and binding, the Service of the
+    dashboard and C(/metrics), the controller's Deployment and, with more than one replica, a PodDisruptionBudget.
 options:
   _input:
     description: Names of the fleets whose namespaces the controller may act in.
@@ -36,6 +37,12 @@ options:
       - With more than one, a PodDisruptionBudget keeps one through voluntary evictions.
     type: int
     default: 2
+  tls_secret:
+    description:
+      - A C(kubernetes.io/tls) Secret in O(namespace) (C(tls.crt), C(tls.key)); the dashboard and C(/metrics) are then
+        served over HTTPS with it. Empty serves plain HTTP (reach it through C(kubectl port-forward)).
+    type: str
+    default: ""
 """
 
 EXAMPLES = r"""
@@ -59,8 +66,10 @@ from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors imp
 
 
 @reports_kuberos_errors
-def controller_manifests(fleets, image, namespace="kuberos-system", args=(), replicas=2):
-    return controller_objects(str(namespace), str(image), [str(f) for f in fleets], [str(a) for a in args], int(replicas))
+def controller_manifests(fleets, image, namespace="kuberos-system", args=(), replicas=2, tls_secret=""):
+    return controller_objects(
+        str(namespace), str(image), [str(f) for f in fleets], [str(a) for a in args], int(replicas), str(tls_secret or "")
+    )
 
 
 class FilterModule:

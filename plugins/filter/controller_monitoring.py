@@ -46,6 +46,12 @@ options:
     description: Labels added to every object, for a Prometheus that selects monitors and rules by label (e.g. C(release)).
     type: dict
     default: {}
+  tls_secret:
+    description:
+      - The C(kubernetes.io/tls) Secret the controller serves HTTPS with (the role's C(controller_dashboard_tls_secret));
+        the monitors then scrape over HTTPS and verify the certificate with the Secret's C(ca.crt). Empty is HTTP.
+    type: str
+    default: ""
 """
 
 EXAMPLES = r"""
@@ -75,7 +81,13 @@ from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors imp
 
 @reports_kuberos_errors
 def controller_monitoring(
-    rules, namespace="kuberos-system", service_monitor=False, pod_monitor=False, prometheus_rule=False, labels=None
+    rules,
+    namespace="kuberos-system",
+    service_monitor=False,
+    pod_monitor=False,
+    prometheus_rule=False,
+    labels=None,
+    tls_secret="",
 ):
     if isinstance(labels, dict):  # label values such as 1 or true become the strings Kubernetes wants
         labels = {str(k): str(v) for k, v in labels.items()}
@@ -86,6 +98,7 @@ def controller_monitoring(
         boolean(pod_monitor, strict=True),
         boolean(prometheus_rule, strict=True),
         labels,
+        str(tls_secret or ""),
     )
 
 

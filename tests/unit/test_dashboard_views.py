@@ -5,6 +5,7 @@ query strings, security headers, the live stream and the metrics text."""
 from __future__ import annotations
 
 import asyncio
+import http.client
 import json
 import threading
 import time
@@ -413,3 +414,38 @@ def test_nothing_is_built_while_nobody_looks_but_node_transitions_are_noted(serv
     events = json.loads(fetch(base + "/api/events?q=edge-2")[2])["rows"]
     assert [e["reason"] for e in events if e["kind"] == "node"] == ["NodeReady", "NodeNotReady"], events
     assert dashboard.view.generation == 2, "the request built what it read"
+
+
+def test_with_a_certificate_it_serves_https_only(deployed, tmp_path):
+    """--dashboard-tls-cert/--dashboard-tls-key (the in-cluster controller's with controller_dashboard_tls_secret):
+    HTTPS with the certificate, verified against its CA; a plain-HTTP request gets no page."""
+    import ssl
+
+    from ansible_collections.kuberos.platform.plugins.module_utils import pki
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.cli import parse_args
+
+    ca_cert, ca_key = pki.new_ca("kuberos-test-ca", days=1)
+    cert, key = pki.issue(ca_cert, ca_key, "kuberos-controller", usage=pki.SERVER, days=1, alt_names=["127.0.0.1"])
+    for name, obj in (("ca.crt", ca_cert), ("tls.crt", cert), ("tls.key", key)):
+        pki.write_pem(str(tmp_path / name), obj)
+    with pytest.raises(SystemExit):
+        parse_args(["--kubeconfig", "k", "--dashboard-tls-cert", str(tmp_path / "tls.crt")])  # a key is needed too
+    server = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    server.load_cert_chain(str(tmp_path / "tls.crt"), str(tmp_path / "tls.key"))
+    controller = HandFed(deployed)
+    dashboard = Dashboard(controller, "127.0.0.1", 0, watch_extra=False, tls=server)
+    dashboard.start()
+    try:
+        client = ssl.create_default_context(cafile=str(tmp_path / "ca.crt"))
+        with urllib.request.urlopen(f"https://127.0.0.1:{dashboard.port}/api/summary", timeout=5, context=client) as response:
+            assert response.status == 200 and json.loads(response.read())["rows"] > 0
+        with pytest.raises(urllib.error.URLError, match="CERTIFICATE_VERIFY_FAILED"):
+            urllib.request.urlopen(f"https://127.0.0.1:{dashboard.port}/healthz", timeout=5, context=ssl.create_default_context())
+        try:
+            plain = fetch(f"http://127.0.0.1:{dashboard.port}/healthz")[0]
+        except http.client.HTTPException:
+            plain = 0
+        assert plain != 200, "no plain HTTP beside HTTPS"
+    finally:
+        controller.stop_event.set()
+        dashboard.stop()

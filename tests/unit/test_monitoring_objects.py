@@ -213,3 +213,31 @@ def test_the_role_reads_the_rule_file_it_ships():
         "controller_pod_monitor": False,
         "controller_prometheus_rule": False,
     }
+
+
+def deployment_of(objects: list[dict]) -> dict:
+    return next(o for o in objects if o["kind"] == "Deployment")
+
+
+def test_with_a_tls_secret_the_controller_serves_https_and_the_monitors_verify_it(rules):
+    secret = "kuberos-dashboard-tls"
+    pod = deployment_of(controller_objects(NAMESPACE, "img", ["a"], [], tls_secret=secret))["spec"]["template"]["spec"]
+    (container,) = pod["containers"]
+    assert pod["volumes"] == [{"name": "dashboard-tls", "secret": {"secretName": secret}}]
+    (mount,) = container["volumeMounts"]
+    assert mount["readOnly"] and container["args"][container["args"].index("--dashboard-tls-cert") + 1].startswith(
+        mount["mountPath"]
+    )
+    assert container["readinessProbe"]["httpGet"]["scheme"] == "HTTPS"
+    plain = deployment_of(controller_objects(NAMESPACE, "img", ["a"], []))["spec"]["template"]["spec"]
+    assert "volumes" not in plain and "--dashboard-tls-cert" not in plain["containers"][0]["args"]
+    monitors = by_kind(monitoring_objects(NAMESPACE, rules, True, True, False, tls_secret=secret))
+    for endpoint in (
+        monitors["ServiceMonitor"]["spec"]["endpoints"][0],
+        monitors["PodMonitor"]["spec"]["podMetricsEndpoints"][0],
+    ):
+        assert endpoint["scheme"] == "https"
+        assert endpoint["tlsConfig"] == {
+            "ca": {"secret": {"name": secret, "key": "ca.crt"}},
+            "serverName": f"kuberos-controller.{NAMESPACE}.svc",
+        }

@@ -106,8 +106,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="kubernetes: every request needs a bearer token that a TokenReview accepts and a SubjectAccessReview allows "
         "to get /kuberos/dashboard (or /metrics); default: kubernetes in a pod (no --kubeconfig), none otherwise",
     )  # fmt: skip
+    view.add_argument("--dashboard-tls-cert", help="serve HTTPS with this PEM certificate (chain) ...")
+    view.add_argument("--dashboard-tls-key", help="... and this PEM private key (both or neither)")
     parser.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     args = parser.parse_args(argv)
+    if bool(args.dashboard_tls_cert) != bool(args.dashboard_tls_key):
+        parser.error("--dashboard-tls-cert and --dashboard-tls-key go together")
     if args.dashboard_auth is None:
         args.dashboard_auth = "none" if args.kubeconfig else "kubernetes"
     if args.dashboard_port and args.dashboard_auth == "none" and not is_loopback(args.dashboard_host):
@@ -126,18 +130,26 @@ def start_dashboard(controller, args, api_client):
         from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.dashboard import Dashboard
 
         auth = KubernetesAuth(api_client) if args.dashboard_auth == "kubernetes" else None
-        dashboard = Dashboard(controller, args.dashboard_host, args.dashboard_port, auth)
+        tls = None
+        if args.dashboard_tls_cert:
+            import ssl
+
+            tls = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+            tls.minimum_version = ssl.TLSVersion.TLSv1_2
+            tls.load_cert_chain(args.dashboard_tls_cert, args.dashboard_tls_key)
+        dashboard = Dashboard(controller, args.dashboard_host, args.dashboard_port, auth, tls=tls)
         dashboard.start()
     except ImportError as exc:
         logging.getLogger("kuberos.controller").error("dashboard off: %s (install aiohttp and prometheus_client)", exc)
         return None
-    except OSError as exc:
+    except OSError as exc:  # the port is taken, or the certificate or key cannot be read (ssl.SSLError is an OSError)
         logging.getLogger("kuberos.controller").error(
-            "dashboard off: cannot listen on %s:%s: %s", args.dashboard_host, args.dashboard_port, exc.strerror or exc
+            "dashboard off: cannot serve on %s:%s: %s", args.dashboard_host, args.dashboard_port, exc.strerror or exc
         )
         return None
     logging.getLogger("kuberos.controller").info(
-        "dashboard on http://%s:%d/ (metrics on /metrics, %s)", args.dashboard_host, dashboard.port,
+        "dashboard on %s://%s:%d/ (metrics on /metrics, %s)", "https" if dashboard.tls else "http", args.dashboard_host,
+        dashboard.port,
         "bearer tokens checked with TokenReview and SubjectAccessReview" if dashboard.auth else "no login: loopback only",
     )  # fmt: skip
     return dashboard

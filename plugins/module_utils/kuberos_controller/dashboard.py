@@ -11,7 +11,7 @@ Routes (docs/dashboard.md): ``/`` the page; ``/api/summary``, ``/api/resources``
 (Prometheus), ``/healthz``; ``/login`` and ``/logout`` when tokens are checked (``auth.py``).
 
 On 127.0.0.1 (the local default) it needs no login. Anywhere else it requires ``KubernetesAuth``: the
-command line refuses to serve a non-loopback address without it.
+command line refuses to serve a non-loopback address without it. With an ``ssl.SSLContext`` it serves HTTPS.
 """
 
 from __future__ import annotations
@@ -70,11 +70,12 @@ FACETS = {
 
 class Dashboard:
     def __init__(self, controller, host: str = "127.0.0.1", port: int = 8611, auth: KubernetesAuth | None = None,
-                 refresh_s: float = 0.2, watch_extra: bool = True):  # fmt: skip
+                 refresh_s: float = 0.2, watch_extra: bool = True, tls=None):  # fmt: skip
         self.controller = controller
         self.host = host
         self.port = port
         self.auth = auth
+        self.tls = tls  # an ssl.SSLContext: HTTPS (the cookie is then Secure)
         self.refresh_s = refresh_s
         self.view = View()
         self.signature: tuple = ()
@@ -219,7 +220,7 @@ class Dashboard:
             self.changed_async = asyncio.Event()
             self.runner = web.AppRunner(self.app(), access_log=None, handle_signals=False, shutdown_timeout=1.0)
             self.loop.run_until_complete(self.runner.setup())
-            site = web.TCPSite(self.runner, self.host, self.port)
+            site = web.TCPSite(self.runner, self.host, self.port, ssl_context=self.tls)
             self.loop.run_until_complete(site.start())
             if self.port == 0:
                 self.port = site._server.sockets[0].getsockname()[1]  # pylint: disable=protected-access

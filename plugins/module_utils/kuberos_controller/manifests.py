@@ -43,6 +43,7 @@ REVIEW_RULES = [
 VIEWER_ROLE = "kuberos-dashboard-viewer"
 VIEWER_RULES = [{"nonResourceURLs": ["/kuberos/dashboard", "/metrics"], "verbs": ["get"]}]
 DASHBOARD_PORT = 8611
+TLS_DIR = "/etc/kuberos/dashboard-tls"
 FLEET_RULES = [
     {"apiGroups": [""], "resources": ["configmaps"], "verbs": ["get", "create", "patch"]},
     {"apiGroups": [""], "resources": ["pods"], "verbs": ["delete"]},
@@ -52,9 +53,14 @@ FLEET_RULES = [
 LEASE_RULES = [{"apiGroups": ["coordination.k8s.io"], "resources": ["leases"], "verbs": ["get", "create", "update"]}]
 
 
-def controller_objects(namespace: str, image: str, fleets: list[str], args: list[str], replicas: int = 2) -> list[dict]:
+def controller_objects(
+    namespace: str, image: str, fleets: list[str], args: list[str], replicas: int = 2, tls_secret: str = ""
+) -> list[dict]:
     """Namespace, ServiceAccount, the two ClusterRoles, their bindings (one per fleet), the Lease Role and its
-    binding, the Deployment and, with more than one replica, its PodDisruptionBudget."""
+    binding, the dashboard viewer's ServiceAccount, ClusterRole and binding, the Service, the Deployment and, with
+    more than one replica, its PodDisruptionBudget. ``tls_secret``: a ``kubernetes.io/tls`` Secret in ``namespace``
+    (``tls.crt``, ``tls.key``) mounted into the pods, and the dashboard serves HTTPS with it."""
+    tls_args = ["--dashboard-tls-cert", f"{TLS_DIR}/tls.crt", "--dashboard-tls-key", f"{TLS_DIR}/tls.key"] if tls_secret else []
     labels = {MANAGED_BY: "kuberos", "app.kubernetes.io/name": NAME}
     subject = {"kind": "ServiceAccount", "name": NAME, "namespace": namespace}
     objects = [
@@ -147,6 +153,7 @@ def controller_objects(namespace: str, image: str, fleets: list[str], args: list
                     "metadata": {"labels": labels},
                     "spec": {
                         "serviceAccountName": NAME,
+                        **({"volumes": [{"name": "dashboard-tls", "secret": {"secretName": tls_secret}}]} if tls_secret else {}),
                         "affinity": {
                             "podAntiAffinity": {
                                 "preferredDuringSchedulingIgnoredDuringExecution": [
@@ -174,10 +181,19 @@ def controller_objects(namespace: str, image: str, fleets: list[str], args: list
                                     "0.0.0.0",
                                     "--dashboard-auth",
                                     "kubernetes",
+                                    *tls_args,
                                     *args,
                                 ],
                                 "ports": [{"name": "http", "containerPort": DASHBOARD_PORT, "protocol": "TCP"}],
-                                "readinessProbe": {"httpGet": {"path": "/healthz", "port": "http"}, "periodSeconds": 10},
+                                "readinessProbe": {
+                                    "httpGet": {"path": "/healthz", "port": "http", "scheme": "HTTPS" if tls_secret else "HTTP"},
+                                    "periodSeconds": 10,
+                                },
+                                **(
+                                    {"volumeMounts": [{"name": "dashboard-tls", "mountPath": TLS_DIR, "readOnly": True}]}
+                                    if tls_secret
+                                    else {}
+                                ),
                                 "env": [
                                     {"name": "POD_NAME", "valueFrom": {"fieldRef": {"fieldPath": "metadata.name"}}},
                                     {"name": "KUBEROS_NODE_NAME", "valueFrom": {"fieldRef": {"fieldPath": "spec.nodeName"}}},

@@ -64,12 +64,14 @@ def monitoring_objects(
     pod_monitor: bool,
     prometheus_rule: bool,
     labels: dict | None = None,
+    tls_secret: str = "",
 ) -> list[dict]:
     """The objects, in apply order: with a ServiceMonitor or a PodMonitor the ClusterRole ``kuberos-metrics-reader``;
     with a PodMonitor its ServiceAccount, token Secret and binding; the ServiceMonitor, the PodMonitor and the
     PrometheusRule (``rules``: the parsed rule file, ``{"groups": [...]}``). ``labels`` are added to every object's
     labels, for a Prometheus that selects its monitors and rules by label (kube-prometheus-stack: ``release``).
-    Nothing is asked for: no objects."""
+    Nothing is asked for: no objects. ``tls_secret``: the controller serves HTTPS with that Secret
+    (``controller_objects``); the monitors scrape with ``https`` and check the certificate against its ``ca.crt``."""
     extra = _checked_labels(labels)
     own = {**extra, MANAGED_BY: "kuberos", "app.kubernetes.io/name": NAME}
 
@@ -78,6 +80,9 @@ def monitoring_objects(
 
     groups = _checked_groups(rules) if prometheus_rule else None
     endpoint = {"port": PORT, "path": PATH, "scheme": "http", "interval": INTERVAL, "honorLabels": True}
+    if tls_secret:  # the controller serves HTTPS with this Secret: verify it with the Secret's ca.crt
+        endpoint["scheme"] = "https"
+        endpoint["tlsConfig"] = {"ca": {"secret": {"name": tls_secret, "key": "ca.crt"}}, "serverName": f"{NAME}.{namespace}.svc"}
     objects: list[dict] = []
     if service_monitor or pod_monitor:
         objects.append(
