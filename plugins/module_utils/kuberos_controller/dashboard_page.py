@@ -114,6 +114,7 @@ table { border-collapse: collapse; width: 100%; background: #fff; border: 1px so
 th, td { text-align: left; padding: 4px 8px; border-bottom: 1px solid #eee; vertical-align: top; white-space: nowrap; }
 th { background: #eef1f5; position: sticky; top: 0; font-weight: 600; }
 td.why { max-width: 300px; overflow: hidden; text-overflow: ellipsis; color: var(--muted); }
+td.move { color: var(--muted); }
 .phase { border-radius: 10px; padding: 1px 8px; font-size: 12px; color: #fff; background: #888; white-space: nowrap; }
 .phase.Running, .phase.Ready { background: var(--ok); } .phase.Pending, .phase.Moving { background: var(--warn); }
 .phase.Stranded, .phase.Missing, .phase.NotReady { background: var(--bad); } .phase.Remote { background: #5c6bc0; }
@@ -237,7 +238,9 @@ function renderSummary(s) {
 function renderModules(data) {
   fillSelects('modules', data.facets); pager('modules', data);
   const rows = data.rows.map(r => {
-    const move = r.last_move && r.last_move.to ? `${r.last_move.at}: ${r.last_move.from} → ${r.last_move.to} (${r.last_move.why})` : '';
+    const moved = r.last_move && r.last_move.to;
+    const move = moved ? `${r.last_move.at}: ${r.last_move.from} → ${r.last_move.to} (${r.last_move.why})` : '';
+    const moveShort = moved ? `${r.last_move.from} → ${r.last_move.to}, ${String(r.last_move.at).slice(11, 19)}` : '';
     const rtt = r.rtt_ms === null || r.rtt_ms === undefined ? (r.max_latency_ms ? 'not measured' : '') : `${fmtNum(r.rtt_ms)} ms`;
     const limit = r.max_latency_ms === null || r.max_latency_ms === undefined ? '' : ` / ${fmtNum(r.max_latency_ms)} ms`;
     return el('tr', { 'data-instance': r.instance, 'data-robot': r.robot, 'data-module': r.module, 'data-deployment': r.deployment },
@@ -247,7 +250,7 @@ function renderModules(data) {
       el('td', { class: 'version', text: r.version + (r.version !== r.planned && r.planned ? ` → ${r.planned}` : '') }),
       el('td', { class: r.over_latency ? 'over' : '', text: rtt + limit }),
       el('td', { class: 'why', title: r.note || r.reason, text: r.note ? 'stranded: ' + r.note : r.reason }),
-      el('td', { class: 'why move', title: move, text: move }));
+      el('td', { class: 'move', title: move, text: moveShort }));
   });
   $('#modules tbody').replaceChildren(...rows);
 }
