@@ -1,6 +1,7 @@
 """The controller's Prometheus metrics (``prometheus_client``), served on ``/metrics`` beside the dashboard.
 
-Gauges are read at scrape time from the dashboard's latest ``View`` (the same numbers the pages show); counters
+``prometheus_client`` is imported only when a controller builds its metrics (ansible-test's import check runs without
+it). Gauges are read at scrape time from the dashboard's latest ``View`` (the same numbers the pages show); counters
 and the histogram are kept by the controller as it acts. Names and labels are listed in docs/monitoring.md:
 
 - ``kuberos_module_instances{namespace, deployment, module, tier, phase}``
@@ -14,9 +15,6 @@ and the histogram are kept by the controller as it acts. Names and labels are li
 """
 
 from __future__ import annotations
-
-from prometheus_client import CollectorRegistry, Counter, Histogram
-from prometheus_client.core import GaugeMetricFamily
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import RESOURCES, View, instance_counts
 
@@ -47,6 +45,8 @@ class ViewCollector:
         return []  # collected at scrape time only: the families depend on what runs
 
     def collect(self):
+        from prometheus_client.core import GaugeMetricFamily
+
         view: View = self.view_of()
         instances = GaugeMetricFamily(
             "kuberos_module_instances",
@@ -126,6 +126,8 @@ class ControllerMetrics:
     """The registry of one controller process."""
 
     def __init__(self, view_of, leader_of):
+        from prometheus_client import CollectorRegistry, Counter, Histogram  # imported when a controller runs one
+
         self.registry = CollectorRegistry(auto_describe=False)
         self.moves = Counter(
             "kuberos_module_moves", "Module instances the controller moved, by the fault that moved them.", ("reason",),
