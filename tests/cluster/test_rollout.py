@@ -201,7 +201,9 @@ def _broken_catalog(tmp_path) -> str:
 
 
 class CrashLooper(threading.Thread):
-    """Marks every pod of the broken image as a kubelet would report a crash-looping container."""
+    """Marks every pod of the broken image as a kubelet would report a crash-looping container, again whenever its
+    status shows otherwise: kwok writes a Running status of its own when it takes up a new pod, and a mark made just
+    before that is overwritten (then the canary's gate saw a Ready pod and let the broken version through)."""
 
     def __init__(self, core):
         super().__init__(daemon=True)
@@ -214,7 +216,7 @@ class CrashLooper(threading.Thread):
         while not self.stop.is_set() and time.monotonic() < deadline:
             for pod in self.core.list_namespaced_pod(NAMESPACE).items:
                 image = pod.spec.containers[0].image
-                if not image.endswith(BROKEN_TAG) or pod.metadata.name in self.marked or pod.metadata.deletion_timestamp:
+                if not image.endswith(BROKEN_TAG) or pod.metadata.deletion_timestamp or _crash_looping(pod):
                     continue
                 statuses = [{
                     "name": c.name, "ready": False, "restartCount": 3, "image": c.image, "imageID": "", "started": False,
@@ -228,6 +230,12 @@ class CrashLooper(threading.Thread):
                 except Exception:
                     pass
             time.sleep(0.2)
+
+
+def _crash_looping(pod) -> bool:
+    return any(
+        s.state and s.state.waiting and s.state.waiting.reason == "CrashLoopBackOff" for s in pod.status.container_statuses or []
+    )
 
 
 def test_a_broken_version_stops_at_the_canary_and_only_the_canary_is_rolled_back(life, tmp_path):
