@@ -67,6 +67,7 @@ status: setup
 ## Lint and every test (the cluster tests start their own control plane; the cluster setup roles' tests need kubeadm).
 test: setup
 	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1
+	@scripts/operator-crds.sh >/dev/null  # the Prometheus Operator's CRDs, from its Go module (a monitoring test)
 	$(VENV)/python -m pytest
 
 unit: setup

@@ -26,7 +26,7 @@ import urllib.parse
 import urllib.request
 
 import pytest
-from helpers import ROOT, free_ports
+from helpers import ROOT, free_ports, playbook
 from test_controller import SPEC, Fleet, wait_for
 
 pytestmark = pytest.mark.cluster
@@ -374,3 +374,75 @@ def test_in_a_cluster_only_tokens_the_api_server_accepts_and_rbac_allows_get_in(
             core.delete_namespaced_service_account(name, namespace)
         rbac.delete_cluster_role_binding(names[0])
         rbac.delete_cluster_role(names[0])
+
+
+# -- the Prometheus Operator's objects ------------------------------------------------------------------------
+OPERATOR_KINDS = {"ServiceMonitor": "servicemonitors", "PodMonitor": "podmonitors", "PrometheusRule": "prometheusrules"}
+
+
+def operator_crds() -> list[dict]:
+    """The CRDs of the three kinds the role applies, from the Prometheus Operator's Go module (scripts/operator-crds.sh;
+    make test fetches it)."""
+    import yaml
+
+    done = subprocess.run([os.path.join(ROOT, "scripts", "operator-crds.sh")], capture_output=True, text=True, timeout=300)
+    if done.returncode != 0:
+        message = f"the Prometheus Operator's CRDs are not available: {done.stderr.strip()[-500:]}"
+        if os.environ.get("CI"):
+            pytest.fail(message, pytrace=False)
+        pytest.skip(message)
+    folder = done.stdout.strip()
+    crds = []
+    for plural in OPERATOR_KINDS.values():
+        with open(os.path.join(folder, f"monitoring.coreos.com_{plural}.yaml"), encoding="utf-8") as handle:
+            crds.append(yaml.safe_load(handle))
+    return crds
+
+
+def test_the_prometheus_operator_objects_apply_to_its_own_crds(fleet):
+    """With the Operator's real CRDs in the cluster, the role applies the ServiceMonitor, PodMonitor and PrometheusRule
+    (with the in-cluster controller) and the API server keeps every field (its schemas prune unknown ones); stopped
+    removes them."""
+    import yaml
+    from kubernetes import client
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.monitoring import monitoring_objects
+
+    crds = operator_crds()
+    extensions = client.ApiextensionsV1Api(fleet.core.api_client)
+    custom = client.CustomObjectsApi(fleet.core.api_client)
+    for crd in crds:
+        extensions.create_custom_resource_definition(crd)
+    settings = {
+        "controller_mode": "in_cluster", "controller_kubeconfig": fleet.cluster.kubeconfig, "controller_fleets": ["test-fleet"],
+        "controller_image": "registry.invalid/kuberos-controller:test", "controller_service_monitor": True,
+        "controller_pod_monitor": True, "controller_prometheus_rule": True, "controller_monitoring_labels": {"release": "kps"},
+    }  # fmt: skip
+    try:
+        wait_for(
+            lambda: all(
+                any(c.type == "Established" and c.status == "True" for c in extensions.read_custom_resource_definition(
+                    crd["metadata"]["name"]).status.conditions or [])
+                for crd in crds
+            ),
+            30, "the CRDs established",
+        )  # fmt: skip
+        applied = playbook("controller.yml", "-e", json.dumps({**settings, "controller_state": "started"}))
+        assert applied.returncode == 0, applied.stdout[-3000:]
+        with open(RULES, encoding="utf-8") as handle:
+            rules = yaml.safe_load(handle)
+        wanted = monitoring_objects("kuberos-system", rules, True, True, True, {"release": "kps"})
+        for obj in (o for o in wanted if o["kind"] in OPERATOR_KINDS):
+            live = custom.get_namespaced_custom_object(
+                "monitoring.coreos.com", "v1", "kuberos-system", OPERATOR_KINDS[obj["kind"]], obj["metadata"]["name"]
+            )
+            assert live["spec"] == obj["spec"], f"{obj['kind']}: the API server dropped or changed fields"
+            assert live["metadata"]["labels"]["release"] == "kps"
+        stopped = playbook("controller.yml", "-e", json.dumps({**settings, "controller_state": "stopped"}))
+        assert stopped.returncode == 0, stopped.stdout[-3000:]
+        for kind, plural in OPERATOR_KINDS.items():
+            left = custom.list_namespaced_custom_object("monitoring.coreos.com", "v1", "kuberos-system", plural)["items"]
+            assert left == [], f"{kind} left after controller_state=stopped"
+    finally:
+        for crd in crds:
+            extensions.delete_custom_resource_definition(crd["metadata"]["name"])
