@@ -233,6 +233,10 @@ class Dashboard:
         try:
             self.loop.run_forever()
         finally:
+            pending = asyncio.all_tasks(self.loop)  # the follow loop, open streams: ended, not left pending
+            for task in pending:
+                task.cancel()
+            self.loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
             self.loop.run_until_complete(self.runner.cleanup())
             self.loop.close()
 
