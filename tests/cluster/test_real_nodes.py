@@ -118,8 +118,9 @@ def wait_for(check, timeout, what, interval=1.0):
 
 
 def logs(real, namespace, pod):
+    """The pod's log so far ("" before it has any: the client gives None for an empty body)."""
     try:
-        return real.core.read_namespaced_pod_log(pod, namespace)
+        return real.core.read_namespaced_pod_log(pod, namespace) or ""
     except Exception:
         return ""
 
