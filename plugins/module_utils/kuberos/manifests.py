@@ -13,7 +13,7 @@ import copy
 from dataclasses import dataclass
 
 from . import labels as node_labels
-from . import naming
+from . import naming, scaling
 from .launch import container_name, launch_argv, split_amount
 from .placement import (
     BRIDGE_CPU_MILLIS,
@@ -53,6 +53,7 @@ BRIDGE_TOPICS_DIR = "/etc/kuberos-bridge/topics"
 BRIDGE_METRICS_PORT = 9090
 PARAMS_DIR = "/etc/kuberos"
 PARAMS_FILE = "params.yaml"
+ROBOTS_DIR = "/etc/kuberos/robots"  # a scaled module's robots ConfigMap: one file per instance, updated in place
 RMW = "rmw_fastrtps_cpp"
 
 
@@ -235,10 +236,43 @@ def _module_containers(module: RosModule, inst: Instance, env: list[dict], optio
             "env": copy.deepcopy(env),
             "resources": resources,
         }
+        mounts = []
         if module.ros_parameters:
-            container["volumeMounts"] = [{"name": "ros-parameters", "mountPath": PARAMS_DIR, "readOnly": True}]
+            mounts.append({"name": "ros-parameters", "mountPath": PARAMS_DIR, "readOnly": True})
+        if module.scaling:
+            mounts.append({"name": "robots", "mountPath": ROBOTS_DIR, "readOnly": True})
+        if mounts:
+            container["volumeMounts"] = mounts
         containers.append(container)
     return containers
+
+
+def robots_configmap(dep: RosDeployment, module: RosModule, placement: Placement, base_labels: dict, handover=None) -> dict:
+    """The robots every instance of a scaled module serves now (``scaling.serving``: while a change is handed over,
+    a robot stays with its old instance until its new one is Ready), one key per instance."""
+    instances = [i for i in placement.instances if i.deployment == dep.name and i.module == module.name and not i.cluster]
+    now = scaling.serving({i.name: i.robots for i in instances}, scaling.ScaleState(dict(handover or {})))
+    return {
+        "apiVersion": "v1",
+        "kind": "ConfigMap",
+        "metadata": {
+            "name": naming.robots_configmap_name(dep.name, module.name),
+            "namespace": naming.fleet_namespace(dep.fleet),
+            "labels": {**base_labels, MODULE: module.name},
+        },
+        "data": {name: ",".join(robots) for name, robots in sorted(now.items())},
+    }
+
+
+def module_labels(dep: RosDeployment) -> dict:
+    """The labels every object of a deployment's modules carries."""
+    return {
+        **dict(dep.labels),
+        MANAGED_BY: "kuberos",
+        COMPONENT: "ros-module",
+        DEPLOYMENT: dep.name,
+        node_labels.FLEET: dep.fleet,
+    }
 
 
 def _module_deployment(
@@ -256,7 +290,10 @@ def _module_deployment(
         {"name": "RMW_IMPLEMENTATION", "value": RMW},
         {"name": "ROS_DOMAIN_ID", "value": str(dep.ros_domain_id)},
         {"name": "KUBEROS_FLEET", "value": dep.fleet},
-        {"name": "KUBEROS_ROBOTS", "value": ",".join(inst.robots)},
+        # A scaled module's robots change while it runs: they are in a file it watches, not in its pod template.
+        {"name": "KUBEROS_ROBOTS_FILE", "value": f"{ROBOTS_DIR}/{inst.name}"}
+        if module.scaling
+        else {"name": "KUBEROS_ROBOTS", "value": ",".join(inst.robots)},
         {"name": "KUBEROS_NODE_NAME", "valueFrom": {"fieldRef": {"fieldPath": "spec.nodeName"}}},
     ]
     if not inst.shared:
@@ -265,11 +302,16 @@ def _module_deployment(
         env.append({"name": "KUBEROS_PARAMS_FILE", "value": f"{PARAMS_DIR}/{PARAMS_FILE}"})
     env.extend({"name": name, "value": value} for name, value in sorted(module.env))
     pod_spec = {
-        **_selector_and_tolerations(inst.node, inst.tier, inst.robots[0]),
+        **_selector_and_tolerations(inst.node, inst.tier, inst.robots[0] if inst.robots else None),
         "containers": _module_containers(module, inst, env, options),
     }
+    volumes = []
     if module.ros_parameters:
-        pod_spec["volumes"] = [{"name": "ros-parameters", "configMap": {"name": params_configmap_name(dep.name, module.name)}}]
+        volumes.append({"name": "ros-parameters", "configMap": {"name": params_configmap_name(dep.name, module.name)}})
+    if module.scaling:
+        volumes.append({"name": "robots", "configMap": {"name": naming.robots_configmap_name(dep.name, module.name)}})
+    if volumes:
+        pod_spec["volumes"] = volumes
     return {
         "apiVersion": "apps/v1",
         "kind": "Deployment",
@@ -464,13 +506,7 @@ def render_remote(
             seen_params = set()
             for inst in instances:
                 dep, module = by_name[inst.deployment], modules[(inst.deployment, inst.module)]
-                base_labels = {
-                    **dict(dep.labels),
-                    MANAGED_BY: "kuberos",
-                    COMPONENT: "ros-module",
-                    DEPLOYMENT: dep.name,
-                    node_labels.FLEET: fleet,
-                }
+                base_labels = module_labels(dep)  # the deployment's fleet is this fleet
                 if module.ros_parameters and (dep.name, module.name) not in seen_params:
                     seen_params.add((dep.name, module.name))
                     objects.append(_params_configmap(dep, module, namespace, base_labels))
@@ -489,8 +525,11 @@ def object_order(obj: dict) -> tuple:
     return (_KIND_ORDER[obj["kind"]], obj["metadata"].get("namespace", ""), obj["metadata"]["name"])
 
 
-def render_deployment(deployments: list[RosDeployment], placement: Placement, options: RenderOptions | None = None) -> list[dict]:
-    """Every object the placement needs, ordered for applying (namespaces first)."""
+def render_deployment(
+    deployments: list[RosDeployment], placement: Placement, options: RenderOptions | None = None, scaling_state=None
+) -> list[dict]:
+    """Every object the placement needs, ordered for applying (namespaces first). ``scaling_state`` maps
+    (deployment, module) to the robots still handed over (robot -> instance serving it until its new one is Ready)."""
     options = options or RenderOptions()
     by_name = {d.name: d for d in deployments}
     objects: list[dict] = []
@@ -514,16 +553,14 @@ def render_deployment(deployments: list[RosDeployment], placement: Placement, op
             continue  # rendered for its cluster by render_remote
         dep = by_name[inst.deployment]
         module = modules[(inst.deployment, inst.module)]
-        base_labels = {
-            **dict(dep.labels),
-            MANAGED_BY: "kuberos",
-            COMPONENT: "ros-module",
-            DEPLOYMENT: dep.name,
-            node_labels.FLEET: dep.fleet,
-        }
+        base_labels = module_labels(dep)
         if module.ros_parameters and (dep.name, module.name) not in seen_params:
             seen_params.add((dep.name, module.name))
             objects.append(_params_configmap(dep, module, inst.namespace, base_labels))
+        if module.scaling and (dep.name, module.name, "robots") not in seen_params:
+            seen_params.add((dep.name, module.name, "robots"))
+            handover = (scaling_state or {}).get((dep.name, module.name))
+            objects.append(robots_configmap(dep, module, placement, base_labels, handover))
         objects.append(_module_deployment(dep, module, inst, addresses[dep.fleet], base_labels, options))
     objects.sort(key=object_order)
     return objects

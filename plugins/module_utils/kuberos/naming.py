@@ -45,6 +45,11 @@ def parameters_configmap_name(deployment: str, module: str) -> str:
     return dns_label(deployment, module, "params")
 
 
+def robots_configmap_name(deployment: str, module: str) -> str:
+    """The ConfigMap that tells a scaled shared module's instances which robots each serves (one per module)."""
+    return dns_label(deployment, module, "robots")
+
+
 def reserved_name_problem(deployment: str) -> str | None:
     """Why ``deployment`` may not be a deployment's name (it would share KubeROS's own names), or None."""
     if deployment == RESERVED_PREFIX or deployment.startswith(RESERVED_PREFIX + "-"):
@@ -67,9 +72,12 @@ class PlannedName:
     what: str  # "the instance of robot fetch-1", "shared instance 0", "the ROS parameters"
 
 
-def module_object_names(fleet: str, deployment: str, module: str, shared: bool, robots, parameters: bool) -> list[PlannedName]:
+def module_object_names(
+    fleet: str, deployment: str, module: str, shared: bool, robots, parameters: bool, scaled: bool = False
+) -> list[PlannedName]:
     """The names a module's objects will get in its fleet's namespace: a Deployment per robot (dedicated) or up to
-    one per robot (shared, numbered from 0), and its parameter ConfigMap when it has ``rosParameters``. With
+    one per robot (shared, numbered from 0), its parameter ConfigMap when it has ``rosParameters`` and its robots
+    ConfigMap when it scales. With
     ``robots`` None (all robots of the fleet, not known here) one symbolic name ``<deployment>-<module>-<robot>``
     stands for the instances: equal for two modules exactly when their instances would clash for every robot."""
     namespace = fleet_namespace(fleet)
@@ -90,6 +98,10 @@ def module_object_names(fleet: str, deployment: str, module: str, shared: bool, 
             PlannedName(
                 "ConfigMap", namespace, parameters_configmap_name(deployment, module), deployment, module, "ROS parameters"
             )
+        )
+    if scaled:
+        names.append(
+            PlannedName("ConfigMap", namespace, robots_configmap_name(deployment, module), deployment, module, "robots served")
         )
     return names
 

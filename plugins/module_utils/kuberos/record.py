@@ -24,7 +24,7 @@ import dataclasses
 import gzip
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from . import naming
 from .errors import Problem, SpecError
@@ -400,13 +400,20 @@ def parse_revision(configmap: dict):
         raise SpecError([Problem(where, "", f"not a readable KubeROS revision ({exc!r})")]) from None
 
 
-def placement_patch(name: str, namespace: str, placement: Placement) -> dict:
-    """The controller's update of a record: the placement, and that the controller wrote it."""
+SCALING_KEY = "scaling.json"
+
+
+def placement_patch(name: str, namespace: str, placement: Placement, scaling: dict | None = None) -> dict:
+    """The controller's update of a record: the placement, that the controller wrote it, and with ``scaling`` the
+    changes of scaled modules in progress (``"<deployment>/<module>"`` -> ``ScaleState.to_dict()``)."""
+    data = {"writer": WRITER_CONTROLLER}
+    if scaling is not None:
+        data[SCALING_KEY] = json.dumps(scaling, sort_keys=True)
     return {
         "apiVersion": "v1",
         "kind": "ConfigMap",
         "metadata": {"name": name, "namespace": namespace},
-        "data": {"writer": WRITER_CONTROLLER},
+        "data": data,
         "binaryData": {"placement.json.gz": _pack(placement.to_dict())},
     }
 
@@ -450,6 +457,7 @@ class Record:
     revision: int = 0
     revision_hash: str = ""
     rollout: dict | None = None  # a rollout in progress: {"revision", "instances", ...}; the controller holds them
+    scaling: dict = field(default_factory=dict)  # "<deployment>/<module>" -> a scaled module's change in progress
 
     @property
     def spec(self) -> RosDeployment:
@@ -498,10 +506,19 @@ def parse_record(configmap: dict) -> Record:
         revision=int(data.get("revision") or 0),
         revision_hash=data.get("revision-hash", ""),
         rollout=_rollout_of(data),
+        scaling=_json_mapping(data.get(SCALING_KEY)),
     )
 
 
 ROLLOUT_KEY = "rollout.json"
+
+
+def _json_mapping(text) -> dict:
+    try:
+        value = json.loads(text) if text else {}
+    except ValueError:
+        return {}
+    return value if isinstance(value, dict) else {}
 
 
 def _rollout_of(data: dict) -> dict | None:

@@ -37,6 +37,80 @@ _ONE_OR_MORE_STRINGS = {
         {"type": "array", "minItems": 1, "items": {"type": "string", "minLength": 1}},
     ]
 }
+# A Prometheus metric name (the module's own load signal), or "cpu".
+METRIC_NAME = r"^[a-zA-Z_:][a-zA-Z0-9_:]*$"
+_DURATION = {
+    "type": ["string", "number"],
+    "pattern": LATENCY,
+    "minimum": 0,
+    "x-expected": "a duration such as '30 s' or '500 ms' (a number means milliseconds)",
+}
+SCALING = {
+    "type": "object",
+    "x-expected": "a mapping with maxInstances and optionally minInstances, metric, target, metricsPort and windows",
+    "additionalProperties": False,
+    "required": ["maxInstances"],
+    "description": (
+        "With strategy shared: the controller adds and removes instances between minInstances and maxInstances to "
+        "keep the load signal per instance near target (docs/scaling.md)."
+    ),
+    "properties": {
+        "minInstances": {
+            "type": "integer",
+            "minimum": 1,
+            "maximum": 1000,
+            "default": 1,
+            "description": "Fewest instances (default 1; never fewer than the robots need at robotsPerInstance).",
+            "x-expected": "a whole number from 1 to 1000",
+        },
+        "maxInstances": {
+            "type": "integer",
+            "minimum": 1,
+            "maximum": 1000,
+            "description": "Most instances (never more than the robots served).",
+            "x-expected": "a whole number from 1 to 1000",
+        },
+        "metric": {
+            "type": "string",
+            "pattern": METRIC_NAME,
+            "maxLength": 200,
+            "default": "cpu",
+            "description": (
+                "The load signal: cpu (CPU use against the module's cpu request, from the Kubernetes metrics API) or "
+                "the name of a gauge the module serves in Prometheus format, averaged over the instances."
+            ),
+            "x-expected": "cpu or a Prometheus metric name such as 'kuberos_planner_queue_depth'",
+        },
+        "target": {
+            "type": "number",
+            "exclusiveMinimum": 0,
+            "maximum": 1000000,
+            "description": "The signal per instance to keep: for cpu a fraction of the request (0.8), else the gauge's value.",
+            "x-expected": "a number above 0, such as 0.8 for cpu or 2 for a queue length",
+        },
+        "metricsPort": {
+            "type": "integer",
+            "minimum": 1,
+            "maximum": 65535,
+            "default": 9464,
+            "description": "Where each instance serves /metrics, for a module metric (default 9464).",
+            "x-expected": "a port number from 1 to 65535",
+        },
+        "scaleUpWindow": {
+            **_DURATION,
+            "description": "Scale up only to the lowest recommendation of this window (default 0 s).",
+        },
+        "scaleDownWindow": {
+            **_DURATION,
+            "description": "Scale down only to the highest recommendation of this window (default 60 s).",
+        },
+        "drainTime": {
+            **_DURATION,
+            "description": "How long a removed instance keeps running after its robots moved away (default 15 s).",
+        },
+    },
+}
+
 _TIER = {"type": "string", "enum": list(TIERS), "x-expected": "one of onboard, edge, cloud"}
 
 # Fragments shared with the software catalog's schema (catalog.py).
@@ -314,6 +388,7 @@ SCHEMA = {
                         "description": "With strategy shared: most robots one instance serves (default 4).",
                         "x-expected": "a whole number from 1 to 1000",
                     },
+                    "scaling": SCALING,
                     "env": ENV,
                     "rosParameters": ROS_PARAMETERS,
                     "cluster": {

@@ -70,6 +70,24 @@ class Requirements:
 
 
 @dataclass(frozen=True)
+class ScalingPolicy:
+    """How the controller scales a shared module (docs/scaling.md); durations in seconds."""
+
+    min_instances: int
+    max_instances: int
+    metric: str = "cpu"  # "cpu" or the name of a gauge the module serves in Prometheus format
+    target: float = 0.8
+    metrics_port: int = 9464
+    scale_up_window_s: float = 0.0
+    scale_down_window_s: float = 60.0
+    drain_s: float = 15.0
+
+    @property
+    def uses_cpu(self) -> bool:
+        return self.metric == "cpu"
+
+
+@dataclass(frozen=True)
 class BridgeTopic:
     name: str
     type: str
@@ -95,6 +113,7 @@ class RosModule:
     catalog_module: str = ""  # the catalog module it names (``module: <name>@<range>``)
     upgrade: str = "surge"  # surge | recreate (never two at once: modules that hold hardware)
     ros_distro: str = ""  # the catalog entry's rosDistro
+    scaling: ScalingPolicy | None = None  # shared modules the controller scales
 
     @property
     def path(self) -> str:
@@ -212,6 +231,7 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
     if "robotsPerInstance" in module and strategy != "shared":
         problem(("robotsPerInstance",), "only applies with strategy: shared; expected strategy: shared or no robotsPerInstance")
     per_instance = int(module.get("robotsPerInstance", DEFAULT_ROBOTS_PER_INSTANCE)) if strategy == "shared" else 1
+    scaling = _scaling_policy(module, strategy, problem)
 
     cluster = module.get("cluster", "")
     topics = (module.get("bridge") or {}).get("topics") or []
@@ -258,6 +278,42 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
         cluster=cluster,
         bridge_topics=tuple(BridgeTopic(t["name"], t["type"], t["direction"]) for t in topics),
         upgrade=module.get("upgrade") or ("recreate" if requirements.get("devices") else "surge"),
+        scaling=scaling,
+    )
+
+
+def _scaling_policy(module: dict, strategy: str, problem) -> ScalingPolicy | None:
+    """The module's scaling policy (the schema checked each field's shape), or None without one."""
+    raw = module.get("scaling")
+    if raw is None:
+        return None
+    if strategy != "shared":
+        problem(("scaling",), "only applies with strategy: shared; expected strategy: shared or no scaling")
+        return None
+    low, high = int(raw.get("minInstances", 1)), int(raw["maxInstances"])
+    if high < low:
+        problem(("scaling", "maxInstances"), f"{high} is below minInstances {low}; expected at least {low}")
+    metric = raw.get("metric", "cpu")
+    if "target" in raw:
+        target = float(raw["target"])
+    elif metric == "cpu":
+        target = 0.8
+    else:
+        problem(("scaling", "target"), f"is required with metric {metric}; expected the gauge's value per instance to keep")
+        target = 1.0
+
+    def seconds(key, default):
+        return quantities.parse_latency_ms(raw[key]) / 1000.0 if key in raw else default
+
+    return ScalingPolicy(
+        min_instances=low,
+        max_instances=max(high, low),
+        metric=metric,
+        target=target,
+        metrics_port=int(raw.get("metricsPort", 9464)),
+        scale_up_window_s=seconds("scaleUpWindow", 0.0),
+        scale_down_window_s=seconds("scaleDownWindow", 60.0),
+        drain_s=seconds("drainTime", 15.0),
     )
 
 
@@ -536,7 +592,13 @@ def _module_names(dep: RosDeployment, robots) -> list[tuple[naming.PlannedName, 
         (planned, module)
         for module in dep.modules
         for planned in naming.module_object_names(
-            dep.fleet, dep.name, module.name, module.strategy == "shared", robots, bool(module.ros_parameters)
+            dep.fleet,
+            dep.name,
+            module.name,
+            module.strategy == "shared",
+            robots,
+            bool(module.ros_parameters),
+            module.scaling is not None,
         )
     ]
 
