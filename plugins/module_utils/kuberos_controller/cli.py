@@ -59,6 +59,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--cooldown", type=float, default=Settings.cooldown_s, help="seconds before a moved module may move again"
     )
     parser.add_argument("--resync", type=float, default=30.0, help="seconds between passes without any change")
+    parser.add_argument(
+        "--prometheus-url",
+        default="",
+        help="read scaled modules' own load metrics from this Prometheus (e.g. http://prometheus:9090) instead of "
+        "from each pod's /metrics",
+    )
     election = parser.add_argument_group(
         "leader election", "several replicas may run; only the holder of a coordination.k8s.io Lease acts (docs/controller.md)"
     )
@@ -171,9 +177,10 @@ def main(argv=None) -> int:
         print(f"kuberos-controller: cannot reach the cluster: {exc}", file=sys.stderr)
         return 2
     if args.once:
-        Controller(api_client, settings, args.resync).run_once()
+        Controller(api_client, settings, args.resync, prometheus_url=args.prometheus_url).run_once()
         return 0
-    controller = Controller(api_client, settings, args.resync, identity=args.identity or f"{socket.gethostname()}_{os.getpid()}")
+    identity = args.identity or f"{socket.gethostname()}_{os.getpid()}"
+    controller = Controller(api_client, settings, args.resync, identity=identity, prometheus_url=args.prometheus_url)
     if args.leader_elect:
         controller.elector = leader_election.LeaderElector(
             api_client, args.lease_namespace, args.lease_name, controller.identity, timings,

@@ -12,7 +12,11 @@ fault's grace period ends, it runs one pass per record:
 3. converge: every Deployment whose pinned node differs from the record is applied again (server-side
    apply, the record's field manager), and pods of moved instances left on a node that is down are
    deleted at once, so the Recreate strategy can start the new pod (the module never runs twice);
-4. report: a Kubernetes Event per move or stranded module, and the status ConfigMap
+4. scale: a shared module with a ``scaling`` policy gets the instances its load signal asks for
+   (``kuberos.scaling``, pure; signals from ``signals.py``), when nothing of its deployment moves or rolls out:
+   new instances are placed, written to the record and created; robots are handed over once a new instance is
+   Ready, and a removed instance is deleted after its drain time;
+5. report: a Kubernetes Event per move, scaling step or stranded module, and the status ConfigMap
    ``kuberos-status-<deployment>`` (a table and JSON per robot and module: node, phase, pod, last move).
 
 Run it as a process (``cli.py``): ``python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller
@@ -36,7 +40,7 @@ import threading
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, quantities, scaling
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     DEPLOYMENT,
@@ -45,7 +49,12 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     discovery_from_deployments,
     render_deployment,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import (
+    DISCOVERY_CPU_MILLIS,
+    DISCOVERY_MEMORY_BYTES,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import (
+    RUNNING,
     ClusterView,
     Decision,
     Memory,
@@ -53,6 +62,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile
     PodView,
     Settings,
     decide,
+    instance_phase,
     status_rows,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
@@ -65,8 +75,10 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
     placement_patch,
     status_name,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Scheduler
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import controller_table
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import leader_election
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.signals import Signals
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import RTT_ANNOTATION, pod_view
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, object_key
 
@@ -118,7 +130,8 @@ def _pod_requests(pod: dict) -> dict:
 
 class Controller:
     def __init__(self, api_client, settings: Settings | None = None, resync_s: float = 30.0, dry_run: bool = False,
-                 elector: leader_election.LeaderElector | None = None, identity: str = ""):  # fmt: skip
+                 elector: leader_election.LeaderElector | None = None, identity: str = "",
+                 prometheus_url: str = ""):  # fmt: skip
         from kubernetes import client
 
         self.api_client = api_client
@@ -152,6 +165,10 @@ class Controller:
         self.leading = False  # as of the last pass loop; without an elector the first loop turns it on
         self.lead_passes = 0  # completed passes since this replica last became the leader
         self.metrics = None  # the dashboard's ControllerMetrics, when it serves /metrics: counts moves and pass times
+        self.signals = Signals(api_client, prometheus_url)  # the load signals of scaled modules
+        self.windows: dict[tuple, scaling.Windows] = {}  # (namespace, deployment, module) -> its recommendations
+        self.robots_written: dict[tuple, dict] = {}  # (namespace, robots ConfigMap) -> the data last applied
+        self.scaling_status: dict[tuple[str, str], list[dict]] = {}  # record -> one summary per scaled module
 
     # -- fencing --------------------------------------------------------------------------------
     def _may_write(self) -> dict:
@@ -167,6 +184,8 @@ class Controller:
         self.reported.clear()
         self.status_written.clear()
         self.parsed.clear()
+        self.windows.clear()
+        self.robots_written.clear()
 
     # -- observing --------------------------------------------------------------------------
     def _node_names(self) -> dict[str, str]:
@@ -242,12 +261,12 @@ class Controller:
         return record
 
     # -- acting -----------------------------------------------------------------------------
-    def _write_placement(self, record: Record, placement) -> bool:
+    def _write_placement(self, record: Record, placement, scaling_state: dict | None = None) -> bool:
         from kubernetes.client.exceptions import ApiException
 
         if self.dry_run:
             return True
-        patch = placement_patch(record.name, record.namespace, placement)
+        patch = placement_patch(record.name, record.namespace, placement, scaling_state)
         patch["metadata"]["resourceVersion"] = record.resource_version  # refuse if deploy rewrote it meanwhile
         try:
             self.core.patch_namespaced_config_map(record.name, record.namespace, patch, **self._may_write())
@@ -355,7 +374,8 @@ class Controller:
         key = (record.namespace, record.name)
         rows = status_rows(record, view, stranded, self.history.get(key, {}))
         table = controller_table(record.deployment + (f" (revision {record.revision})" if record.revision else ""), rows)
-        content = json.dumps({"rows": rows, "waiting": waiting}, sort_keys=True)
+        scaled = self.scaling_status.get(key, [])
+        content = json.dumps({"rows": rows, "waiting": waiting, "scaling": scaled}, sort_keys=True)
         if self.status_written.get(key) == content:
             return table
         configmap = self.records.items.get(key, {})
@@ -377,7 +397,13 @@ class Controller:
             "data": {
                 "table": table + "\n",
                 "status.json": json.dumps(
-                    {"deployment": record.deployment, "updated": _now_rfc3339(), "rows": rows, "waiting": waiting}
+                    {
+                        "deployment": record.deployment,
+                        "updated": _now_rfc3339(),
+                        "rows": rows,
+                        "waiting": waiting,
+                        "scaling": scaled,
+                    }
                 ),
                 "moves.json": json.dumps(self.history.get(key, {}), sort_keys=True),
             },
@@ -463,6 +489,10 @@ class Controller:
         for line in decision.waiting:
             log.debug("%s/%s waits: %s", record.namespace, record.deployment, line)
         applied = 0 if record.rollout else self.converge(record, rview)
+        scale_wake = None
+        if not record.rollout and decision.replacement is None:
+            scale_wake, scale_events = self.scale(record, rview, now)
+            events.extend(scale_events)
         self._in_parallel([lambda e=e: self._event(record, *e) for e in events])
         table = self._write_status(record, rview, stranded, decision.waiting)
         moves = decision.replacement.moves if decision.replacement is not None else []
@@ -477,7 +507,131 @@ class Controller:
                 "table": table,
             }
         )
-        return decision.wake_at
+        wakes = [t for t in (decision.wake_at, scale_wake) if t is not None]
+        return min(wakes) if wakes else None
+
+    # -- scaling ----------------------------------------------------------------------------
+    def _scheduler(self, record: Record, view: ClusterView) -> Scheduler:
+        """A scheduler that sees every KubeROS pod's requests, this record's own instances included."""
+        unavailable = {n: f"node {n} is NotReady" for n, v in view.nodes.items() if not v.ready}
+        inventory = record.inventory.with_measured_latency(view.measured) if view.measured else record.inventory
+        scheduler = Scheduler(inventory, self._allocated(record), unavailable)
+        for inst in record.placement.instances:
+            if not inst.cluster and inst.node in scheduler.free:
+                scheduler.take(inst.node, inst.cpu_millis, inst.memory_bytes, inst.gpu)
+        for server in (s for servers in record.placement.discovery.values() for s in servers):
+            if server.node in scheduler.free:
+                scheduler.take(server.node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+        return scheduler
+
+    def _ready_pods(self, namespace: str, names: set[str]) -> dict[str, dict]:
+        """Instance name -> its Running, Ready pod (plain dict), for the instances ``names``."""
+        found = {}
+        for pod in self.pods.snapshot():
+            meta = pod["metadata"]
+            inst = (meta.get("labels") or {}).get(INSTANCE)
+            if meta.get("namespace") != namespace or inst not in names or meta.get("deletionTimestamp"):
+                continue
+            status = pod.get("status") or {}
+            ready = any(c.get("type") == "Ready" and c.get("status") == "True" for c in status.get("conditions") or [])
+            if status.get("phase") == "Running" and ready:
+                found[inst] = pod
+        return found
+
+    def scale(self, record: Record, view: ClusterView, now: float) -> tuple[float | None, list]:
+        """One scaling step for every scaled module of the record; returns (wake time, events)."""
+        key = (record.namespace, record.name)
+        dep = record.spec
+        modules = [m for m in dep.modules if m.scaling is not None]
+        if not modules:
+            self.scaling_status.pop(key, None)
+            return None, []
+        states = dict(record.scaling)
+        placement = record.placement
+        summaries, events, wakes, start, stop = [], [], [], [], []
+        scheduler = None
+        for module in modules:
+            instances = [i for i in placement.instances if i.deployment == dep.name and i.module == module.name and i.shared]
+            if not instances:
+                continue
+            state_key = f"{dep.name}/{module.name}"
+            ready = {i.name for i in instances if instance_phase(i, view.pods.get(i.name, []), False)[0] == RUNNING}
+            pods = self._ready_pods(record.namespace, {i.name for i in instances})
+            requests = instances[0].cpu_millis
+            values = self.signals.values(record.namespace, module.scaling, pods, requests, now)
+            windows = self.windows.setdefault((record.namespace, dep.name, module.name), scaling.Windows())
+            if scheduler is None:
+                scheduler = self._scheduler(record, view)
+            limit = module.requirements.max_latency_ms
+
+            def fits(robot, node, limit=limit, inventory=scheduler.inventory):
+                return limit is None or inventory.latency_ms(robot, node) <= limit
+
+            result = scaling.step(
+                dep, module, instances, scaling.ScaleState.from_dict(states.get(state_key)), ready, values, windows, now,
+                lambda robots, module=module, chooser=scheduler: chooser.choose(dep, module, tuple(robots)), fits,
+            )  # fmt: skip
+            summaries.append(result.summary)
+            if result.wake_at is not None:
+                wakes.append(result.wake_at)
+            states[state_key] = result.state.to_dict()
+            if result.instances != instances:
+                others = [i for i in placement.instances if not (i.deployment == dep.name and i.module == module.name)]
+                placement = type(placement)(**{**placement.__dict__, "instances": others + result.instances})
+            start.extend(result.start)
+            stop.extend(result.stop)
+            for name, reason, message, warning in result.events:
+                log.info("%s/%s: %s", record.namespace, dep.name, message)
+                events.append((name, reason, message, warning))
+                if self.metrics is not None:
+                    self.metrics.scaled(dep.name, module.name, reason)
+        self.scaling_status[key] = summaries
+        states = {k: v for k, v in states.items() if v.get("handover") or v.get("leaving")}
+        if placement is not record.placement or states != record.scaling:
+            if not self._write_placement(record, placement, states):
+                self.changed.set()
+                return None, []
+            record.placement, record.scaling, record.writer = placement, states, WRITER_CONTROLLER
+            self.parsed.pop(key, None)
+        self._apply_scaled(record, modules, start, stop)
+        return (min(wakes) if wakes else None), events
+
+    def _apply_robots(self, obj: dict, manager: str, cache_key: tuple) -> None:
+        self._apply(obj, manager)
+        self.robots_written[cache_key] = obj["data"]
+
+    def _apply_scaled(self, record: Record, modules, start: list[str], stop: list[str]) -> None:
+        """Create the new instances' Deployments (and any the record has but the cluster lacks, after a takeover),
+        apply the robots ConfigMaps that changed, and delete drained instances' Deployments."""
+        from kubernetes.client.exceptions import ApiException
+
+        handover = {
+            (record.spec.name, m.name): scaling.ScaleState.from_dict(record.scaling.get(f"{record.spec.name}/{m.name}")).handover
+            for m in modules
+        }
+        wanted = render_deployment(record.deployments, record.placement, record.options, scaling_state=handover)
+        names = {i.name for i in record.placement.instances if any(i.module == m.name for m in modules)}
+        live = {d["metadata"]["name"] for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace}
+        robots_maps = {naming.robots_configmap_name(record.spec.name, m.name) for m in modules}
+        calls = []
+        for obj in wanted:
+            meta = obj["metadata"]
+            if obj["kind"] == "ConfigMap" and meta["name"] in robots_maps:
+                cache_key = (meta["namespace"], meta["name"])
+                if self.robots_written.get(cache_key) != obj["data"]:
+                    calls.append(lambda obj=obj, k=cache_key: self._apply_robots(obj, record.field_manager, k))
+            elif obj["kind"] == "Deployment" and meta["name"] in names:
+                if meta["name"] in start or (meta["name"] not in live and record.writer == WRITER_CONTROLLER):
+                    calls.append(lambda obj=obj: self._apply(obj, record.field_manager))
+        self._in_parallel(calls)
+        for name in stop:
+            if self.dry_run:
+                continue
+            try:
+                self.apps.delete_namespaced_deployment(name, record.namespace, **self._may_write())
+            except ApiException as exc:
+                if exc.status != 404:
+                    raise
 
     def reconcile(self) -> float | None:
         """One pass over every record; returns when the earliest waiting fault becomes due."""

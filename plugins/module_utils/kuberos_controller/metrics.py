@@ -12,6 +12,7 @@ and the histogram are kept by the controller as it acts. Names and labels are li
 - ``kuberos_node_rtt_ms{node, peer}``, ``kuberos_module_rtt_ms{namespace, deployment, module, robot, node}``,
   ``kuberos_module_max_latency_ms{namespace, deployment, module}``
 - ``kuberos_reconcile_duration_seconds`` (histogram), ``kuberos_controller_leader{identity}``
+- ``kuberos_module_scaling_total{deployment, module, reason}``: scaling steps (docs/scaling.md)
 """
 
 from __future__ import annotations
@@ -139,7 +140,15 @@ class ControllerMetrics:
             "kuberos_reconcile_duration_seconds", "Time of one reconcile pass over every deployment record.",
             buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30), registry=self.registry,
         )  # fmt: skip
+        self.scaling = Counter(
+            "kuberos_module_scaling", "Scaling steps of shared modules: ModuleScaledUp, ModuleScaledDown, "
+            "ModuleInstanceStopped (drained), ModuleScaleBlocked (no node for another instance).",
+            ("deployment", "module", "reason"), registry=self.registry,
+        )  # fmt: skip
         self.registry.register(ViewCollector(view_of, leader_of))
+
+    def scaled(self, deployment: str, module: str, reason: str) -> None:
+        self.scaling.labels(deployment, module, reason).inc()
 
     def moved(self, why: str) -> None:
         self.moves.labels(move_reason(why)).inc()
