@@ -62,6 +62,12 @@ options:
         on O(dashboard_port) + N - 1. C(0) serves none.
     type: int
     default: 8611
+  prometheus_url:
+    description:
+      - A Prometheus the controller reads scaled modules' own load metrics from (docs/scaling.md), instead of each
+        pod's C(/metrics). Empty reads the pods.
+    type: str
+    default: ""
   pythonpath:
     description: Directories that hold C(ansible_collections/kuberos/platform), for the controller's Python.
     type: list
@@ -168,6 +174,7 @@ ARGUMENT_SPEC = dict(
     retry_period=dict(type="float", default=1.0),
     node_names=dict(type="list", elements="str", default=[]),
     dashboard_port=dict(type="int", default=8611),
+    prometheus_url=dict(type="str", default=""),
 )
 
 
@@ -186,6 +193,7 @@ def command(params: dict, index: int = 1) -> list[str]:
         "--renew-deadline", f"{params['renew_deadline']:g}", "--retry-period", f"{params['retry_period']:g}",
         "--dashboard-port", str(params["dashboard_port"] + index - 1 if params["dashboard_port"] else 0),
         *(["--node-name", node] if node else []),
+        *(["--prometheus-url", params["prometheus_url"]] if params["prometheus_url"] else []),
     ]  # fmt: skip
 
 

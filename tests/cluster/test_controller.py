@@ -447,8 +447,8 @@ FORBIDDEN = [
     ("patch", "", "nodes", ""),
     ("delete", "", "nodes", ""),
     ("create", "", "pods", "kuberos-test-fleet"),
-    ("create", "apps", "deployments", "kuberos-test-fleet"),
-    ("delete", "apps", "deployments", "kuberos-test-fleet"),
+    ("create", "apps", "deployments", "default"),
+    ("delete", "apps", "deployments", "kube-system"),
     ("patch", "", "configmaps", "kube-system"),
     ("delete", "", "pods", "kube-system"),
     ("patch", "apps", "deployments", "default"),
@@ -466,6 +466,9 @@ ALLOWED = [
     ("list", "", "pods", ""),
     ("watch", "apps", "deployments", ""),
     ("patch", "apps", "deployments", "kuberos-test-fleet"),
+    ("create", "apps", "deployments", "kuberos-test-fleet"),  # instances added by scaling (docs/scaling.md)
+    ("delete", "apps", "deployments", "kuberos-test-fleet"),  # drained instances removed
+    ("list", "metrics.k8s.io", "pods", "kuberos-test-fleet"),  # the cpu signal
     ("delete", "", "pods", "kuberos-test-fleet"),
     ("create", "", "configmaps", "kuberos-test-fleet"),
     ("create", "", "events", "kuberos-test-fleet"),

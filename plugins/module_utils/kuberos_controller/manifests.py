@@ -33,6 +33,7 @@ ENTRY = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_contr
 READ_RULES = [
     {"apiGroups": [""], "resources": ["nodes", "pods", "configmaps", "events"], "verbs": ["list", "watch"]},
     {"apiGroups": ["apps"], "resources": ["deployments"], "verbs": ["list", "watch"]},
+    {"apiGroups": ["metrics.k8s.io"], "resources": ["pods"], "verbs": ["list"]},  # cpu scaling (docs/scaling.md)
 ]
 # The dashboard and /metrics ask the API server who a bearer token is and whether it may read them (reviews are
 # answered, not stored). Part of the read ClusterRole.
@@ -48,7 +49,8 @@ FLEET_RULES = [
     {"apiGroups": [""], "resources": ["configmaps"], "verbs": ["get", "create", "patch"]},
     {"apiGroups": [""], "resources": ["pods"], "verbs": ["delete"]},
     {"apiGroups": [""], "resources": ["events"], "verbs": ["create"]},
-    {"apiGroups": ["apps"], "resources": ["deployments"], "verbs": ["patch"]},
+    # patch: re-pinning; create and delete: instances added and removed by scaling (docs/scaling.md)
+    {"apiGroups": ["apps"], "resources": ["deployments"], "verbs": ["create", "patch", "delete"]},
 ]
 LEASE_RULES = [{"apiGroups": ["coordination.k8s.io"], "resources": ["leases"], "verbs": ["get", "create", "update"]}]
 
