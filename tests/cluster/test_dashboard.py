@@ -187,13 +187,14 @@ def test_the_page_shows_every_module_where_it_runs_and_a_move_within_the_update_
 
 # -- Prometheus ----------------------------------------------------------------------------------------
 class Prometheus:
-    def __init__(self, workdir, targets: dict[str, list[str]]):
+    def __init__(self, workdir, targets: dict[str, list[str]], scrape_configs=()):
         program = require("prometheus", "prometheus")
         self.port = free_ports(1)
         config = {
             "global": {"scrape_interval": "1s", "evaluation_interval": "1s"},
             "rule_files": [RULES],
-            "scrape_configs": [{"job_name": job, "static_configs": [{"targets": hosts}]} for job, hosts in targets.items()],
+            "scrape_configs": [{"job_name": job, "static_configs": [{"targets": hosts}]} for job, hosts in targets.items()]
+            + list(scrape_configs),
         }
         path = os.path.join(workdir, "prometheus.yml")
         with open(path, "w", encoding="utf-8") as handle:
