@@ -56,6 +56,19 @@ class Scheduler:
         # Instances that keep the node they run on (sticky placement): name -> previous Instance, resources taken.
         self.kept: dict[str, Instance] = {}
 
+    @classmethod
+    def around(cls, inventory: Inventory, placement: Placement, allocated: dict | None = None, unavailable=None):
+        """A scheduler for adding to ``placement``: what its instances and discovery servers hold is taken first
+        (``allocated``: what other pods hold)."""
+        scheduler = cls(inventory, allocated, unavailable)
+        for inst in placement.instances:
+            if not inst.cluster and inst.node in scheduler.free:
+                scheduler.take(inst.node, inst.cpu_millis, inst.memory_bytes, inst.gpu)
+        for server in (s for servers in placement.discovery.values() for s in servers):
+            if server.node in scheduler.free:
+                scheduler.take(server.node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+        return scheduler
+
     # -- feasibility -------------------------------------------------------------------------
     def rejection(self, node: Node, module: RosModule, robots, cpu: int, memory: int, gpu: int) -> str | None:
         """Why ``node`` cannot run this instance for ``robots``, or None when it can."""

@@ -49,10 +49,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     discovery_from_deployments,
     render_deployment,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import (
-    DISCOVERY_CPU_MILLIS,
-    DISCOVERY_MEMORY_BYTES,
-)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import (
     RUNNING,
     ClusterView,
@@ -515,14 +511,7 @@ class Controller:
         """A scheduler that sees every KubeROS pod's requests, this record's own instances included."""
         unavailable = {n: f"node {n} is NotReady" for n, v in view.nodes.items() if not v.ready}
         inventory = record.inventory.with_measured_latency(view.measured) if view.measured else record.inventory
-        scheduler = Scheduler(inventory, self._allocated(record), unavailable)
-        for inst in record.placement.instances:
-            if not inst.cluster and inst.node in scheduler.free:
-                scheduler.take(inst.node, inst.cpu_millis, inst.memory_bytes, inst.gpu)
-        for server in (s for servers in record.placement.discovery.values() for s in servers):
-            if server.node in scheduler.free:
-                scheduler.take(server.node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
-        return scheduler
+        return Scheduler.around(inventory, record.placement, self._allocated(record), unavailable)
 
     def _ready_pods(self, namespace: str, names: set[str]) -> dict[str, dict]:
         """Instance name -> its Running, Ready pod (plain dict), for the instances ``names``."""
