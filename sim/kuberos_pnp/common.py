@@ -124,11 +124,12 @@ def decode_names(text: str | None) -> tuple[str, ...]:
 
 def encode_carry(carry) -> str | None:
     """A carried object (kuberos_pnp.planning.Attached) as `<box>|x,y,z|qx,qy,qz,qw|<ignored+boxes>`; the box
-    itself is the planning scene's box of that name."""
+    itself is the planning scene's box of that name. Numbers are written exactly (repr of the float): the planner
+    checks the carried box where the coordinator's IK did, not a rounded micrometre away."""
     if carry is None:
         return None
-    position = ",".join(f"{v:.6f}" for v in carry.ee_position)
-    quat = ",".join(f"{v:.6f}" for v in carry.ee_quat_xyzw)
+    position = ",".join(repr(float(v)) for v in carry.ee_position)
+    quat = ",".join(repr(float(v)) for v in carry.ee_quat_xyzw)
     return f"{carry.box.name}|{position}|{quat}|{encode_names(carry.ignore)}"
 
 

@@ -7,13 +7,18 @@ send a planning request (`plan/request`) and wait for the path (`plan/result`), 
 execute it (`execute`, `execute/result`), open or close the gripper. After the release it waits for a camera
 frame taken after the release and checks that the object lies on the platform.
 
+A robot's workload starts once it is ready: its planner and controller matched, its scene and joint states
+arrived (`ready` record with the seconds each took; `waiting` every 30 s before; `idle` with `startup` if not
+within `startup_timeout` from the coordinator's start). Each robot has its own IK solver (collision model and
+random restarts, `ik_solvers`): the robots' task threads run at once.
+
 Every planning request and every cycle is logged as a result record (kuberos_pnp.common.log_result):
 `plan` (robot, latency_ms seen here, planner, planning_ms and node reported by the planner, ok) and `cycle`
 (robot, queue_s, duration_s, plans, outcome, reason).
 
 Parameters: `tasks_per_minute`, `max_cycles` (per robot; 0 = until no target is left), `plan_timeout`,
-`execute_timeout`, `scene_timeout`, `startup_timeout` (s; waiting for the first scene and for the planner and
-controller to match: 8 planners starting on one 2-core host take more than a minute).
+`execute_timeout`, `scene_timeout`, `startup_timeout` (s from the coordinator's start for a robot to become
+ready: 8 planners starting on one 2-core host take more than a minute), `seed` (the IK restarts).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from __future__ import annotations
 import itertools
 import threading
 import time
+import zlib
 
 import numpy as np
 
@@ -58,6 +64,13 @@ class Waiter:
             return self.values.pop(request_id)
 
 
+def ik_solvers(robots: list[str], seed: int = 0) -> dict[str, planning.IkSolver]:
+    """One IK solver per robot: each robot's task thread solves in its own scene with its own collision model and
+    its own random restarts (seeded by the seed and the robot's name, so a robot's goals do not depend on which
+    other robots share the coordinator or how their threads interleave)."""
+    return {r: planning.IkSolver(seed=(seed * 1_000_003 + zlib.crc32(r.encode())) % 2**32) for r in robots}
+
+
 class CycleFailed(Exception):
     pass
 
@@ -79,11 +92,15 @@ def main(argv: list[str] | None = None) -> None:
 
     class RobotView:
         def __init__(self):
-            self.scene: list = []
-            self.scene_stamp = 0.0  # camera time of the scene (wall clock of the robot's node)
-            self.scene_key = ""
+            # The latest planning scene as one tuple, replaced whole by the subscriber callback, so that a task thread
+            # never reads the boxes of one scene with the key of another: (boxes, key, camera time of the scene).
+            self.latest: tuple[list, str, float] = ([], "", 0.0)
             self.q: np.ndarray | None = None
             self.names: list[str] = []
+
+        @property
+        def scene_stamp(self) -> float:
+            return self.latest[2]
 
     class CoordinatorNode(Node):
         def __init__(self):
@@ -93,8 +110,9 @@ def main(argv: list[str] | None = None) -> None:
             self.plan_timeout = float(common.declare(self, "plan_timeout", 30.0))
             self.execute_timeout = float(common.declare(self, "execute_timeout", 30.0))
             self.scene_timeout = float(common.declare(self, "scene_timeout", 20.0))
-            self.startup_timeout = float(common.declare(self, "startup_timeout", 300.0))
-            self.ik = planning.IkSolver()
+            self.startup_timeout = float(common.declare(self, "startup_timeout", 600.0))
+            self.started = time.monotonic()
+            self.ik = ik_solvers(robots, int(common.declare(self, "seed", 0)))
             self.joint_names, _limits = world.arm_model()
             self.views = {r: RobotView() for r in robots}
             self.waiter = Waiter()
@@ -127,12 +145,10 @@ def main(argv: list[str] | None = None) -> None:
 
         # --- inputs
         def on_scene(self, robot, msg) -> None:
-            view = self.views[robot]
             if not msg.markers:
                 return
-            view.scene = boxes_from_markers(msg)
-            view.scene_key = common.scene_key(msg.markers[0].header.stamp)
-            view.scene_stamp = common.stamp_seconds(msg.markers[0].header.stamp)
+            stamp = msg.markers[0].header.stamp
+            self.views[robot].latest = (boxes_from_markers(msg), common.scene_key(stamp), common.stamp_seconds(stamp))
 
         def on_joints(self, robot, msg) -> None:
             view = self.views[robot]
@@ -231,17 +247,63 @@ def main(argv: list[str] | None = None) -> None:
                 lambda: view.scene_stamp > after and view.q is not None,
                 timeout or self.scene_timeout,
             )
-            return list(view.scene), view.scene_key
+            boxes, key, _stamp = view.latest
+            return list(boxes), key
+
+        def wait_until_ready(self, robot) -> bool:
+            """Until the robot's motion planner and controller are matched (their subscriptions exist once they are
+            ready: a planner subscribes after its worker processes started) and its scene and joint states arrive,
+            at most `startup_timeout` seconds from the coordinator's start. Logs `ready` with the seconds each took,
+            or `idle` with what was missing; while waiting, a `waiting` record every 30 s with what is missing and
+            whether discovery has at least announced the missing subscription (matched or only discovered)."""
+            view = self.views[robot]
+            checks = {
+                "planner": lambda: self.pub_plan[robot].get_subscription_count() > 0,
+                "controller": lambda: self.pub_exec[robot].get_subscription_count() > 0,
+                "scene": lambda: view.scene_stamp > 0,
+                "joint_states": lambda: view.q is not None,
+            }
+            since: dict[str, float] = {}
+            next_report = self.started + 30.0
+            while True:
+                now = time.monotonic()
+                for name, ok in checks.items():
+                    if name not in since and ok():
+                        since[name] = round(now - self.started, 1)
+                missing = [name for name in checks if name not in since]
+                if not missing:
+                    common.log_result("ready", robot=robot, node=common.node_name(), **{f"{k}_s": v for k, v in since.items()})
+                    return True
+                if self.stop.is_set() or now - self.started > self.startup_timeout:
+                    common.log_result(
+                        "idle",
+                        robot=robot,
+                        cycle=0,
+                        startup=True,
+                        reason=f"not ready within {self.startup_timeout:.0f} s: no {', no '.join(missing)}",
+                        **{f"{k}_s": v for k, v in since.items()},
+                    )
+                    return False
+                if now >= next_report:
+                    next_report += 30.0
+                    common.log_result(
+                        "waiting",
+                        robot=robot,
+                        node=common.node_name(),
+                        after_s=round(now - self.started, 1),
+                        missing=missing,
+                        discovered_planners=self.count_subscribers(self.pub_plan[robot].topic_name),
+                        discovered_controllers=self.count_subscribers(self.pub_exec[robot].topic_name),
+                    )
+                time.sleep(0.1)
 
         # --- the workload
         def run_robot(self, robot) -> None:
             interval = 60.0 / self.rate if self.rate > 0 else 0.0
-            # The workload starts once the robot's planner and controller are matched; the first scene is one the
+            # The workload starts once the robot's planner and controller are ready; the first scene is one the
             # planner had a chance to receive too (it plans in the scene a request names).
-            for publisher in (self.pub_plan[robot], self.pub_exec[robot]):
-                if not common.wait_for_subscriber(publisher, self.startup_timeout):
-                    common.log_result("idle", robot=robot, cycle=0, reason=f"nobody subscribes to {publisher.topic_name}")
-                    return
+            if not self.wait_until_ready(robot):
+                return
             settled_after = time.time() + 1.0
             next_arrival = time.monotonic()
             key = ""  # the scene the latest cycle planned in; a failed cycle goes home in it
@@ -289,7 +351,7 @@ def main(argv: list[str] | None = None) -> None:
             platform = tasks.platform_of(scene)
             if platform is None:
                 raise CycleFailed("perception sees no platform")
-            yaw, pregrasp_q = choose_yaw(self.ik, target, self.arm_q(robot), scene)
+            yaw, pregrasp_q = choose_yaw(self.ik[robot], target, self.arm_q(robot), scene)
             if pregrasp_q is None:
                 raise CycleFailed(f"no grasp of {target.name} reachable from above")
             goals: dict[str, np.ndarray] = {"pregrasp": np.asarray(pregrasp_q)}
@@ -301,7 +363,7 @@ def main(argv: list[str] | None = None) -> None:
                 goal = goals.get(step.name) if step.name == "pregrasp" else step.joint_goal
                 if goal is None:
                     seed = goals.get(step.ik_seed_from, self.arm_q(robot))
-                    goal = self.ik.ik(step.pose[0], step.pose[1], seed, scene, step.ignore, step.carry)
+                    goal = self.ik[robot].ik(step.pose[0], step.pose[1], seed, scene, step.ignore, step.carry)
                     if goal is None:
                         raise CycleFailed(f"no collision-free inverse kinematics for {step.name}")
                 try:

@@ -16,7 +16,11 @@ time. Each request races `parallel_plans` OMPL planners in worker processes (kub
 for `planning_time` seconds, and once more with twice the time if none found a path.
 
 Parameters: `planner` (first in the race), `planners` (comma separated, the rest of the race),
-`planning_time` (s), `parallel_plans`, `scene_history` (scenes kept per robot), `scene_wait` (s).
+`planning_time` (s), `parallel_plans`, `scene_history` (scenes kept per robot), `scene_wait` (s), `seed` (the
+worker processes' OMPL seeds).
+
+Once its worker processes run and its subscriptions exist it logs a `planner_ready` record (seconds since start):
+a coordinator matched with its subscription can send.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ from kuberos_pnp import common, planning
 from kuberos_pnp.perception import boxes_from_markers
 
 DEFAULT_RACE = planning.DEFAULT_PLANNERS
+STARTED = time.monotonic()  # about when the process started (this module is its main)
 
 
 def planner_list(first: str, listed: str, parallel: int) -> tuple[str, ...]:
@@ -58,8 +63,11 @@ def main(argv: list[str] | None = None) -> None:
             parallel = int(common.declare(self, "parallel_plans", 2))
             self.history = int(common.declare(self, "scene_history", 600))
             self.scene_wait = float(common.declare(self, "scene_wait", 3.0))
+            seed = int(common.declare(self, "seed", 0))
             self.race = planner_list(first, listed, parallel)
-            self.planner = planning.Planner(parallel=len(self.race), planners=self.race)
+            pool_started = time.monotonic()
+            self.planner = planning.Planner(parallel=len(self.race), planners=self.race, seed=seed)
+            pool_s = time.monotonic() - pool_started
             self.scenes: dict[str, dict[str, list]] = {r: {} for r in robots}
             self.requests: queue.Queue = queue.Queue(maxsize=256)
             self.results = {
@@ -81,6 +89,14 @@ def main(argv: list[str] | None = None) -> None:
             self.worker.start()
             self.get_logger().info(
                 f"planner for {', '.join(robots)} on {common.node_name()}: race {', '.join(self.race)}, {self.budget} s"
+            )
+            # Ready: the worker processes run and the subscriptions exist (a coordinator matching them may send).
+            common.log_result(
+                "planner_ready",
+                robots=robots,
+                node=common.node_name(),
+                startup_s=round(time.monotonic() - STARTED, 2),
+                pool_s=round(pool_s, 2),
             )
 
         def on_scene(self, robot: str, msg) -> None:

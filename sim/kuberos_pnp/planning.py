@@ -30,6 +30,7 @@ import itertools
 import math
 import multiprocessing as mp
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -377,11 +378,18 @@ def _worker_main(index: int, conn, cancel, seed: int, planners: tuple[str, ...])
 
 class IkSolver:
     """Inverse kinematics checked against a scene, in this process: a collision model and a seeded random source
-    for the restarts. The Planner uses one; so does the coordinator, which turns goal poses into joint goals."""
+    for the restarts. The Planner uses one; so does the coordinator (one per robot), which turns goal poses into
+    joint goals.
+
+    The collision model holds one scene at a time, so setting the scene and solving in it is one step under
+    ``lock``: a solver shared by threads (the coordinator's robots once shared one) would otherwise check a
+    solution against whichever scene another thread set last, and hand the planner a goal that collides in
+    its own scene."""
 
     def __init__(self, margin: float = DEFAULT_MARGIN, seed: int = 0) -> None:
         self.model = CollisionModel(margin)
         self.rng = np.random.default_rng(seed)
+        self.lock = threading.RLock()
 
     def ik(
         self,
@@ -393,8 +401,9 @@ class IkSolver:
         attached: Attached | None = None,
     ) -> np.ndarray | None:
         """IK (see ``CollisionModel.ik``) checked against ``boxes`` minus ``ignore``."""
-        self.model.set_scene(boxes or [], ignore, attached)
-        return self.model.ik(position, quat_xyzw, seed_q, rng=self.rng)
+        with self.lock:
+            self.model.set_scene(boxes or [], ignore, attached)
+            return self.model.ik(position, quat_xyzw, seed_q, rng=self.rng)
 
 
 class Planner:
@@ -540,8 +549,9 @@ class Planner:
         self, path, boxes: list[Box], attached: Attached | None = None, ignore: tuple[str, ...] = ()
     ) -> tuple[bool, int]:
         """Dense validity of a path in the local model."""
-        self.model.set_scene(boxes, ignore, attached)
-        return self.model.path_valid(path)
+        with self._ik.lock:
+            self.model.set_scene(boxes, ignore, attached)
+            return self.model.path_valid(path)
 
     def close(self) -> None:
         for conn in self._conns:

@@ -10,7 +10,9 @@
   - `edge-shared`: both on the edge, one instance per 4 robots (strategy shared);
   - `cloud`: both on the cloud VM, one instance per robot.
   The coordinator (shared, edge) and the controller (onboard) stay as the example has them; the workload
-  rate and the number of pick cycles per robot go into the coordinator's launch command.
+  rate, the number of pick cycles per robot, the seed (its IK restarts) and how long it waits for its robots'
+  modules at start go into the coordinator's launch command, the seed also into the motion planner's
+  parameters (its OMPL seeds).
 - Rendering (`render`): `ansible-playbook playbooks/deploy.yml -e kuberos_apply=false`, the deploy path itself
   (validate, place with the scheduler filter, render with the rosdeployment_render module) without applying.
 """
@@ -59,7 +61,15 @@ def site_inventory(robots: int) -> dict:
     }
 
 
-def strategy_spec(strategy: str, tasks_per_minute: float, cycles: int, example: str = EXAMPLE) -> dict:
+def strategy_spec(
+    strategy: str,
+    tasks_per_minute: float,
+    cycles: int,
+    example: str = EXAMPLE,
+    *,
+    seed: int = 1,
+    startup_timeout: float | None = None,
+) -> dict:
     if strategy not in STRATEGIES:
         raise ValueError(f"unknown strategy {strategy!r}; expected one of {', '.join(STRATEGIES)}")
     with open(example, encoding="utf-8") as handle:
@@ -83,10 +93,16 @@ def strategy_spec(strategy: str, tasks_per_minute: float, cycles: int, example: 
                 module["preference"] = "cloud"
                 requirements["max_latency"] = "200 ms"
             module["requirements"] = requirements
+        if name == "motion-planner":
+            module["rosParameters"] = {**module.get("rosParameters", {}), "seed": int(seed)}
         if name == "task-coordinator":
-            module["launch"] = [
+            command = (
                 f"python3 -m kuberos_pnp.coordinator --ros-args -p tasks_per_minute:={tasks_per_minute:g} -p max_cycles:={cycles}"
-            ]
+                f" -p seed:={int(seed)}"
+            )
+            if startup_timeout is not None:
+                command += f" -p startup_timeout:={startup_timeout:g}"
+            module["launch"] = [command]
     return spec
 
 

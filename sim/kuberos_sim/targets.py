@@ -20,12 +20,7 @@ SUCCESS_TARGET = 0.95
 RTF_TARGET = 1.0
 
 
-def seed_list(text: str) -> list[int]:
-    seeds: list[int] = []
-    for part in text.split(","):
-        low, _, high = part.partition("-")
-        seeds.extend(range(int(low), int(high or low) + 1))
-    return seeds
+seed_list = evaluate.seed_list
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,6 +3,8 @@ scheduler), the figures computed from result records, the request conventions, a
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from kuberos_pnp import common
 from kuberos_sim import metrics, report, scenario
@@ -83,6 +85,21 @@ def test_request_conventions_round_trip():
     assert records == [{"kind": "plan", "ok": True}]  # a line cut off by a killed process is skipped
 
 
+def test_carried_object_crosses_exactly():
+    """The planner checks the carried cube where the coordinator's IK did: its pose in the grasp frame is not
+    rounded on the way (it was, to 6 decimals)."""
+    from kuberos_pnp import perception_core, planning
+
+    box = perception_core.Box("target_0", "target", (0.7, -0.1, 0.425), (0.05, 0.05, 0.05))
+    carry = planning.Attached(
+        box, (1e-7, -2.000000049e-3, 0.0123456789012), (1.0, 3.3e-9, 0.0, 6.123233995736766e-17), ("table",)
+    )
+    name, position, quat, ignore = common.decode_carry(common.encode_carry(carry))
+    assert (name, position, quat, ignore) == ("target_0", carry.ee_position, carry.ee_quat_xyzw, ("table",))
+    tag = common.encode_tag("robot-1/3", carry=common.encode_carry(carry))
+    assert common.decode_carry(common.decode_tag(tag)[1]["carry"])[1] == carry.ee_position
+
+
 def test_table_has_a_row_per_run_and_says_why_one_failed():
     rows = [
         {"strategy": "cloud", "robots": 1, "rate_per_min": 4.0, "success_rate": 1.0, "plan_p50_ms": 120.5},
@@ -90,5 +107,171 @@ def test_table_has_a_row_per_run_and_says_why_one_failed():
     ]
     text = report.table(rows)
     lines = text.splitlines()
-    assert len(lines) == 4 and "| cloud | 1 | 4 | 120.5 |" in lines[2] and "100%" in lines[2]
+    assert len(lines) == 4 and "| cloud | 1 | 4 | 1 | 120.5 |" in lines[2] and "100%" in lines[2]
     assert "failed: rendering failed" in lines[3]
+
+
+def seeded_rows() -> list[dict]:
+    """Synthetic per-seed rows of the evaluation (no simulation): cloud and onboard, 1 and 2 robots, 2 rates,
+    seeds 1-3; seed 2 of cloud/2/12 failed, seed 3 of onboard/2/4 started 1 of its 2 robots."""
+    rows = []
+    for strategy, base in (("cloud", 200.0), ("onboard", 400.0)):
+        for robots in (1, 2):
+            for rate in (4.0, 12.0):
+                for seed in (1, 2, 3):
+                    if (strategy, robots, rate, seed) == ("cloud", 2, 12.0, 2):
+                        rows.append({"strategy": strategy, "robots": robots, "rate_per_min": rate, "seed": seed, "error": "boom"})
+                        continue
+                    late = (strategy, robots, rate, seed) == ("onboard", 2, 4.0, 3)
+                    cycles = 3 * robots
+                    ok = cycles - (seed == 3)
+                    rows.append(
+                        {
+                            "strategy": strategy,
+                            "robots": robots,
+                            "rate_per_min": rate,
+                            "seed": seed,
+                            "plan_p50_ms": base * robots + 10.0 * seed,
+                            "plan_p95_ms": 3 * base * robots + 10.0 * seed,
+                            "cycle_p50_s": 10.0 + seed,
+                            "cycle_p95_s": 14.0 + seed,
+                            "cycles": cycles,
+                            "cycles_ok": ok,
+                            "success_rate": ok / cycles,
+                            "on_platform": ok,
+                            "finished": not late,
+                            "robots_ready": robots - late,
+                            **({"not_ready": {"robot-2": "not ready within 600 s: no planner"}} if late else {}),
+                            "cpu_onboard_cores": 0.1 * seed,
+                            "cpu_edge_cores": 0.05,
+                            "cpu_cloud_cores": 0.2 if strategy == "cloud" else 0.0,
+                            "cpu_sim_cores": 0.2,
+                            "rtf_min": 1.0,
+                            "startup_s": 20.0 + seed,
+                        }
+                    )
+    return rows
+
+
+def test_seed_lists():
+    from kuberos_sim import evaluate
+
+    assert evaluate.seed_list("1-3") == [1, 2, 3]
+    assert evaluate.seed_list("1,4,9") == [1, 4, 9]
+    assert evaluate.seed_list("1-3,7,2") == [1, 2, 3, 7]
+    for bad in ("", "a", "1-b"):
+        with pytest.raises(ValueError):
+            evaluate.seed_list(bad)
+    assert evaluate.run_name("edge-shared", 4, 12.0, 2) == "edge-shared-r4-t12-s2"
+
+
+def test_table_shows_the_median_and_spread_over_seeds():
+    lines = report.table(seeded_rows()).splitlines()
+    assert len(lines) == 2 + 8  # one line per strategy, fleet size and rate, not per seed
+    header = [c.strip() for c in lines[0].split("|")][1:-1]
+    row = dict(zip(header, [c.strip() for c in lines[2].split("|")][1:-1], strict=True))
+    assert (row["strategy"], row["robots"], row["tasks/min/robot"], row["seeds"]) == ("cloud", "1", "4", "3")
+    assert row["plan p50 ms"] == "220 (210-230)"  # median (lowest-highest) of 210, 220, 230
+    assert row["cycles"] == "9" and row["on platform (physics)"] == "8"  # summed over the seeds
+    assert row["success"] == "89% (67%-100%)"  # 8 of 9 pooled; the seeds' own rates as the spread
+    assert row["all ran"] == "3/3" and row["CPU edge"] == "0.05" and row["start-up s"] == "22 (21-23)"
+    by_name = {tuple(c.strip() for c in line.split("|")[1:4]): line for line in lines[2:]}
+    failed_seed = dict(zip(header, [c.strip() for c in by_name[("cloud", "2", "12")].split("|")][1:-1], strict=True))
+    assert failed_seed["seeds"] == "2 of 3" and failed_seed["cycles"] == "12"
+    late = dict(zip(header, [c.strip() for c in by_name[("onboard", "2", "4")].split("|")][1:-1], strict=True))
+    assert late["all ran"] == "2/3"
+    problems = report.problems(seeded_rows())
+    assert problems == [
+        "- cloud/2/12, seed 2: failed: boom",
+        "- onboard/2/4, seed 3: 1 of 2 robots ready (robot-2: not ready within 600 s: no planner)",
+    ]
+
+
+def test_one_seed_reads_as_before_and_old_results_have_their_seed():
+    rows = [r for r in seeded_rows() if r["seed"] == 1]
+    for row in rows:
+        row.pop("seed")
+    line = report.table(rows, default_seed=1).splitlines()[2]
+    assert "| cloud | 1 | 4 | 1 | 210 | 610 |" in line and "| 100% | 3 | 3 | True |" in line
+    assert report.seeds_of({"seed": 1}) == [1] and report.seeds_of({"seeds": [1, 2, 3], "seed": 9}) == [1, 2, 3]
+    groups = report.aggregate(rows, default_seed=1)
+    assert groups[0]["runs"][0]["seed"] == 1
+
+
+def test_report_keeps_per_seed_rows_and_draws_the_spread(tmp_path):
+    results = {
+        "command": "python -m kuberos_sim.evaluate --seeds 1-3",
+        "commit": "abc1234",
+        "machine": "2 cores",
+        "date": "2026-11-26 00:00 UTC",
+        "cycles_per_robot": 3,
+        "seeds": [1, 2, 3],
+        "cpu_scale": 0.125,
+        "rows": seeded_rows(),
+    }
+    report.write(str(tmp_path), results)
+    with open(tmp_path / "results.json", encoding="utf-8") as handle:
+        kept = json.load(handle)
+    assert len(kept["rows"]) == 24 and {r["seed"] for r in kept["rows"]} == {1, 2, 3}
+    text = (tmp_path / "results.md").read_text(encoding="utf-8")
+    assert "seeds 1, 2, 3" in text and "220 (210-230)" in text and "- cloud/2/12, seed 2: failed: boom" in text
+    for name in ("planning_latency.png", "cycle_time.png", "cpu_per_class.png"):
+        assert (tmp_path / name).stat().st_size > 10_000
+    points = report.series(report.aggregate(kept["rows"]), 4.0, "plan_p50_ms")
+    assert points["cloud"][0][0] == 1 and points["cloud"][0][1] == {"median": 220.0, "min": 210.0, "max": 230.0, "n": 3}
+
+
+def test_evaluate_runs_every_seed_and_resumes_by_seed(tmp_path, monkeypatch):
+    """--seeds 1-3 runs each combination once per seed (run_one replaced: no simulation), results.json keeps the
+    rows per seed; --resume keeps the rows that ran and reruns only the failed seed."""
+    from kuberos_sim import evaluate
+
+    calls = []
+    broken = {2}
+
+    def fake_run_one(strategy, robots, rate, cycles, out, seed, time_limit, cpu_scale, startup_limit):
+        calls.append((strategy, robots, rate, seed, startup_limit))
+        if seed in broken:
+            raise RuntimeError("a process exited")
+        row = next(r for r in seeded_rows() if (r["strategy"], r["robots"], r["rate_per_min"]) == (strategy, robots, rate))
+        return {**row, "seed": seed, "commit": "abc1234"}
+
+    monkeypatch.setattr(evaluate, "run_one", fake_run_one)
+    args = ["--strategies", "cloud", "--robots", "1,2", "--rates", "4", "--seeds", "1-3", "--out", str(tmp_path)]
+    assert evaluate.main([*args, "--startup-limit", "120"]) == 0
+    assert [c[3] for c in calls] == [1, 2, 3, 1, 2, 3] and {c[4] for c in calls} == {120.0}
+    with open(tmp_path / "results.json", encoding="utf-8") as handle:
+        first = json.load(handle)
+    assert first["seeds"] == [1, 2, 3] and [r["seed"] for r in first["rows"]] == [1, 2, 3, 1, 2, 3]
+    assert [("error" in r) for r in first["rows"]] == [False, True, False, False, True, False]
+    calls.clear()
+    broken.clear()
+    assert evaluate.main([*args, "--resume"]) == 0
+    assert [(c[1], c[3]) for c in calls] == [(1, 2), (2, 2)]  # only the failed seeds ran again
+    with open(tmp_path / "results.json", encoding="utf-8") as handle:
+        second = json.load(handle)
+    assert [r["seed"] for r in second["rows"]] == [1, 2, 3, 1, 2, 3] and not any("error" in r for r in second["rows"])
+    with pytest.raises(SystemExit):
+        evaluate.main([*args, "--seed", "4"])
+
+
+def test_a_robot_never_ready_is_not_a_run_that_ran():
+    """cloud/8/4 once showed 0 cycles with 'all ran: True': its coordinators gave up waiting for their planners and
+    the evaluation took that for robots done. Robots given up at start are told apart."""
+    from kuberos_sim import evaluate
+
+    records = [
+        {"kind": "ready", "robot": "robot-1", "planner_s": 12.0},
+        {"kind": "idle", "robot": "robot-2", "cycle": 0, "startup": True, "reason": "not ready within 600 s: no planner"},
+        {"kind": "idle", "robot": "robot-3", "cycle": 4, "reason": "no target left on the table"},
+    ]
+    ready, gave_up = evaluate.readiness(records, 3)
+    assert ready == ["robot-1"] and gave_up == {"robot-2": "not ready within 600 s: no planner"}
+
+
+def test_the_seed_reaches_the_planner_and_the_coordinator():
+    spec = scenario.strategy_spec("edge-dedicated", 4, 3, seed=2, startup_timeout=600)
+    modules = {m["name"]: m for m in spec["rosModules"]}
+    assert modules["motion-planner"]["rosParameters"]["seed"] == 2
+    launch = modules["task-coordinator"]["launch"][0]
+    assert "-p seed:=2" in launch and "-p startup_timeout:=600" in launch and "max_cycles:=3" in launch

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import threading
 import time
 
 import numpy as np
@@ -116,3 +118,73 @@ def test_invalid_goal_reported():
 def test_unsupported_planner_rejected():
     with pytest.raises(ValueError):
         PL.Planner(parallel=1, planners=("PRM",))
+
+
+def test_ik_solver_checks_each_thread_in_its_own_scene(scene, monkeypatch):
+    """The coordinator's robots solve IK in their task threads. One solver shared by two threads once validated a
+    robot's goal against the scene another robot's thread had just set (the collision model holds one scene),
+    and the planner then found that goal in collision in the robot's own scene (6 failed cycles of the
+    evaluation). Deterministic: the first thread's validity check waits until the second thread has solved in
+    another scene (or 1 s, when the second thread has to wait for the first); the check must still see the
+    first thread's own scene."""
+    obstacle = next(b for b in scene if b.kind == "obstacle")
+    other_scene = [
+        dataclasses.replace(b, center=(b.center[0], b.center[1] - 0.3, b.center[2])) if b is obstacle else b for b in scene
+    ]
+    solver = PL.IkSolver()
+    first_inside, second_done = threading.Event(), threading.Event()
+    checked: dict[str, list] = {}
+    original = PL.CollisionModel.is_valid
+
+    def is_valid(self, q):
+        name = threading.current_thread().name
+        if name == "first" and not first_inside.is_set():
+            first_inside.set()
+            second_done.wait(1.0)
+        checked.setdefault(name, []).append(self._box_key)
+        return original(self, q)
+
+    monkeypatch.setattr(PL.CollisionModel, "is_valid", is_valid)
+    target = tasks.order_targets(scene)[0]
+    pose = tasks.pregrasp_pose(target)
+    results = {}
+
+    def first():
+        results["first"] = solver.ik(*pose, W.HOME_Q, scene)
+
+    def second():
+        first_inside.wait(5.0)
+        results["second"] = solver.ik(*pose, W.HOME_Q, other_scene)
+        second_done.set()
+
+    threads = [threading.Thread(target=first, name="first"), threading.Thread(target=second, name="second")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    own = PL.CollisionModel()
+    own.set_scene(scene)
+    other = PL.CollisionModel()
+    other.set_scene(other_scene)
+    assert results["first"] is not None and results["second"] is not None
+    assert set(checked["first"]) == {own._box_key}, "the first thread's goal was checked in another thread's scene"
+    assert set(checked["second"]) == {other._box_key}
+    own.close()
+    other.close()
+    solver.model.close()
+
+
+def test_coordinator_gives_each_robot_its_own_ik_solver():
+    from kuberos_pnp import coordinator
+
+    solvers = coordinator.ik_solvers(["robot-1", "robot-2"])
+    try:
+        assert solvers["robot-1"] is not solvers["robot-2"]
+        assert solvers["robot-1"].model is not solvers["robot-2"].model
+        # a robot's random restarts do not depend on which other robots share the coordinator
+        again = coordinator.ik_solvers(["robot-2"])
+        assert again["robot-2"].rng.random() == solvers["robot-2"].rng.random()
+        again["robot-2"].model.close()
+    finally:
+        for solver in solvers.values():
+            solver.model.close()

@@ -29,6 +29,7 @@ sys.path[:0] = [os.path.join(ROOT, "sim"), os.path.join(ROOT, "tests", "integrat
 
 from kuberos_sim.runtime import LAN_RTT_MS, ProcessExitedError, Runtime, environment_problem, rtt_ms  # noqa: E402
 from kuberos_sim.runtime import fabric as fabric_module  # noqa: E402
+from kuberos_sim.runtime.cgroups import machine_cores  # noqa: E402
 from kuberos_sim.runtime.delays import one_way_delays_ms  # noqa: E402
 from kuberos_sim.runtime.rendered import load_rendered  # noqa: E402
 from test_discovery_netns import LISTENER, TALKER, TOPIC, require_ros  # noqa: E402
@@ -347,6 +348,39 @@ def test_cpu_quota_is_enforced_and_hardware_is_accounted_apart(rendered_dirs, lo
     assert abs(node - 0.25) <= 0.04, f"node cgroup used {node:.3f} cores with a 0.25 quota"
     assert hardware > 0.6, f"the unlimited hardware cgroup used only {hardware:.3f} cores"
     assert runtime.cpu_seconds() and runtime.cpu_seconds_by_tier()["onboard"] >= after[("fetch-1", "node")]  # kept after close
+
+
+def test_busy_hosts_share_a_core_in_proportion_to_their_size(rendered_dirs, local_inventory, tmp_path):
+    """cpu_scale 1/4: a robot computer gets 1 core, an edge server 2 (this machine's cores). Two busy loops on one
+    core, one on each host, are below both quotas, so the kernel divides that core by the groups' weights: 1:2,
+    as the hosts' sizes (with the kernel's equal default weights it was 1:1, and an edge server of 18 processes
+    got no more CPU than one robot's physics). The hardware group keeps the default weight."""
+    require_environment()
+    if machine_cores() < 2:
+        pytest.skip("needs 2 cores: the edge server's quota must exceed the robot computer's")
+    busy = ["taskset", "-c", "0", sys.executable, "-c", "while True: pass"]
+    with Runtime(rendered_dirs["probe"], local_inventory, str(tmp_path), cpu_scale=0.25) as runtime:
+        runtime.start(modules=False)
+        robot, edge = runtime.hosts["fetch-1"], runtime.hosts["edge-1"]
+        assert (robot.cpu_cores, edge.cpu_cores) == (1.0, 2.0)
+        shares = {
+            name: int(open(os.path.join(group.cpu_dir, "cpu.shares"), encoding="utf-8").read())
+            for name, group in (
+                ("robot", robot.cgroups["node"]),
+                ("edge", edge.cgroups["node"]),
+                ("hardware", robot.cgroups["hardware"]),
+            )
+        }
+        assert shares == {"robot": 2048, "edge": 4096, "hardware": 1024}
+        runtime.start_on("fetch-1", "busy-robot", busy)
+        runtime.start_on("edge-1", "busy-edge", busy)
+        time.sleep(1.0)
+        before, start = runtime.cpu_seconds(), time.monotonic()
+        time.sleep(4.0)
+        after, elapsed = runtime.cpu_seconds(), time.monotonic() - start
+    used = {node: (after[(node, "node")] - before[(node, "node")]) / elapsed for node in ("fetch-1", "edge-1")}
+    print(f"one core shared: robot computer {used['fetch-1']:.3f}, edge server {used['edge-1']:.3f} cores")
+    assert used["edge-1"] > 1.5 * used["fetch-1"], used
 
 
 def test_an_early_exit_is_reported_with_its_log_and_everything_is_removed(rendered_dirs, local_inventory, tmp_path):

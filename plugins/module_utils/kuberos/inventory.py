@@ -122,6 +122,14 @@ class Inventory:
             robots[name] = Robot(robot.name, robot.fleet, robot.node, tuple(sorted(links.items())))
         return Inventory(self.nodes, robots, self.clusters)
 
+    def with_nodes(self, extra) -> Inventory:
+        """A copy with ``extra`` nodes added (those already known are kept as they are): edge and cloud nodes that
+        joined the cluster after deploy, such as cloud VMs provisioned for a peak (``labels.node_from_cluster``)."""
+        added = {n.name: n for n in extra if n.name not in self.nodes and n.tier != "onboard"}
+        if not added:
+            return self
+        return Inventory({**self.nodes, **added}, self.robots, self.clusters)
+
     def tier_nodes(self, tier: str, fleet: str) -> tuple[Node, ...]:
         """Edge or cloud nodes the fleet may use, by name."""
         key = (tier, fleet)

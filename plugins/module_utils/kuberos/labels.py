@@ -16,6 +16,7 @@ DEVICE_PREFIX = "devices.kuberos.io/"
 FLEET_ACCESS_PREFIX = "fleet-access.kuberos.io/"
 ROBOT_TAINT = "kuberos.io/robot"
 ROLES = {"onboard": "robot", "edge": "edge", "cloud": "cloud"}
+LATENCY_ANNOTATION = "kuberos.io/latency-ms"  # a node that joined after deploy: its latency to the robots
 
 
 def node_labels(node: Node) -> dict[str, str]:
@@ -43,3 +44,40 @@ def node_taints(node: Node) -> list[dict[str, str]]:
     if node.tier != "onboard":
         return []
     return [{"key": ROBOT_TAINT, "value": node.robot or "", "effect": "NoSchedule"}]
+
+
+def node_from_cluster(obj: dict, default_latency_ms: float) -> Node | None:
+    """The resource model's node of an edge or cloud Kubernetes Node that carries KubeROS's labels (the inverse of
+    ``node_labels``), with its allocatable capacity; its latency from the ``kuberos.io/latency-ms`` annotation, else
+    ``default_latency_ms``. None for a node without the labels, a robot's computer or unreadable capacity."""
+    from . import quantities
+
+    meta = obj.get("metadata") or {}
+    found = meta.get("labels") or {}
+    tier = {v: k for k, v in ROLES.items()}.get(found.get(ROLE, ""))
+    name = found.get(HOSTNAME) or meta.get("name", "")
+    if tier not in ("edge", "cloud") or not name:
+        return None
+    allocatable = (obj.get("status") or {}).get("allocatable") or {}
+    try:
+        latency = float((meta.get("annotations") or {}).get(LATENCY_ANNOTATION, default_latency_ms))
+        return Node(
+            name=name,
+            tier=tier,
+            cpu_millis=quantities.parse_cpu(allocatable.get("cpu", "0")),
+            memory_bytes=quantities.parse_memory(allocatable.get("memory", "0")),
+            gpu=int(allocatable.get("nvidia.com/gpu", 0)),
+            pods=int(allocatable.get("pods", 110)),
+            arch=found.get(ARCH, "amd64"),
+            devices=frozenset(k[len(DEVICE_PREFIX) :] for k, v in found.items() if k.startswith(DEVICE_PREFIX) and v == "true"),
+            fleets=tuple(
+                sorted(
+                    k[len(FLEET_ACCESS_PREFIX) :] for k, v in found.items() if k.startswith(FLEET_ACCESS_PREFIX) and v == "true"
+                )
+            ),
+            shared=found.get(SHARED, "false") == "true",
+            resource_group=found.get(RESOURCE_GROUP, ""),
+            latency_ms=latency,
+        )
+    except (TypeError, ValueError):
+        return None

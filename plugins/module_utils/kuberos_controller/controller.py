@@ -32,6 +32,7 @@ while this replica's right to act lasts, with a client-side timeout of the time 
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import datetime
 import json
 import logging
@@ -39,8 +40,8 @@ import os
 import threading
 import time
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import capacity, naming, quantities, scaling
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, quantities, scaling
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     DEPLOYMENT,
@@ -165,6 +166,8 @@ class Controller:
         self.windows: dict[tuple, scaling.Windows] = {}  # (namespace, deployment, module) -> its recommendations
         self.robots_written: dict[tuple, dict] = {}  # (namespace, robots ConfigMap) -> the data last applied
         self.scaling_status: dict[tuple[str, str], list[dict]] = {}  # record -> one summary per scaled module
+        self.shortfalls: list[capacity.Shortfall] = []  # this pass: instances that may run in the cloud, without room
+        self.demand_written: dict[str, dict] = {}  # fleet namespace -> the demand.json last written
 
     # -- fencing --------------------------------------------------------------------------------
     def _may_write(self) -> dict:
@@ -182,6 +185,7 @@ class Controller:
         self.parsed.clear()
         self.windows.clear()
         self.robots_written.clear()
+        self.demand_written.clear()
 
     # -- observing --------------------------------------------------------------------------
     def _node_names(self) -> dict[str, str]:
@@ -425,10 +429,29 @@ class Controller:
         except ValueError:
             pass
 
+    def _with_live_nodes(self, record: Record) -> Record:
+        """The record with the edge and cloud nodes that joined the cluster since deploy (cloud VMs provisioned for a
+        peak) added to its resource model (``labels.node_from_cluster``); a node without a latency annotation takes
+        the largest latency of the record's own nodes of its tier."""
+        latency: dict[str, float] = {}
+        for node in record.inventory.nodes.values():
+            latency[node.tier] = max(latency.get(node.tier, 0.0), node.latency_ms)
+        extra = []
+        for obj in self.nodes.snapshot():
+            labels = (obj.get("metadata") or {}).get("labels") or {}
+            if labels.get(node_labels.HOSTNAME, obj["metadata"]["name"]) in record.inventory.nodes:
+                continue
+            tier = {v: k for k, v in node_labels.ROLES.items()}.get(labels.get(node_labels.ROLE, ""), "")
+            node = node_labels.node_from_cluster(obj, latency.get(tier, 50.0))
+            if node is not None:
+                extra.append(node)
+        return dataclasses.replace(record, inventory=record.inventory.with_nodes(extra)) if extra else record
+
     def reconcile_record(self, configmap: dict, view: ClusterView, now: float) -> float | None:
         record = self._record(configmap)
         if record is None:
             return None
+        record = self._with_live_nodes(record)
         # A fleet's discovery servers are the fleet's: where their Deployments pin them is the truth for every
         # record of the fleet (another deployment's pass, or a deploy, may have moved one since this record was written).
         live = discovery_from_deployments(
@@ -482,6 +505,21 @@ class Controller:
                 i: w for i, w in stranded.items() if i in where and not getattr(rview.nodes.get(where[i]), "ready", False)
             }
         self.reported[key] = stranded
+        modules = {m.name: m for m in record.spec.modules}
+        for inst in record.placement.instances:
+            module = modules.get(inst.module)
+            if inst.name in stranded and module is not None and "cloud" in module.tiers:
+                self.shortfalls.append(
+                    capacity.Shortfall(
+                        record.spec.fleet,
+                        record.deployment,
+                        inst.module,
+                        inst.cpu_millis,
+                        inst.memory_bytes,
+                        inst.gpu,
+                        stranded[inst.name],
+                    )
+                )
         for line in decision.waiting:
             log.debug("%s/%s waits: %s", record.namespace, record.deployment, line)
         applied = 0 if record.rollout else self.converge(record, rview)
@@ -570,6 +608,18 @@ class Controller:
             start.extend(result.start)
             stop.extend(result.stop)
             for name, reason, message, warning in result.events:
+                if reason == "ModuleScaleBlocked" and "cloud" in module.tiers:
+                    self.shortfalls.append(
+                        capacity.Shortfall(
+                            dep.fleet,
+                            dep.name,
+                            module.name,
+                            instances[0].cpu_millis,
+                            instances[0].memory_bytes,
+                            instances[0].gpu,
+                            message,
+                        )
+                    )
                 log.info("%s/%s: %s", record.namespace, dep.name, message)
                 events.append((name, reason, message, warning))
                 if self.metrics is not None:
@@ -629,7 +679,10 @@ class Controller:
         view = self.cluster_view()
         now = time.time()
         wake = []
+        self.shortfalls = []
+        fleets = set()
         for configmap in sorted(self.records.snapshot(), key=object_key):
+            fleets.add(configmap["metadata"].get("namespace", ""))
             try:
                 at = self.reconcile_record(configmap, view, now)
             except leader_election.NotLeader:
@@ -639,7 +692,33 @@ class Controller:
                 continue
             if at is not None:
                 wake.append(at)
+        self._write_demand(sorted(fleets))
         return min(wake) if wake else None
+
+    def _write_demand(self, namespaces: list[str]) -> None:
+        """What each fleet lacks (``capacity.demand``) into its ``kuberos-capacity`` ConfigMap, for a cloud
+        provisioner (docs/cloud.md); written when it changes."""
+        by_fleet = capacity.demand(self.shortfalls)
+        for namespace in namespaces:
+            fleet = next((s.fleet for s in self.shortfalls if naming.fleet_namespace(s.fleet) == namespace), "")
+            previous = self.demand_written.get(namespace)
+            if previous is None and not fleet:
+                continue  # nothing lacking, and nothing said before: no ConfigMap to write
+            current = capacity.advance(previous, by_fleet.get(fleet), _now_rfc3339())
+            if current == previous:
+                continue
+            body = {
+                "apiVersion": "v1",
+                "kind": "ConfigMap",
+                "metadata": {
+                    "name": capacity.CONFIGMAP,
+                    "namespace": namespace,
+                    "labels": {MANAGED_BY: CONTROLLER_MANAGER},
+                },
+                "data": {capacity.KEY: json.dumps(current, sort_keys=True)},
+            }
+            self._apply(body, CONTROLLER_MANAGER)
+            self.demand_written[namespace] = current
 
     # -- running ----------------------------------------------------------------------------
     def run_once(self) -> None:

@@ -4,6 +4,16 @@ A host's ``node`` group has ``cpu.cfs_quota_us`` = its CPUs in the inventory x `
 machine's cores): the robot computer, edge server or cloud VM it stands for. Its ``hardware`` group (for
 the physics simulator of a robot) has no quota and is accounted apart. Processes join a group by writing
 their pid to ``cgroup.procs`` before they exec (see processes.py). Usage is ``cpuacct.usage`` (nanoseconds).
+
+Weights (``cpu.shares``): a quota caps a group, but when the machine is short of CPU the kernel divides it
+among the busy groups by weight, and every group's default weight is the same (1024). An edge server of 18
+processes then got no more CPU than one robot's physics process: with 8 robots the two edge servers got 0.26
+core together while the physics took 0.8, and their planners took about a minute to start their worker
+processes (59-69 s, against 3 s with 2 robots). So a ``node`` group weighs in proportion to its quota
+(``shares_for``: 2048 per core, at least the kernel's default 1024, which is a robot computer's half core):
+an edge server or cloud VM of 2 cores weighs 4096, as much as four robot computers. A ``hardware`` group
+keeps the default 1024 (``HARDWARE_SHARES``), as much as its robot's computer: it needs about 0.15 core, so
+it keeps up unless the machine is far over its capacity.
 """
 
 from __future__ import annotations
@@ -16,6 +26,9 @@ CPU_ROOT = "/sys/fs/cgroup/cpu"
 CPUACCT_ROOT = "/sys/fs/cgroup/cpuacct"
 PERIOD_US = 100_000
 MIN_QUOTA_US = 1_000  # the kernel's smallest quota
+DEFAULT_SHARES = 1024  # the kernel's default weight
+SHARES_PER_CORE = 2048  # a robot computer's half core weighs the default
+HARDWARE_SHARES = DEFAULT_SHARES
 REMOVE_TRIES = 50  # rmdir attempts, 0.1 s apart, while killed tasks leave
 
 
@@ -38,6 +51,11 @@ def quota_cores(cpu_millis: int, cpu_scale: float, cores: int | None = None) -> 
     return min(cpu_millis / 1000.0 * cpu_scale, float(cores or machine_cores()))
 
 
+def shares_for(cores: float) -> int:
+    """The weight (cpu.shares) of a group with a quota of ``cores``: in proportion to it, at least the default."""
+    return max(DEFAULT_SHARES, round(cores * SHARES_PER_CORE))
+
+
 def _write(path: str, value: str) -> None:
     with open(path, "w", encoding="utf-8") as handle:
         handle.write(value)
@@ -46,9 +64,10 @@ def _write(path: str, value: str) -> None:
 class Cgroup:
     """One group, ``<parent>/<name>``, in both hierarchies (one directory when they are mounted together)."""
 
-    def __init__(self, path: str, cores: float | None):
+    def __init__(self, path: str, cores: float | None, shares: int | None = None):
         self.path = path  # relative to the hierarchies' roots
         self.cores = cores  # None: no quota
+        self.shares = shares  # None: the kernel's default weight
         self.dirs = list(dict.fromkeys(os.path.realpath(os.path.join(r, path)) for r in (CPU_ROOT, CPUACCT_ROOT)))
         self.cpu_dir = os.path.join(CPU_ROOT, path)
         self.acct_dir = os.path.join(CPUACCT_ROOT, path)
@@ -66,6 +85,8 @@ class Cgroup:
         if self.cores is not None:
             _write(os.path.join(self.cpu_dir, "cpu.cfs_period_us"), str(PERIOD_US))
             _write(os.path.join(self.cpu_dir, "cpu.cfs_quota_us"), str(max(MIN_QUOTA_US, round(self.cores * PERIOD_US))))
+        if self.shares is not None:
+            _write(os.path.join(self.cpu_dir, "cpu.shares"), str(self.shares))
 
     def usage_seconds(self) -> float:
         try:

@@ -266,6 +266,15 @@ def _deployment(obj: dict, rel: str, configmaps: dict, problems: list[Problem]) 
     )
 
 
+def parse_deployment(obj: dict, configmaps: dict, source: str = "<added>") -> Deployment:
+    """One rendered Deployment object, checked as ``load_rendered`` checks those of a directory."""
+    problems: list[Problem] = []
+    deployment = _deployment(obj, source, configmaps, problems)
+    if problems or deployment is None:
+        raise SpecError(problems, title=f"{source} is not a Deployment the runtime can run")
+    return deployment
+
+
 def load_rendered(root: str) -> RenderedDir:
     """The rendered directory's Deployments, Services and ConfigMaps; ``SpecError`` with every problem otherwise."""
     root = os.path.abspath(root)

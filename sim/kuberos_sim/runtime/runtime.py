@@ -10,9 +10,10 @@
 Hosts are the nodes the Deployments are pinned to, plus those added with ``add_host`` before ``start``.
 Each is a network namespace ``krs-<suffix>-<node>`` (netns.py) with a TUN eth0 whose packets the fabric
 process (fabric.py) delays by the inventory's latencies (delays.py), and two cgroups,
-``kuberos-sim-<suffix>/<node>`` with the node's scaled CPU quota and ``.../<node>.hardware`` without one
-(cgroups.py). Every container of every Deployment runs its rendered command on its node's host
-(processes.py), with the ROS wheels' environment, the container's env and its configMap volumes.
+``kuberos-sim-<suffix>/<node>`` with the node's scaled CPU quota (and a weight in proportion to it) and
+``.../<node>.hardware`` without one (with the default weight; cgroups.py). Every container of
+every Deployment runs its rendered command on its node's host (processes.py), with the ROS wheels'
+environment, the container's env and its configMap volumes.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from . import cgroups, delays, netns
 from . import fabric as fabric_script
 from ._core import COLLECTIONS_DIR, SIM_DIR, Problem, SpecError, labels, ros_wheels
 from .processes import SimProcess, VolumeMount, launch, stop_all
-from .rendered import Deployment, RenderedDir, configmap_files, load_rendered, resolve_env
+from .rendered import Deployment, RenderedDir, configmap_files, load_rendered, parse_deployment, resolve_env
 
 DEFAULT_CPU_SCALE = 0.125  # a 4-CPU robot gets half a core, a 16-CPU edge server 2 cores (capped at this machine's)
 DEFAULT_SUBNET = "10.213.64.0/24"  # exists only inside the run's namespaces
@@ -42,6 +43,12 @@ SERVER_READY_TIMEOUT = 20.0  # a discovery server binding its UDP port
 SETTLE_SECONDS = 1.5  # modules exiting this soon after start are reported
 STOP_TIMEOUT = 5.0  # per signal (SIGINT, SIGTERM) before SIGKILL
 CGROUPS = ("node", "hardware")
+
+
+def metrics_file(run_dir: str, process: str) -> str:
+    """Where a module process may write its Prometheus exposition (``KUBEROS_METRICS_FILE``): the simulator's
+    scaler reads it there, as a controller scrapes a pod's ``/metrics``."""
+    return os.path.join(run_dir, "metrics", re.sub(r"[^A-Za-z0-9_.-]+", "_", process) + ".prom")
 
 
 class ProcessExitedError(RuntimeError):
@@ -107,12 +114,14 @@ class Runtime:
         self.cgroup_parent = f"kuberos-sim-{self.suffix}"
         self.hosts: dict[str, Host] = {}
         self.processes: dict[str, SimProcess] = {}
+        self.stopped: list[SimProcess] = []  # processes of Deployments stopped while the run went on
         self.fabric: subprocess.Popen | None = None
         self._started = self._closed = False
         self._etc_netns_created = False
         self._fabric_config: dict = {}
         self._final_cpu: dict[tuple[str, str], float] | None = None
         self._final_fabric: dict | None = None
+        self._final_fabric_cpu: float | None = None
         self.close_problems: list[str] = []
         self._check_nodes(self.rendered.nodes, self.rendered.deployments.values())
         self._nodes = list(self.rendered.nodes)
@@ -152,7 +161,10 @@ class Runtime:
             cores = cgroups.quota_cores(model.cpu_millis, self.cpu_scale)
             host = Host(node, model.tier, f"krs-{self.suffix}-{node}"[:60], addresses[node], cores)
             base = f"{self.cgroup_parent}/{node}"
-            host.cgroups = {"node": cgroups.Cgroup(base, cores), "hardware": cgroups.Cgroup(f"{base}.hardware", None)}
+            host.cgroups = {
+                "node": cgroups.Cgroup(base, cores, cgroups.shares_for(cores)),
+                "hardware": cgroups.Cgroup(f"{base}.hardware", None, cgroups.HARDWARE_SHARES),
+            }
             self.hosts[node] = host
 
     def _hosts_text(self) -> str:
@@ -279,6 +291,53 @@ class Runtime:
             result.append(VolumeMount(directory, mount.path, mount.read_only))
         return result
 
+    # --- changes while it runs (a controller's: scaling adds and removes instances, moves robots) ----------------
+
+    def add_deployment(self, obj: dict) -> Deployment:
+        """Take a rendered Deployment object (a plain dict, as ``render_deployment`` makes it) into the run, on one
+        of its hosts; start it with ``start_deployment``."""
+        deployment = parse_deployment(obj, self.rendered.configmaps)
+        if deployment.name in self.rendered.deployments:
+            raise ValueError(f"a Deployment named {deployment.name!r} is in the run already")
+        self._check_nodes([deployment.node])
+        if deployment.node not in self.hosts:
+            raise ValueError(f"{deployment.name} is pinned to {deployment.node}, which is not a host of this run")
+        self.rendered.deployments[deployment.name] = deployment
+        return deployment
+
+    def update_configmap(self, obj: dict) -> list[str]:
+        """A ConfigMap's new data, written into every volume made from it, as the kubelet updates a mounted
+        ConfigMap: each file replaced whole (a reader sees the old or the new content, never half). Returns the
+        files written."""
+        key = (obj["metadata"].get("namespace", ""), obj["metadata"]["name"])
+        self.rendered.configmaps[key] = obj
+        written = []
+        for dep in self.rendered.deployments.values():
+            for volume_name, volume in dep.volumes.items():
+                if dep.namespace != key[0] or (volume.get("configMap") or {}).get("name") != key[1]:
+                    continue
+                directory = os.path.join(self.run_dir, "volumes", dep.name, volume_name)
+                if not os.path.isdir(directory):
+                    continue  # not mounted yet: made with the new content when the Deployment starts
+                for rel, content in configmap_files(obj, volume).items():
+                    path = os.path.join(directory, rel)
+                    with open(path + ".new", "wb") as handle:
+                        handle.write(content)
+                    os.replace(path + ".new", path)
+                    written.append(path)
+        return written
+
+    def stop_deployment(self, name: str) -> list[SimProcess]:
+        """Stop every process of a Deployment (SIGINT, SIGTERM, SIGKILL as at the end of a run) and drop it from
+        the run; its CPU time stays counted in its host's cgroups."""
+        processes = [p for p in self.processes.values() if p.deployment == name]
+        stop_all(processes, self.stop_timeout)
+        for process in processes:
+            self.processes.pop(process.name, None)
+            self.stopped.append(process)
+        self.rendered.deployments.pop(name, None)
+        return processes
+
     def start_deployment(self, name: str) -> list[SimProcess]:
         """Every container of a rendered Deployment on its node's host, exactly as rendered."""
         self._require_started()
@@ -290,6 +349,8 @@ class Runtime:
             process_name = dep.name if len(dep.containers) == 1 else f"{dep.name}/{container.name}"
             env = resolve_env(container, dep, self.host_address(dep.node), self.rendered.configmaps)
             mounts = self._volumes(dep, container.name, container.mounts)
+            os.makedirs(os.path.join(self.run_dir, "metrics"), exist_ok=True)
+            env["KUBEROS_METRICS_FILE"] = metrics_file(self.run_dir, process_name)
             started.append(self._launch(process_name, dep.node, container.argv, env, mounts, "node", dep.name))
         return started
 
@@ -378,7 +439,7 @@ class Runtime:
 
     def logs(self) -> list[str]:
         """Every process's log file, in start order."""
-        return [p.log for p in self.processes.values()]
+        return [p.log for p in [*self.stopped, *self.processes.values()]]
 
     def fleet_env(self, fleet: str | None = None) -> dict[str, str]:
         """The environment every ROS module Deployment of the fleet shares as rendered (ROS_DISCOVERY_SERVER,
@@ -402,6 +463,14 @@ class Runtime:
         if self._final_cpu is not None:
             return dict(self._final_cpu)
         return {(node, kind): group.usage_seconds() for node, h in self.hosts.items() for kind, group in h.cgroups.items()}
+
+    def fabric_cpu_seconds(self) -> float:
+        """CPU seconds the fabric process used so far (it runs outside every cgroup of the run); kept after close."""
+        if self._final_fabric_cpu is not None:
+            return self._final_fabric_cpu
+        if self.fabric is None:
+            return 0.0
+        return process_cpu_seconds(self.fabric.pid)
 
     def cpu_seconds_by_tier(self) -> dict[str, float]:
         """Tier (onboard, edge, cloud) -> CPU seconds in the node cgroups of its hosts (hardware left out)."""
@@ -447,6 +516,7 @@ class Runtime:
         if self.hosts:
             self._final_cpu = self.cpu_seconds()
         if self.fabric is not None:
+            self._final_fabric_cpu = self.fabric_cpu_seconds()
             if self.fabric.poll() is None:
                 self.fabric.send_signal(signal.SIGTERM)
             try:
@@ -486,6 +556,29 @@ class Runtime:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def process_cpu_seconds(pid: int) -> float:
+    """User and system CPU seconds of a running process (/proc/<pid>/stat); 0 when it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="utf-8") as handle:
+            fields = handle.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def machine_cpu_seconds() -> dict[str, float]:
+    """Since boot, over all cores (/proc/stat): ``busy``, CPU seconds this machine's processes and kernel ran
+    (not idle, iowait or steal), and ``steal``, seconds a hypervisor gave this VM's cores to others."""
+    try:
+        with open("/proc/stat", encoding="utf-8") as handle:
+            values = [int(v) for v in handle.readline().split()[1:]]
+    except (OSError, ValueError):
+        return {"busy": 0.0, "steal": 0.0}
+    user, nice, system, _idle, _iowait, irq, softirq, steal = (values + [0] * 8)[:8]
+    tick = os.sysconf("SC_CLK_TCK")
+    return {"busy": (user + nice + system + irq + softirq) / tick, "steal": steal / tick}
 
 
 def _read(path: str) -> str:
