@@ -46,9 +46,21 @@ def topic(robot: str, name: str) -> str:
     return f"{robot_namespace(robot)}/{name}"
 
 
+def read_robots(path: str) -> list[str]:
+    """The robots listed in a scaled module's robots file (comma separated; the file may be empty)."""
+    try:
+        with open(path, encoding="utf-8") as handle:
+            return [r.strip() for r in handle.read().split(",") if r.strip()]
+    except OSError:
+        return []
+
+
 def robots_from_env(environ=os.environ) -> list[str]:
     """The robots this instance serves: KUBEROS_ROBOTS (comma separated, set for every module instance by the
-    rendered manifests), else KUBEROS_ROBOT_NAME (a robot's own simulator)."""
+    rendered manifests), the file KUBEROS_ROBOTS_FILE names (a scaled module's, as it is now; modules that follow
+    its changes read it again, see planner.py), else KUBEROS_ROBOT_NAME (a robot's own simulator)."""
+    if environ.get("KUBEROS_ROBOTS_FILE"):
+        return read_robots(environ["KUBEROS_ROBOTS_FILE"])
     listed = [r.strip() for r in environ.get("KUBEROS_ROBOTS", "").split(",") if r.strip()]
     if listed:
         return listed

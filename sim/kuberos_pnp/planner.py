@@ -21,13 +21,26 @@ worker processes' OMPL seeds).
 
 Once its worker processes run and its subscriptions exist it logs a `planner_ready` record (seconds since start):
 a coordinator matched with its subscription can send.
+
+Scaled (docs/scaling.md): with `KUBEROS_ROBOTS_FILE` the planner reads its robots from that file and follows its
+changes (every 0.5 s): a robot added is subscribed to; a robot removed is kept for `handover_s` seconds, in which
+the planner still answers its requests that name a scene it had before it lost the robot (the cycle in progress),
+then unsubscribed. A robot added while running is answered only for scenes this planner has (the robot's previous
+planner answers the rest, and this one stays silent), so that a request is never answered "unknown scene" during a
+handover. Its load gauge
+`kuberos_planner_queue_depth` (requests waiting or being solved, averaged over the last 10 s) is written to
+`KUBEROS_METRICS_FILE` (Prometheus text format) and, with `metrics_port` (not 0), served on that port at
+`/metrics`.
 """
 
 from __future__ import annotations
 
+import http.server
+import os
 import queue
 import threading
 import time
+from collections import deque
 
 import numpy as np
 
@@ -35,6 +48,58 @@ from kuberos_pnp import common, planning
 from kuberos_pnp.perception import boxes_from_markers
 
 DEFAULT_RACE = planning.DEFAULT_PLANNERS
+LOAD_WINDOW_S = 10.0  # the queue gauge's averaging window
+GAUGE = "kuberos_planner_queue_depth"
+
+
+class Load:
+    """Requests waiting or being solved, sampled every 0.1 s and averaged over ``window`` seconds."""
+
+    def __init__(self, window: float = LOAD_WINDOW_S):
+        self.samples: deque = deque()
+        self.window = window
+
+    def sample(self, now: float, depth: int) -> None:
+        self.samples.append((now, depth))
+        while self.samples and self.samples[0][0] < now - self.window:
+            self.samples.popleft()
+
+    def mean(self) -> float:
+        return sum(d for _, d in self.samples) / len(self.samples) if self.samples else 0.0
+
+    def exposition(self, robots: int) -> str:
+        return (
+            f"# HELP {GAUGE} Planning requests waiting or being solved, mean of the last {self.window:g} s.\n"
+            f"# TYPE {GAUGE} gauge\n{GAUGE} {self.mean():.4f}\n"
+            "# HELP kuberos_planner_robots Robots this planner serves.\n"
+            f"# TYPE kuberos_planner_robots gauge\nkuberos_planner_robots {robots}\n"
+        )
+
+
+def write_atomically(path: str, text: str) -> None:
+    with open(path + ".new", "w", encoding="utf-8") as handle:
+        handle.write(text)
+    os.replace(path + ".new", path)
+
+
+def serve_metrics(port: int, text_of) -> None:
+    """/metrics on ``port`` (all addresses), from ``text_of()``, in a daemon thread."""
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            body = text_of().encode()
+            self.send_response(200 if self.path.startswith("/metrics") else 404)
+            self.send_header("Content-Type", "text/plain; version=0.0.4")
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("", port), Handler)
+    threading.Thread(target=server.serve_forever, name="metrics", daemon=True).start()
+
+
 STARTED = time.monotonic()  # about when the process started (this module is its main)
 
 
@@ -52,6 +117,8 @@ def main(argv: list[str] | None = None) -> None:
     from visualization_msgs.msg import MarkerArray
 
     robots = common.robots_from_env()
+    robots_file = os.environ.get("KUBEROS_ROBOTS_FILE", "")
+    metrics_file = os.environ.get("KUBEROS_METRICS_FILE", "")
     rclpy.init(args=common.init_args(argv))
 
     class PlannerNode(Node):
@@ -64,32 +131,35 @@ def main(argv: list[str] | None = None) -> None:
             self.history = int(common.declare(self, "scene_history", 600))
             self.scene_wait = float(common.declare(self, "scene_wait", 3.0))
             seed = int(common.declare(self, "seed", 0))
+            self.handover_s = float(common.declare(self, "handover_s", 15.0))
+            metrics_port = int(common.declare(self, "metrics_port", 0))
             self.race = planner_list(first, listed, parallel)
             pool_started = time.monotonic()
             self.planner = planning.Planner(parallel=len(self.race), planners=self.race, seed=seed)
             pool_s = time.monotonic() - pool_started
-            self.scenes: dict[str, dict[str, list]] = {r: {} for r in robots}
+            self.scenes: dict[str, dict[str, list]] = {}
+            self.scene_seen: dict[tuple[str, str], float] = {}  # (robot, scene) -> when it arrived
             self.requests: queue.Queue = queue.Queue(maxsize=256)
-            self.results = {
-                r: self.create_publisher(JointTrajectory, common.topic(r, common.PLAN_RESULT), common.reliable_qos())
-                for r in robots
-            }
+            self.results = {}
+            self.wiring: dict[str, list] = {}  # robot -> its subscriptions
+            self.lost: dict[str, float] = {}  # robot -> when it was removed (answered for the cycle in progress)
+            self.added: dict[str, float] = {}  # robot -> when it was added while running
+            self.busy = 0
+            self.load = Load()
             for r in robots:
-                self.create_subscription(
-                    MarkerArray, common.topic(r, common.SCENE_OBJECTS), lambda m, r=r: self.on_scene(r, m), common.latched_qos()
-                )
-                self.create_subscription(
-                    JointTrajectory,
-                    common.topic(r, common.PLAN_REQUEST),
-                    lambda m, r=r: self.on_request(r, m),
-                    common.reliable_qos(50),
-                )
+                self.serve(r)
             self.stop = threading.Event()
             self.worker = threading.Thread(target=self.work, name="planning", daemon=True)
             self.worker.start()
             self.get_logger().info(
                 f"planner for {', '.join(robots)} on {common.node_name()}: race {', '.join(self.race)}, {self.budget} s"
             )
+            if robots_file:
+                self.create_timer(0.5, lambda: self.follow(common.read_robots(robots_file)))
+            if metrics_file or metrics_port:
+                self.create_timer(0.1, self.measure)
+            if metrics_port:
+                serve_metrics(metrics_port, lambda: self.load.exposition(len(self.wiring) - len(self.lost)))
             # Ready: the worker processes run and the subscriptions exist (a coordinator matching them may send).
             common.log_result(
                 "planner_ready",
@@ -99,15 +169,76 @@ def main(argv: list[str] | None = None) -> None:
                 pool_s=round(pool_s, 2),
             )
 
+        def serve(self, robot: str) -> None:
+            """Subscribe to a robot's scenes and requests, and publish its results."""
+            self.scenes.setdefault(robot, {})
+            self.results[robot] = self.create_publisher(
+                JointTrajectory, common.topic(robot, common.PLAN_RESULT), common.reliable_qos()
+            )
+            self.wiring[robot] = [
+                self.create_subscription(
+                    MarkerArray, common.topic(robot, common.SCENE_OBJECTS), lambda m, r=robot: self.on_scene(r, m),
+                    common.latched_qos(),
+                ),
+                self.create_subscription(
+                    JointTrajectory, common.topic(robot, common.PLAN_REQUEST), lambda m, r=robot: self.on_request(r, m),
+                    common.reliable_qos(50),
+                ),
+            ]  # fmt: skip
+
+        def follow(self, listed: list[str]) -> None:
+            """The robots file changed (or not): serve robots added, keep removed ones for the handover, then drop them."""
+            now = time.monotonic()
+            for robot in listed:
+                if robot in self.lost:
+                    del self.lost[robot]  # given back before its handover ended
+                elif robot not in self.wiring:
+                    self.serve(robot)
+                    self.added[robot] = now
+                    common.log_result("robot_added", robot=robot, node=common.node_name())
+            for robot in [r for r in self.wiring if r not in listed and r not in self.lost]:
+                self.lost[robot] = now
+                common.log_result("robot_removed", robot=robot, node=common.node_name())
+            for robot, since in list(self.lost.items()):
+                if now - since >= self.handover_s:
+                    for subscription in self.wiring.pop(robot):
+                        self.destroy_subscription(subscription)
+                    self.destroy_publisher(self.results.pop(robot))
+                    del self.lost[robot]
+                    self.scenes.pop(robot, None)
+
+        def measure(self) -> None:
+            now = time.monotonic()
+            self.load.sample(now, self.requests.qsize() + self.busy)
+            if metrics_file and int(now * 10) % 5 == 0:  # the file every 0.5 s
+                write_atomically(metrics_file, self.load.exposition(len(self.wiring) - len(self.lost)))
+
         def on_scene(self, robot: str, msg) -> None:
             if not msg.markers:
                 return
-            scenes = self.scenes[robot]
-            scenes[common.scene_key(msg.markers[0].header.stamp)] = boxes_from_markers(msg)
+            scenes = self.scenes.setdefault(robot, {})
+            key = common.scene_key(msg.markers[0].header.stamp)
+            scenes[key] = boxes_from_markers(msg)
+            self.scene_seen.setdefault((robot, key), time.monotonic())
             while len(scenes) > self.history:
+                self.scene_seen.pop((robot, next(iter(scenes))), None)
                 scenes.pop(next(iter(scenes)))
 
+        def mine(self, robot: str, msg) -> bool:
+            """Whether this planner answers a request: always for its robots, except that in a handover the old
+            planner answers for scenes it had before it lost the robot and the new one for the others."""
+            _request, values = common.decode_tag(msg.header.frame_id)
+            seen = self.scene_seen.get((robot, values.get("scene", "")))
+            if robot in self.lost:
+                return seen is not None and seen <= self.lost[robot]
+            return True
+
+        def taking_over(self, robot: str) -> bool:
+            return robot in self.added and time.monotonic() - self.added[robot] < self.handover_s
+
         def on_request(self, robot: str, msg) -> None:
+            if not self.mine(robot, msg):
+                return  # the robot's other planner answers it
             try:
                 self.requests.put_nowait((robot, msg, time.monotonic()))
             except queue.Full:
@@ -119,7 +250,11 @@ def main(argv: list[str] | None = None) -> None:
                     robot, msg, arrived = self.requests.get(timeout=0.2)
                 except queue.Empty:
                     continue
-                self.answer(robot, msg, arrived)
+                self.busy = 1
+                try:
+                    self.answer(robot, msg, arrived)
+                finally:
+                    self.busy = 0
 
         def answer(self, robot: str, msg, arrived: float) -> None:
             request_id, values = common.decode_tag(msg.header.frame_id)
@@ -127,7 +262,10 @@ def main(argv: list[str] | None = None) -> None:
             if len(msg.points) < 2:
                 self.reply(robot, msg, None, "failed", reason="request needs a start and a goal point")
                 return
-            scene = self.wait_for_scene(robot, values.get("scene", ""))
+            taking_over = self.taking_over(robot)  # a scene in flight arrives within 0.5 s; an older one never
+            scene = self.wait_for_scene(robot, values.get("scene", ""), min(0.5, self.scene_wait) if taking_over else None)
+            if scene is None and taking_over:
+                return  # a scene from before this planner took the robot over: its previous planner answers
             if scene is None:
                 self.reply(robot, msg, None, "failed", reason=f"unknown scene {values.get('scene')}")
                 return
@@ -164,11 +302,11 @@ def main(argv: list[str] | None = None) -> None:
                 waypoints=len(result.path or []),
             )
 
-        def wait_for_scene(self, robot: str, key: str):
+        def wait_for_scene(self, robot: str, key: str, wait: float | None = None):
             """The scene the request names; it may still be on its way here (perception publishes it to the
             coordinator and to this planner over different links), so wait up to `scene_wait` seconds."""
-            deadline = time.monotonic() + self.scene_wait
-            while (scene := self.scenes[robot].get(key)) is None and time.monotonic() < deadline:
+            deadline = time.monotonic() + (self.scene_wait if wait is None else wait)
+            while (scene := self.scenes.get(robot, {}).get(key)) is None and time.monotonic() < deadline:
                 time.sleep(0.02)
             return scene
 
@@ -191,8 +329,11 @@ def main(argv: list[str] | None = None) -> None:
             out.joint_names = list(request.joint_names)
             for q in path or []:
                 out.points.append(JointTrajectoryPoint(positions=[float(x) for x in q]))
-            common.wait_for_subscriber(self.results[robot], 5.0)
-            self.results[robot].publish(out)
+            publisher = self.results.get(robot)
+            if publisher is None:
+                return  # handed over and dropped meanwhile
+            common.wait_for_subscriber(publisher, 5.0)
+            publisher.publish(out)
 
         def on_shutdown(self) -> None:
             self.stop.set()

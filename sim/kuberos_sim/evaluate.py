@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import itertools
 import json
 import os
 import platform
@@ -39,15 +40,9 @@ STARTUP_LIMIT = 600.0  # s for every robot's coordinator to find its planner, co
 
 def rendered_inventory(rendered: str):
     """The resource model deploy placed against, read back from the deployment record it rendered."""
-    import glob
+    from kuberos_sim.scaler import load_record
 
-    import yaml
-
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import parse_record
-
-    (path,) = glob.glob(os.path.join(rendered, "manifests", "*", "configmap-kuberos-record-*.yaml"))
-    with open(path, encoding="utf-8") as handle:
-        return parse_record(yaml.safe_load(handle)).inventory
+    return load_record(rendered).inventory
 
 
 def git_commit() -> str:
@@ -91,6 +86,7 @@ def run_one(
 ) -> dict:
     from kuberos_sim.runtime import Runtime
     from kuberos_sim.runtime.runtime import machine_cpu_seconds
+    from kuberos_sim.scaler import SimScaler, load_record
 
     directory = os.path.join(out, "runs", run_name(strategy, robots, rate, seed))
     os.makedirs(directory, exist_ok=True)
@@ -119,10 +115,13 @@ def run_one(
                 cgroup="hardware",
             )
         ready, not_ready = wait_for_ready(runtime, robots, max(30.0, startup_limit + 30 - (time.monotonic() - launched)))
+        scaler = SimScaler(runtime, load_record(rendered)).start() if strategy == "edge-scaled" else None
         started = time.monotonic()
         cpu_start, machine_start, fabric_start = runtime.cpu_seconds(), machine_cpu_seconds(), runtime.fabric_cpu_seconds()
         finished = wait_for_cycles(runtime, robots, cycles, time_limit) if ready else False
         window = time.monotonic() - started
+        if scaler is not None:
+            scaler.stop()
         cpu_end, machine_end, fabric_end = runtime.cpu_seconds(), machine_cpu_seconds(), runtime.fabric_cpu_seconds()
         records = collect(runtime)
         fabric = runtime.fabric_stats()
@@ -151,9 +150,26 @@ def run_one(
     }
     if not_ready:
         row["not_ready"] = not_ready
+    if scaler is not None:
+        row["scaling"] = scaling_summary(scaler, window)
     with open(os.path.join(directory, "records.json"), "w", encoding="utf-8") as handle:
         json.dump({"row": row, "records": records, "fabric": fabric}, handle, indent=1, default=str)
     return row
+
+
+def scaling_summary(scaler, window: float) -> dict:
+    """The planner's instances over the run (time-weighted mean, most), the steps taken and the timeline."""
+    points = [(t["t"], t["instances"]) for t in scaler.timeline]
+    weighted = sum((b[0] - a[0]) * a[1] for a, b in itertools.pairwise(points))
+    span = points[-1][0] - points[0][0] if len(points) > 1 else 0.0
+    return {
+        "instances_mean": round(weighted / span, 2) if span > 0 else (points[0][1] if points else None),
+        "instances_max": max((p[1] for p in points), default=None),
+        "steps": [e for t in scaler.timeline for e in t["events"]],
+        "errors": scaler.errors,
+        "timeline": [{k: t[k] for k in ("t", "instances", "running", "value")} for t in scaler.timeline],
+        "window_s": round(window, 1),
+    }
 
 
 def robot_env(runtime) -> dict[str, str]:
@@ -305,7 +321,10 @@ def seed_list(text: str) -> list[int]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m kuberos_sim.evaluate", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--strategies", default=",".join(scenario.STRATEGIES), help="comma separated (default: all)")
+    parser.add_argument(
+        "--strategies", default=",".join(scenario.MATRIX),
+        help=f"comma separated, of {', '.join(scenario.STRATEGIES)} (default: {', '.join(scenario.MATRIX)})",
+    )  # fmt: skip
     parser.add_argument("--robots", default="1,2,4,8", help="fleet sizes, comma separated (default: 1,2,4,8)")
     parser.add_argument("--rates", default="4,12", help="tasks per minute per robot, comma separated (default: 4,12)")
     parser.add_argument("--cycles", type=int, default=3, help="pick cycles per robot (= objects on its table; default 3)")

@@ -18,6 +18,7 @@ instances-over-time plot.
 
 from __future__ import annotations
 
+import glob
 import os
 import threading
 import time
@@ -32,17 +33,14 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
 
 from .runtime.runtime import metrics_file
 
-RECORD_PREFIX = "ConfigMap-kuberos-record-"
-
 
 def load_record(rendered_dir: str):
     """The deployment record deploy rendered (the spec, the resource model, the placement and the options)."""
-    for root, _dirs, files in os.walk(os.path.join(rendered_dir, "manifests")):
-        for name in sorted(files):
-            if name.startswith(RECORD_PREFIX):
-                with open(os.path.join(root, name), encoding="utf-8") as handle:
-                    return parse_record(yaml.safe_load(handle))
-    raise FileNotFoundError(f"{rendered_dir} holds no deployment record ({RECORD_PREFIX}*.yaml)")
+    found = glob.glob(os.path.join(rendered_dir, "manifests", "*", "configmap-kuberos-record-*.yaml"))
+    if len(found) != 1:
+        raise FileNotFoundError(f"{rendered_dir} holds {len(found)} deployment records (configmap-kuberos-record-*.yaml)")
+    with open(found[0], encoding="utf-8") as handle:
+        return parse_record(yaml.safe_load(handle))
 
 
 class SimScaler:

@@ -8,7 +8,9 @@
   - `onboard`: both on each robot's own computer (requirements.onboard);
   - `edge-dedicated`: both on the edge, one instance per robot;
   - `edge-shared`: both on the edge, one instance per 4 robots (strategy shared);
-  - `cloud`: both on the cloud VM, one instance per robot.
+  - `cloud`: both on the cloud VM, one instance per robot;
+  - `edge-scaled`: as edge-shared, the motion planner scaled on its request queue between 1 and 8 instances
+    (``PLANNER_SCALING``; the evaluation runs the controller's scaling step, kuberos_sim.scaler).
   The coordinator (shared, edge) and the controller (onboard) stay as the example has them; the workload
   rate, the number of pick cycles per robot, the seed (its IK restarts) and how long it waits for its robots'
   modules at start go into the coordinator's launch command, the seed also into the motion planner's
@@ -29,7 +31,18 @@ import yaml
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 EXAMPLE = os.path.join(ROOT, "examples", "pick-and-place.yml")
 FLEET = "sim-fleet"
-STRATEGIES = ("onboard", "edge-dedicated", "edge-shared", "cloud")
+STRATEGIES = ("onboard", "edge-dedicated", "edge-shared", "cloud", "edge-scaled")
+MATRIX = STRATEGIES[:4]  # the evaluation's matrix; edge-scaled is compared apart (bench/bench_scaling.py)
+# edge-scaled: the planner shared as in edge-shared, scaled on its queue (docs/scaling.md); perception stays shared.
+PLANNER_SCALING = {
+    "minInstances": 1,
+    "maxInstances": 8,
+    "metric": "kuberos_planner_queue_depth",
+    "target": 0.7,  # 70 % busy on average: queueing grows steeply above that
+    "scaleUpWindow": "10s",
+    "scaleDownWindow": "30s",
+    "drainTime": "20s",
+}
 OFFLOADED = ("perception", "motion-planner")
 EDGE_RTT_MS = 5
 CLOUD_RTT_MS = 40
@@ -87,14 +100,18 @@ def strategy_spec(
             elif strategy.startswith("edge"):
                 module["preference"] = "edge"
                 requirements["max_latency"] = "20 ms"
-                if strategy == "edge-shared":
+                if strategy in ("edge-shared", "edge-scaled"):
                     module["strategy"], module["robotsPerInstance"] = "shared", 4
+                if strategy == "edge-scaled" and name == "motion-planner":
+                    module["scaling"] = dict(PLANNER_SCALING)
             else:
                 module["preference"] = "cloud"
                 requirements["max_latency"] = "200 ms"
             module["requirements"] = requirements
         if name == "motion-planner":
             module["rosParameters"] = {**module.get("rosParameters", {}), "seed": int(seed)}
+            if strategy == "edge-scaled":
+                module["rosParameters"]["handover_s"] = 15.0
         if name == "task-coordinator":
             command = (
                 f"python3 -m kuberos_pnp.coordinator --ros-args -p tasks_per_minute:={tasks_per_minute:g} -p max_cycles:={cycles}"

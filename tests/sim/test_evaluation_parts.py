@@ -275,3 +275,27 @@ def test_the_seed_reaches_the_planner_and_the_coordinator():
     assert modules["motion-planner"]["rosParameters"]["seed"] == 2
     launch = modules["task-coordinator"]["launch"][0]
     assert "-p seed:=2" in launch and "-p startup_timeout:=600" in launch and "max_cycles:=3" in launch
+
+
+def test_the_scaled_strategy_scales_only_the_planner_on_its_queue():
+    spec = scenario.strategy_spec("edge-scaled", 12, 3)
+    modules = {m["name"]: m for m in spec["rosModules"]}
+    assert modules["motion-planner"]["scaling"]["metric"] == "kuberos_planner_queue_depth"
+    assert modules["motion-planner"]["strategy"] == "shared" and modules["perception"]["strategy"] == "shared"
+    assert "scaling" not in modules["perception"]
+    assert "edge-scaled" not in scenario.MATRIX and "scaling" not in str(scenario.strategy_spec("edge-shared", 12, 3))
+
+
+def test_the_planners_queue_gauge_is_a_windowed_mean_the_scaler_can_read():
+    from kuberos_pnp.planner import GAUGE, Load
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.signals import gauge_value
+
+    load = Load(window=10.0)
+    for tenth in range(200):  # 20 s: busy with 2 requests for the first 9 s, then idle
+        load.sample(tenth / 10, 2 if tenth < 90 else 0)
+    assert load.mean() == 0.0
+    load.sample(20.1, 3)
+    assert 0 < load.mean() < 0.1
+    assert gauge_value(load.exposition(robots=4), GAUGE) == round(load.mean(), 4)
+    assert gauge_value(load.exposition(robots=4), "kuberos_planner_robots") == 4

@@ -176,8 +176,8 @@ def test_the_example_renders_a_robots_configmap_instead_of_a_robots_variable(roo
     container = deployment["spec"]["template"]["spec"]["containers"][0]
     env = {e["name"]: e.get("value") for e in container["env"]}
     assert "KUBEROS_ROBOTS" not in env  # the pod template never changes when robots move
-    assert env["KUBEROS_ROBOTS_FILE"] == f"/etc/kuberos/robots/{placement.instances[0].name}"
-    assert {"name": "robots", "mountPath": "/etc/kuberos/robots", "readOnly": True} in container["volumeMounts"]
+    assert env["KUBEROS_ROBOTS_FILE"] == f"/etc/kuberos-robots/{placement.instances[0].name}"
+    assert {"name": "robots", "mountPath": "/etc/kuberos-robots", "readOnly": True} in container["volumeMounts"]
 
 
 @pytest.mark.parametrize(

@@ -53,7 +53,7 @@ BRIDGE_TOPICS_DIR = "/etc/kuberos-bridge/topics"
 BRIDGE_METRICS_PORT = 9090
 PARAMS_DIR = "/etc/kuberos"
 PARAMS_FILE = "params.yaml"
-ROBOTS_DIR = "/etc/kuberos/robots"  # a scaled module's robots ConfigMap: one file per instance, updated in place
+ROBOTS_DIR = "/etc/kuberos-robots"  # a scaled module's robots: one file per instance (beside the parameters volume)
 RMW = "rmw_fastrtps_cpp"
 
 

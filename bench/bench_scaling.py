@@ -1,0 +1,176 @@
+#!/usr/bin/env python3
+"""Scaling benchmark: the edge planner scaled on its queue, against one planner per robot and a fixed shared one.
+
+In the simulator (docs/simulation.md; real ROS 2 modules, real physics, real load; as root), for each fleet size of
+``--robots`` at ``--rate`` tasks per minute and robot, one after the other in the same invocation:
+
+- ``edge-dedicated``: a planner (and a perception) per robot on the edge servers;
+- ``edge-shared``: one planner (and one perception) per 4 robots, fixed;
+- ``edge-scaled``: as edge-shared, the planner scaled on ``kuberos_planner_queue_depth`` between 1 and 8 instances
+  (``kuberos_sim.scenario.PLANNER_SCALING``) by the controller's scaling step (``kuberos_sim.scaler``).
+
+Per run: planning latency p50/p95 as the coordinators measured it, the modules' CPU-seconds (robots, edge and cloud
+cgroups over the window from all robots ready to the last cycle; the physics apart) and, for edge-scaled, the
+planner's instances over time. The results print as Markdown; ``--json`` writes them (headline keys
+``dedicated_p50_ms``, ``scaled_p50_ms``, ``dedicated_cpu_s``, ``scaled_cpu_s`` for the first fleet size, and every
+run under ``runs``); ``--plot`` draws the instances over time.
+
+    sudo .venv/bin/python bench/bench_scaling.py --json bench/results/scaling.json --plot docs/images/scaling-instances.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path[:0] = [os.path.join(ROOT, "sim"), os.path.join(ROOT, ".collections")]
+
+from kuberos_sim import evaluate  # noqa: E402
+
+STRATEGIES = ("edge-dedicated", "edge-shared", "edge-scaled")
+TARGET_LATENCY_RATIO = 1.25
+
+
+def cpu_seconds(row: dict) -> float:
+    """The modules' CPU over the run: robots', edge and cloud cgroups (cores x window), the physics apart."""
+    cores = sum(row.get(k) or 0.0 for k in ("cpu_onboard_cores", "cpu_edge_cores", "cpu_cloud_cores"))
+    return round(cores * (row.get("window_s") or 0.0), 1)
+
+
+def summary(row: dict) -> dict:
+    scaled = row.get("scaling") or {}
+    return {
+        "strategy": row["strategy"],
+        "robots": row.get("robots"),
+        "seed": row.get("seed"),
+        "finished": row.get("finished"),
+        "cycles": row.get("cycles"),
+        "cycles_ok": row.get("cycles_ok"),
+        "plan_p50_ms": row.get("plan_p50_ms"),
+        "plan_p95_ms": row.get("plan_p95_ms"),
+        "cycle_p50_s": row.get("cycle_p50_s"),
+        "cpu_s": cpu_seconds(row),
+        "cpu_edge_s": round((row.get("cpu_edge_cores") or 0.0) * (row.get("window_s") or 0.0), 1),
+        "window_s": row.get("window_s"),
+        "cpu_outside_cores": row.get("cpu_outside_cores"),
+        "instances_mean": scaled.get("instances_mean"),
+        "instances_max": scaled.get("instances_max"),
+        "steps": scaled.get("steps"),
+        "timeline": scaled.get("timeline"),
+        "error": row.get("error"),
+    }
+
+
+def table(runs: list[dict]) -> str:
+    lines = [
+        "| robots | strategy | plan p50 ms | plan p95 ms | module CPU-s | edge CPU-s | window s | cycles ok | planners |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        planners = f"{r['instances_mean']}, {r['instances_max']}" if r["instances_mean"] is not None else "-"
+        lines.append(
+            f"| {r['robots']} | {r['strategy']} | {r['plan_p50_ms']} | {r['plan_p95_ms']} | {r['cpu_s']} | {r['cpu_edge_s']} | "
+            f"{r['window_s']} | {r['cycles_ok']}/{r['cycles']} | {planners} |"
+        )
+    return "\n".join(lines)
+
+
+def plot(runs: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sizes = sorted({r["robots"] for r in runs})
+    fig, axes = plt.subplots(1, len(sizes), figsize=(6 * len(sizes), 3.6), squeeze=False)
+    for axis, robots in zip(axes[0], sizes, strict=True):
+        for r in runs:
+            if r["robots"] != robots:
+                continue
+            end = r["window_s"] or 0
+            if r["strategy"] == "edge-scaled" and r["timeline"]:
+                times = [p["t"] for p in r["timeline"]]
+                axis.step(times, [p["instances"] for p in r["timeline"]], where="post", label="scaled: planners", color="C2")
+                values = [p["value"] if p["value"] is not None else float("nan") for p in r["timeline"]]
+                twin = axis.twinx()
+                twin.plot(times, values, color="C2", alpha=0.35, linestyle=":", label="queue per planner")
+                twin.set_ylabel("queue per planner (10 s mean)")
+            else:
+                count = robots if r["strategy"] == "edge-dedicated" else -(-robots // 4)
+                axis.hlines(count, 0, end, colors="C0" if r["strategy"] == "edge-dedicated" else "C1",
+                            label=f"{r['strategy'].replace('edge-', '')}: planners")  # fmt: skip
+        axis.set_title(f"{robots} robots, edge planners over the run")
+        axis.set_xlabel("seconds since every robot was ready")
+        axis.set_ylabel("planner instances")
+        axis.set_ylim(0, robots + 1)
+        axis.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--robots", default="4,8", help="fleet sizes, comma separated (default 4,8)")
+    parser.add_argument("--rate", type=float, default=12.0, help="pick tasks per minute and robot (default 12)")
+    parser.add_argument("--cycles", type=int, default=5, help="pick cycles per robot (default 5)")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--cpu-scale", type=float, default=0.125, help="cgroup cores per inventory CPU (default 0.125)")
+    parser.add_argument("--time-limit", type=float, default=600.0, help="seconds per run after start-up (default 600)")
+    parser.add_argument("--out", default=os.path.join(ROOT, "bench", "out", "scaling"), help="run directories")
+    parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--plot", help="draw the planners over time here (PNG)")
+    args = parser.parse_args(argv)
+    sizes = [int(n) for n in args.robots.split(",") if n.strip()]
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    runs = []
+    for robots in sizes:
+        for strategy in STRATEGIES:
+            evaluate.progress(f"{strategy}, {robots} robots, {args.rate:g} tasks/min, {args.cycles} cycles")
+            try:
+                row = evaluate.run_one(
+                    strategy, robots, args.rate, args.cycles, args.out, args.seed, args.time_limit, args.cpu_scale
+                )
+            except Exception as exc:  # a failed run is reported, the others still run
+                row = {"strategy": strategy, "robots": robots, "error": f"{type(exc).__name__}: {exc}"[:500]}
+            runs.append(summary(row))
+            evaluate.progress(f"  p50 {runs[-1]['plan_p50_ms']} ms, module CPU {runs[-1]['cpu_s']} s")
+    print(table(runs))
+    first = [r for r in runs if r["robots"] == sizes[0]]
+    by = {r["strategy"]: r for r in first}
+    result = {
+        "dedicated_p50_ms": by.get("edge-dedicated", {}).get("plan_p50_ms"),
+        "scaled_p50_ms": by.get("edge-scaled", {}).get("plan_p50_ms"),
+        "shared_p50_ms": by.get("edge-shared", {}).get("plan_p50_ms"),
+        "dedicated_cpu_s": by.get("edge-dedicated", {}).get("cpu_s"),
+        "scaled_cpu_s": by.get("edge-scaled", {}).get("cpu_s"),
+        "shared_cpu_s": by.get("edge-shared", {}).get("cpu_s"),
+        "headline_robots": sizes[0],
+        "target_latency_ratio": TARGET_LATENCY_RATIO,
+        "runs": runs,
+        "command": " ".join(["bench/bench_scaling.py", *(argv if argv is not None else sys.argv[1:])]),
+        "commit": evaluate.git_commit(),
+        "machine": f"{os.cpu_count()} cores, {platform.machine()}",
+        "date": started,
+    }
+    if args.json:
+        previous = {}
+        if os.path.exists(args.json):
+            with open(args.json, encoding="utf-8") as handle:
+                previous = json.load(handle)
+        for key in ("vms_provisioned", "vms_released", "burst"):  # the burst run's, written by its own benchmark
+            if key in previous:
+                result[key] = previous[key]
+        with open(args.json, "w", encoding="utf-8") as handle:
+            json.dump(result, handle, indent=1)
+    if args.plot:
+        plot(runs, args.plot)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
