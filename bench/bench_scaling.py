@@ -117,7 +117,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--robots", default="4,8", help="fleet sizes, comma separated (default 4,8)")
     parser.add_argument("--rate", type=float, default=12.0, help="pick tasks per minute and robot (default 12)")
-    parser.add_argument("--cycles", type=int, default=5, help="pick cycles per robot (default 5)")
+    parser.add_argument("--cycles", type=int, default=4, help="pick cycles per robot, 1 to 4 (default 4)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--cpu-scale", type=float, default=0.125, help="cgroup cores per inventory CPU (default 0.125)")
     parser.add_argument("--time-limit", type=float, default=600.0, help="seconds per run after start-up (default 600)")

@@ -216,3 +216,63 @@ def deployments_denied(api_client, name: str, expression: str, message: str):
     finally:
         admission.delete_validating_admission_policy_binding(name)
         admission.delete_validating_admission_policy(name)
+
+
+class MotoServer:
+    """moto's server mode (PyPI ``moto``): the real EC2 query API on 127.0.0.1, refusing unknown images and instance
+    types as AWS does. Started by the cloud tests; ``amazon.aws`` reaches it through ``endpoint_url``."""
+
+    REGION = "eu-central-1"
+
+    def __init__(self, log_path, port=None):
+        self.port = port or free_ports()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = str(log_path)
+        self.process = None
+
+    def start(self, timeout=60):
+        import time
+        import urllib.request
+
+        env = {**os.environ, "MOTO_ENABLE_AMI_VALIDATION": "1", "MOTO_EC2_ENABLE_INSTANCE_TYPE_VALIDATION": "1"}
+        with open(self.log_path, "ab") as log:
+            self.process = subprocess.Popen(
+                [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(self.port)],
+                stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True,
+            )  # fmt: skip
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                break
+            try:
+                with urllib.request.urlopen(f"{self.url}/moto-api/", timeout=2) as answer:
+                    if answer.status == 200:
+                        return self
+            except OSError:
+                time.sleep(0.2)
+        self.stop()
+        with open(self.log_path, encoding="utf-8", errors="replace") as log:
+            raise RuntimeError(f"moto's server did not answer on {self.url} within {timeout} s:\n{log.read()[-3000:]}")
+
+    def reset(self):
+        """Forget every instance (the state of a fresh emulator)."""
+        import urllib.request
+
+        urllib.request.urlopen(urllib.request.Request(f"{self.url}/moto-api/reset", method="POST"), timeout=10).close()
+
+    def stop(self):
+        if self.process and self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(timeout=10)
+
+    def ec2(self):
+        """A boto3 EC2 client of the emulator, with the dummy credentials moto accepts."""
+        import boto3
+
+        return boto3.client(
+            "ec2", endpoint_url=self.url, region_name=self.REGION, aws_access_key_id="testing", aws_secret_access_key="testing"
+        )

@@ -14,11 +14,11 @@ Every read is bounded by a timeout; a pod that does not answer gives no value (n
 
 from __future__ import annotations
 
+import http.client
 import json
 import logging
 import re
 import urllib.parse
-import urllib.request
 
 log = logging.getLogger("kuberos.controller.signals")
 TIMEOUT_S = 2.0
@@ -52,8 +52,23 @@ def gauge_value(text: str, metric: str) -> float | None:
 
 
 def _get(url: str, timeout: float) -> bytes:
-    with urllib.request.urlopen(url, timeout=timeout) as response:  # http to a pod or to Prometheus
-        return response.read(4 * 1024 * 1024)
+    """GET over plain HTTP (a pod's /metrics, a Prometheus query); at most 4 MiB; OSError unless 200."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme not in ("http", "https"):
+        raise ValueError(f"not an http(s) URL: {url}")
+    connection_class = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
+    connection = connection_class(parts.hostname, parts.port, timeout=timeout)
+    try:
+        connection.request("GET", parts.path + (f"?{parts.query}" if parts.query else ""))
+        response = connection.getresponse()
+        body = response.read(4 * 1024 * 1024)
+        if response.status != 200:
+            raise OSError(f"{url}: HTTP {response.status}")
+        return body
+    except http.client.HTTPException as exc:
+        raise OSError(f"{url}: {exc}") from exc
+    finally:
+        connection.close()
 
 
 class Signals:
