@@ -251,7 +251,7 @@ def test_simulated_nodes_are_kwok_cloud_nodes_with_the_types_capacity():
     assert labels["kuberos.io/role"] == "cloud" and labels["kuberos.io/shared"] == "false"
     assert labels["fleet-access.kuberos.io/picking"] == "true"
     assert labels["resource-group.kuberos.io/name"] == "cloud-eu-central-1"
-    assert node["metadata"]["annotations"] == {"kwok.x-k8s.io/node": "fake"}
+    assert node["metadata"]["annotations"] == {"kwok.x-k8s.io/node": "fake", "kuberos.io/latency-ms": "35"}
     assert node["status"]["capacity"] == {"cpu": "4", "memory": "16Gi", "pods": "110", "nvidia.com/gpu": "1"}
     assert "spec" not in node  # no robot taint on a cloud node
     assert cloud_vm_nodes({"all": {"children": {"cloud": {"hosts": {}}}}}) == []
@@ -327,3 +327,46 @@ def test_every_problem_is_reported_at_once_and_the_filter_says_the_same():
 def test_counts_given_as_text_on_the_command_line_are_taken():
     assert settings(count="3").request.count == 3
     assert settings(budget={**BUDGET, "max_vms": "2"}).budget.max_vms == 2
+
+
+# -- burst: the VM count from the controller's demand -------------------------------------------------------------
+def _burst(demand, vms=(), busy=(), now=1000.0, release_after=60.0):
+    checked = settings()
+    return cloud.burst(demand, list(vms), set(busy), checked.request, checked.budget, now, release_after)
+
+
+def test_a_demand_asks_for_the_vms_that_hold_it_less_those_still_joining():
+    demand = {"instances": 2, "cpu_millis": 3000, "memory_bytes": 2 * 1024**3, "gpu": 0, "modules": ["app/planner"]}
+    first = _burst(demand)
+    assert (first.count, first.release) == (2, ())  # 3 cores on 2-core t3.large VMs
+    assert "app/planner" in first.why
+    joining = _burst(demand, vms=[vm(1)], busy=())
+    assert joining.count == 2 and "1 joining or not yet used" in joining.why  # one is there, idle: one more
+    used = _burst(demand, vms=[vm(1)], busy={vm(1).name})
+    assert used.count == 3  # the VM runs something already: two more
+    gpu = _burst({**demand, "gpu": 1})
+    assert gpu.count == 10**6, "t3.large has no GPU: asks for more than any budget, and the plan refuses it"
+
+
+def test_without_demand_idle_vms_go_only_after_the_quiet_period():
+    quiet = {"instances": 0, "quiet_since": "1970-01-01T00:15:40Z"}  # 940 s after the epoch
+    vms = [vm(1), vm(2)]
+    early = _burst(quiet, vms=vms, busy={vm(1).name}, now=990.0)
+    assert (early.count, early.release) == (2, ()) and "50 of 60 s" in early.why
+    late = _burst(quiet, vms=vms, busy={vm(1).name}, now=1001.0)
+    assert (late.count, late.release) == (1, (vm(2).name,))
+    busy = _burst(quiet, vms=vms, busy={vm(1).name, vm(2).name}, now=5000.0)
+    assert busy.release == () and busy.count == 2
+    assert _burst(None, vms=vms).release == (), "no demand ConfigMap yet: nothing is released"
+    other_fleet = _burst(quiet, vms=[vm(3, fleet="other")], now=5000.0)
+    assert (other_fleet.count, other_fleet.release) == (0, ())
+
+
+def test_the_burst_filter_reads_the_configmap_and_the_pods():
+    from ansible_collections.kuberos.platform.plugins.filter.cloud_vm_burst import cloud_vm_burst
+
+    demand = '{"instances": 1, "cpu_millis": 500, "memory_bytes": 1, "gpu": 0, "modules": ["a/b"]}'
+    result = cloud_vm_burst(
+        [instance(vm(1))], SETTINGS, [{"data": {"demand.json": demand}}], [{"spec": {"nodeName": vm(1).name}}], 60, 0
+    )
+    assert result == {"count": 2, "release": [], "why": "1 instance(s) of a/b lack room; 1 more VM(s) of t3.large"}

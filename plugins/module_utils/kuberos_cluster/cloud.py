@@ -27,7 +27,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels, quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe, did_you_mean
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import Node
 
@@ -452,7 +452,13 @@ def cloud_node(name: str, variables: dict) -> Node:
 
 def simulated_nodes(hosts: dict[str, dict]) -> list[dict]:
     """kwok Node objects for the local cluster: the cloud node labels and the capacity of each VM's type."""
-    return [simulated_node(cloud_node(name, variables)) for name, variables in sorted(hosts.items())]
+    nodes = []
+    for name, variables in sorted(hosts.items()):
+        node = cloud_node(name, variables)
+        obj = simulated_node(node)
+        obj["metadata"].setdefault("annotations", {})[labels.LATENCY_ANNOTATION] = f"{node.latency_ms:g}"
+        nodes.append(obj)
+    return nodes
 
 
 # ---------------------------------------------------------------------------------------------------- the settings
@@ -606,3 +612,63 @@ def _instance_type(name, spec, problem) -> InstanceType | None:
     price = _price(spec.get("hourly_price"), f"{where}.hourly_price", problem)
     most = None if spec.get("max") is None else _whole(spec.get("max"), f"{where}.max", problem)
     return InstanceType(str(name), values["cpu"], values["memory"], gpu, str(arch), price, most)
+
+
+# ------------------------------------------------------------------------------------------------------------- burst
+@dataclass(frozen=True)
+class Burst:
+    """How many VMs a fleet should have now, and which idle ones go: from the controller's demand (docs/cloud.md)."""
+
+    count: int
+    release: tuple[str, ...]
+    why: str
+
+    def as_dict(self) -> dict:
+        return {"count": self.count, "release": list(self.release), "why": self.why}
+
+
+def _epoch(stamp: str) -> float | None:
+    import datetime
+
+    try:
+        return datetime.datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
+    except (AttributeError, ValueError):
+        return None
+
+
+def burst(demand: dict | None, vms, busy: set, request: Request, budget: Budget, now: float, release_after_s: float) -> Burst:
+    """The VM count for a fleet from the capacity it lacks (``demand``: the controller's ``demand.json``; ``busy``:
+    the nodes that run KubeROS pods).
+
+    - Demand: enough VMs of the request's type to hold what is lacking (CPU, memory, GPU), less the fleet's VMs that
+      run nothing yet (they are joining, or their modules are being placed), on top of the VMs it has.
+    - No demand: VMs that run nothing are released once the fleet has had no demand for ``release_after_s`` seconds
+      (drained first by the role); the others stay.
+    Budget limits apply afterwards, in ``plan``."""
+    fleet_vms = sorted(
+        (vm for vm in vms if vm.site == request.site.name and vm.fleet == request.fleet and vm.state in ("pending", "running")),
+        key=lambda vm: vm.name,
+    )
+    idle = [vm.name for vm in fleet_vms if vm.name not in busy]
+    demand = demand or {}
+    if int(demand.get("instances") or 0) > 0:
+        kind = budget.instance_type(request.instance_type)
+        if kind is None:
+            return Burst(len(fleet_vms), (), f"instance type {request.instance_type} is not in the budget")
+        needs = [math.ceil(int(demand.get("cpu_millis") or 0) / max(kind.cpu_millis, 1)),
+                 math.ceil(int(demand.get("memory_bytes") or 0) / max(kind.memory_bytes, 1)), 1]  # fmt: skip
+        if int(demand.get("gpu") or 0):
+            needs.append(math.ceil(int(demand["gpu"]) / kind.gpu) if kind.gpu else 10**6)
+        wanted = max(0, max(needs) - len(idle))
+        modules = ", ".join(demand.get("modules") or [])
+        return Burst(
+            len(fleet_vms) + wanted, (),
+            f"{demand['instances']} instance(s) of {modules} lack room; {wanted} more VM(s) of {kind.name}"
+            + (f" ({len(idle)} joining or not yet used)" if idle else ""),
+        )  # fmt: skip
+    quiet = _epoch(demand.get("quiet_since") or "")
+    quiet_for = now - quiet if quiet is not None else 0.0
+    if idle and quiet is not None and quiet_for >= release_after_s:
+        return Burst(len(fleet_vms) - len(idle), tuple(idle), f"no demand for {quiet_for:.0f} s; {', '.join(idle)} run nothing")
+    why = "no demand" + (f" for {quiet_for:.0f} of {release_after_s:g} s" if idle else "; every VM is in use")
+    return Burst(len(fleet_vms), (), why)

@@ -8,12 +8,15 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shlex
 import signal
 import socket
 import sys
+import threading
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import Settings
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import leader_election
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.burst import Burst
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.controller import (
     LEASE_NAME,
     LEASE_NAMESPACE,
@@ -65,6 +68,20 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="read scaled modules' own load metrics from this Prometheus (e.g. http://prometheus:9090) instead of "
         "from each pod's /metrics",
     )
+    burst = parser.add_argument_group(
+        "cloud burst", "provision cloud VMs when a fleet lacks room, release them after the peak (docs/cloud.md)"
+    )
+    burst.add_argument(
+        "--burst-command",
+        default="",
+        help="the provisioner to run with '-e cloud_vms_fleet=<fleet>' appended, e.g. 'ansible-playbook "
+        "playbooks/cloud.yml -i inventories/local -e cloud_vms_burst=true -e cloud_vms_image_id=ami-...' (split like a "
+        "shell would, run without one); empty: only the kuberos-capacity ConfigMaps are written",
+    )
+    burst.add_argument(
+        "--burst-release-after", type=float, default=300.0,
+        help="seconds without demand before the provisioner runs to release idle VMs (default %(default)s)",
+    )  # fmt: skip
     election = parser.add_argument_group(
         "leader election", "several replicas may run; only the holder of a coordination.k8s.io Lease acts (docs/controller.md)"
     )
@@ -186,6 +203,9 @@ def main(argv=None) -> int:
             api_client, args.lease_namespace, args.lease_name, controller.identity, timings,
             on_change=lambda leading: controller.changed.set(), stand_down=lambda: controller.stand_down(args.node_name),
         )  # fmt: skip
+    if args.burst_command:
+        controller.burst = Burst(shlex.split(args.burst_command), args.burst_release_after)
+        threading.Thread(target=controller.burst.run, args=(controller.stop_event,), name="burst", daemon=True).start()
     dashboard = start_dashboard(controller, args, api_client)
     signal.signal(signal.SIGTERM, lambda *_: (controller.stop_event.set(), controller.changed.set()))
     signal.signal(signal.SIGINT, lambda *_: (controller.stop_event.set(), controller.changed.set()))

@@ -168,6 +168,8 @@ class Controller:
         self.scaling_status: dict[tuple[str, str], list[dict]] = {}  # record -> one summary per scaled module
         self.shortfalls: list[capacity.Shortfall] = []  # this pass: instances that may run in the cloud, without room
         self.demand_written: dict[str, dict] = {}  # fleet namespace -> the demand.json last written
+        self.fleet_of: dict[str, str] = {}  # fleet namespace -> fleet
+        self.burst = None  # a Burst runner (--burst-command): provisions cloud VMs when a fleet lacks room
 
     # -- fencing --------------------------------------------------------------------------------
     def _may_write(self) -> dict:
@@ -430,9 +432,10 @@ class Controller:
             pass
 
     def _with_live_nodes(self, record: Record) -> Record:
-        """The record with the edge and cloud nodes that joined the cluster since deploy (cloud VMs provisioned for a
-        peak) added to its resource model (``labels.node_from_cluster``); a node without a latency annotation takes
-        the largest latency of the record's own nodes of its tier."""
+        """The record with the edge and cloud nodes that joined the cluster since deploy for the record's fleet (cloud VMs
+        provisioned for a peak: labelled with the fleet's access) added to its resource model
+        (``labels.node_from_cluster``); a node without a latency annotation takes the largest latency of the record's
+        own nodes of its tier. Other new nodes are the inventory's to announce (deploy again)."""
         latency: dict[str, float] = {}
         for node in record.inventory.nodes.values():
             latency[node.tier] = max(latency.get(node.tier, 0.0), node.latency_ms)
@@ -443,7 +446,7 @@ class Controller:
                 continue
             tier = {v: k for k, v in node_labels.ROLES.items()}.get(labels.get(node_labels.ROLE, ""), "")
             node = node_labels.node_from_cluster(obj, latency.get(tier, 50.0))
-            if node is not None:
+            if node is not None and record.spec.fleet in node.fleets:
                 extra.append(node)
         return dataclasses.replace(record, inventory=record.inventory.with_nodes(extra)) if extra else record
 
@@ -452,6 +455,7 @@ class Controller:
         if record is None:
             return None
         record = self._with_live_nodes(record)
+        self.fleet_of[record.namespace] = record.spec.fleet
         # A fleet's discovery servers are the fleet's: where their Deployments pin them is the truth for every
         # record of the fleet (another deployment's pass, or a deploy, may have moved one since this record was written).
         live = discovery_from_deployments(
@@ -695,14 +699,29 @@ class Controller:
         self._write_demand(sorted(fleets))
         return min(wake) if wake else None
 
+    def _read_demand(self, namespace: str) -> dict | None:
+        from kubernetes.client.exceptions import ApiException
+
+        try:
+            configmap = self.core.read_namespaced_config_map(capacity.CONFIGMAP, namespace)
+            return json.loads((configmap.data or {}).get(capacity.KEY) or "null")
+        except ApiException as exc:
+            if exc.status != 404:
+                raise
+        except ValueError:
+            pass
+        return None
+
     def _write_demand(self, namespaces: list[str]) -> None:
         """What each fleet lacks (``capacity.demand``) into its ``kuberos-capacity`` ConfigMap, for a cloud
         provisioner (docs/cloud.md); written when it changes."""
         by_fleet = capacity.demand(self.shortfalls)
         for namespace in namespaces:
-            fleet = next((s.fleet for s in self.shortfalls if naming.fleet_namespace(s.fleet) == namespace), "")
-            previous = self.demand_written.get(namespace)
-            if previous is None and not fleet:
+            fleet = self.fleet_of.get(namespace, "")
+            if namespace not in self.demand_written:
+                self.demand_written[namespace] = self._read_demand(namespace)  # what an earlier leader wrote
+            previous = self.demand_written[namespace]
+            if previous is None and fleet not in by_fleet:
                 continue  # nothing lacking, and nothing said before: no ConfigMap to write
             current = capacity.advance(previous, by_fleet.get(fleet), _now_rfc3339())
             if current == previous:
@@ -713,12 +732,14 @@ class Controller:
                 "metadata": {
                     "name": capacity.CONFIGMAP,
                     "namespace": namespace,
-                    "labels": {MANAGED_BY: CONTROLLER_MANAGER},
+                    "labels": {MANAGED_BY: CONTROLLER_MANAGER, node_labels.FLEET: fleet},
                 },
                 "data": {capacity.KEY: json.dumps(current, sort_keys=True)},
             }
             self._apply(body, CONTROLLER_MANAGER)
             self.demand_written[namespace] = current
+            if self.burst is not None:
+                self.burst.demand_changed(fleet, current)
 
     # -- running ----------------------------------------------------------------------------
     def run_once(self) -> None:
