@@ -42,8 +42,9 @@ FIRST, SECOND = "scaled-planning-motion-planner-shared-0", "scaled-planning-moti
 class Exporters:
     """One HTTP exporter per instance, its gauge set by the test; Prometheus finds them through a targets file."""
 
-    def __init__(self, targets_file: str):
+    def __init__(self, targets_file: str, namespace: str = NAMESPACE):
         self.targets_file = targets_file
+        self.namespace = namespace
         self.values: dict[str, float] = {}
         self.servers: dict[str, http.server.ThreadingHTTPServer] = {}
         self.publish({})
@@ -71,7 +72,7 @@ class Exporters:
     def publish(self, pods: dict[str, str]) -> None:
         """pods: pod name -> instance. Written atomically: Prometheus watches the file."""
         groups = [
-            {"targets": [f"127.0.0.1:{self._server(inst)}"], "labels": {"namespace": NAMESPACE, "pod": pod}}
+            {"targets": [f"127.0.0.1:{self._server(inst)}"], "labels": {"namespace": self.namespace, "pod": pod}}
             for pod, inst in sorted(pods.items())
         ]
         with open(self.targets_file + ".tmp", "w", encoding="utf-8") as handle:

@@ -190,6 +190,17 @@ def _cluster_view(snapshot: Snapshot, names: dict[str, str], nodes: dict[str, di
     return view, images, started
 
 
+# The timeline's kinds of the controller's Events (anything else: "event").
+EVENT_KINDS = {
+    "ModuleMoved": "move",
+    "ModuleStranded": "stranded",
+    "ModuleScaledUp": "scale",
+    "ModuleScaledDown": "scale",
+    "ModuleInstanceStopped": "scale",
+    "ModuleScaleBlocked": "scale",
+}
+
+
 def pod_view(pod: dict, names: dict[str, str]) -> PodView | None:
     """What the reconciler needs of a KubeROS pod (None for a pod of no module instance); ``names`` maps Kubernetes node
     names to inventory names."""
@@ -396,7 +407,7 @@ def _events(snapshot: Snapshot, usable: list[Record], nodes: list[dict]) -> list
         timeline.append(
             {
                 "at": event.get("lastTimestamp") or event.get("eventTime") or meta.get("creationTimestamp") or "",
-                "kind": {"ModuleMoved": "move", "ModuleStranded": "stranded"}.get(event.get("reason", ""), "event"),
+                "kind": EVENT_KINDS.get(event.get("reason", ""), "event"),
                 "reason": event.get("reason", ""),
                 "namespace": meta.get("namespace", ""),
                 "object": involved.get("name", ""),
