@@ -9,7 +9,8 @@
   - `edge-dedicated`: both on the edge, one instance per robot;
   - `edge-shared`: both on the edge, one instance per 4 robots (strategy shared);
   - `cloud`: both on the cloud VM, one instance per robot;
-  - `edge-scaled`: as edge-shared, the motion planner scaled on its request queue between 1 and 8 instances
+  - `edge-scaled`: as edge-shared, but the motion planner starts as one instance for up to 8 robots and is scaled on
+    its request queue between 1 and 8 instances
     (``PLANNER_SCALING``; the evaluation runs the controller's scaling step, kuberos_sim.scaler).
   The coordinator (shared, edge) and the controller (onboard) stay as the example has them; the workload
   rate, the number of pick cycles per robot, the seed (its IK restarts) and how long it waits for its robots'
@@ -33,7 +34,8 @@ EXAMPLE = os.path.join(ROOT, "examples", "pick-and-place.yml")
 FLEET = "sim-fleet"
 STRATEGIES = ("onboard", "edge-dedicated", "edge-shared", "cloud", "edge-scaled")
 MATRIX = STRATEGIES[:4]  # the evaluation's matrix; edge-scaled is compared apart (bench/bench_scaling.py)
-# edge-scaled: the planner shared as in edge-shared, scaled on its queue (docs/scaling.md); perception stays shared.
+# edge-scaled: the planner shared (up to 8 robots each, so it starts with one) and scaled on its queue between 1 and 8
+# instances (docs/scaling.md); perception stays shared by 4 as in edge-shared.
 PLANNER_SCALING = {
     "minInstances": 1,
     "maxInstances": 8,
@@ -102,6 +104,8 @@ def strategy_spec(
                 requirements["max_latency"] = "20 ms"
                 if strategy in ("edge-shared", "edge-scaled"):
                     module["strategy"], module["robotsPerInstance"] = "shared", 4
+                if strategy == "edge-scaled" and name == "motion-planner":
+                    module["robotsPerInstance"] = 8  # one planner may serve every robot; the load decides how many
                 if strategy == "edge-scaled" and name == "motion-planner":
                     module["scaling"] = dict(PLANNER_SCALING)
             else:

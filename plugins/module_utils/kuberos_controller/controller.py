@@ -169,6 +169,7 @@ class Controller:
         self.shortfalls: list[capacity.Shortfall] = []  # this pass: instances that may run in the cloud, without room
         self.demand_written: dict[str, dict] = {}  # fleet namespace -> the demand.json last written
         self.fleet_of: dict[str, str] = {}  # fleet namespace -> fleet
+        self.blocked: dict[tuple, str] = {}  # (namespace, deployment, module) -> the blocked scale-up last reported
         self.burst = None  # a Burst runner (--burst-command): provisions cloud VMs when a fleet lacks room
 
     # -- fencing --------------------------------------------------------------------------------
@@ -188,6 +189,7 @@ class Controller:
         self.windows.clear()
         self.robots_written.clear()
         self.demand_written.clear()
+        self.blocked.clear()
 
     # -- observing --------------------------------------------------------------------------
     def _node_names(self) -> dict[str, str]:
@@ -603,6 +605,8 @@ class Controller:
                 lambda robots, module=module, chooser=scheduler: chooser.choose(dep, module, tuple(robots)), fits,
             )  # fmt: skip
             summaries.append(result.summary)
+            if not any(reason == "ModuleScaleBlocked" for _n, reason, _m, _w in result.events):
+                self.blocked.pop((record.namespace, dep.name, module.name), None)
             if result.wake_at is not None:
                 wakes.append(result.wake_at)
             states[state_key] = result.state.to_dict()
@@ -611,6 +615,7 @@ class Controller:
                 placement = type(placement)(**{**placement.__dict__, "instances": others + result.instances})
             start.extend(result.start)
             stop.extend(result.stop)
+            blocked_key = (record.namespace, dep.name, module.name)
             for name, reason, message, warning in result.events:
                 if reason == "ModuleScaleBlocked" and "cloud" in module.tiers:
                     self.shortfalls.append(
@@ -624,6 +629,10 @@ class Controller:
                             message,
                         )
                     )
+                if reason == "ModuleScaleBlocked":
+                    if self.blocked.get(blocked_key) == message:
+                        continue  # said once; the shortfall above stands each pass
+                    self.blocked[blocked_key] = message
                 log.info("%s/%s: %s", record.namespace, dep.name, message)
                 events.append((name, reason, message, warning))
                 if self.metrics is not None:
