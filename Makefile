@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-dashboard controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -122,9 +122,15 @@ sim: setup
 	PYTHONPATH=$(CURDIR)/sim:$(CURDIR)/.collections $(VENV)/python -m kuberos_sim.evaluate --strategies $(STRATEGY) \
 	  --robots $(ROBOTS) --rates $(RATE) --cycles $(CYCLES) --out sim/out/$(STRATEGY)-$(ROBOTS)
 
-## The whole evaluation (strategies x fleet sizes x rates) into sim/results/: table, plots, command, commit, machine.
+## The whole evaluation (strategies x fleet sizes x rates x 3 seeds) into sim/results/: table with the seeds' spread,
+## plots, command, commit, machine (about 2 hours on 2 cores).
+SEEDS ?= 1-3
 evaluate: setup
-	PYTHONPATH=$(CURDIR)/sim:$(CURDIR)/.collections $(VENV)/python -m kuberos_sim.evaluate --out sim/results
+	PYTHONPATH=$(CURDIR)/sim:$(CURDIR)/.collections $(VENV)/python -m kuberos_sim.evaluate --seeds $(SEEDS) --out sim/results
+
+## Scaling: the edge planner scaled on its queue against dedicated and fixed shared planners (as root; docs/scaling.md).
+bench-scaling: setup
+	$(VENV)/python bench/bench_scaling.py --json bench/results/scaling.json --plot docs/images/scaling-instances.png
 
 clean:
 	rm -rf rendered bench/out sim/out .pytest_cache .hypothesis

@@ -12,13 +12,13 @@ import os
 import shlex
 import subprocess
 import sys
+import time
 
 import pytest
 import yaml
 from helpers import ROOT, MotoServer
 from test_controller import wait_for
-from test_dashboard import Prometheus
-from test_scaling_on_cluster import Exporters
+from test_scaling_on_cluster import watched_controller
 
 FLEET = "burst-fleet"
 NAMESPACE = f"kuberos-{FLEET}"
@@ -55,6 +55,7 @@ INVENTORY = {
         }
     }
 }
+REPORT_ENV = "KUBEROS_BURST_REPORT"
 BUDGET = {"max_vms": 1, "instance_types": {"t3.large": {"cpu": 2, "memory": "8Gi", "hourly_price": 0.0832}}}
 
 
@@ -81,9 +82,6 @@ def burst(cluster, tmp_path_factory):
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert deployed.returncode == 0, deployed.stdout[-4000:]
-    exporters = Exporters(str(work / "targets.json"), namespace=NAMESPACE)
-    discovery = [{"files": [exporters.targets_file], "refresh_interval": "1s"}]
-    prometheus = Prometheus(str(work), {}, [{"job_name": "modules", "file_sd_configs": discovery}])
     settings = {
         "cloud_vms_burst": True, "cloud_vms_release_after": 5, "cloud_vms_site": SITE, "cloud_vms_budget": BUDGET,
         "cloud_vms_endpoint_url": moto.url, "cloud_vms_region": moto.REGION, "cloud_vms_image_id": moto.image_id,
@@ -91,26 +89,12 @@ def burst(cluster, tmp_path_factory):
     }  # fmt: skip
     command = [os.path.join(os.path.dirname(sys.executable), "ansible-playbook"), os.path.join(ROOT, "playbooks", "cloud.yml"),
                "-i", str(site), "-e", json.dumps(settings)]  # fmt: skip
-    log = open(work / "controller.log", "w+", encoding="utf-8")
-    controller = subprocess.Popen(
-        [sys.executable, "-m", "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller",
-         "--kubeconfig", cluster.kubeconfig, "--grace", "2", "--resync", "1", "--no-leader-elect", "--dashboard-port", "0",
-         "--prometheus-url", f"http://127.0.0.1:{prometheus.port}", "--burst-command", shlex.join(command),
-         "--burst-release-after", "5"],
-        stdout=log, stderr=subprocess.STDOUT, env=env, cwd=ROOT,
-    )  # fmt: skip
     core, apps, _ = cluster.clients()
-    state = {"core": core, "apps": apps, "exporters": exporters, "moto": moto, "log": log, "site": site}
+    burst_args = ("--burst-command", shlex.join(command), "--burst-release-after", "5")
     try:
-        yield state
+        with watched_controller(cluster, work, NAMESPACE, *burst_args, env=env) as (exporters, _prometheus, log):
+            yield {"core": core, "apps": apps, "exporters": exporters, "moto": moto, "log": log, "site": site}
     finally:
-        controller.terminate()
-        try:
-            controller.wait(15)
-        except subprocess.TimeoutExpired:
-            controller.kill()
-        prometheus.close()
-        exporters.close()
         subprocess.run(
             [os.path.join(os.path.dirname(sys.executable), "ansible-playbook"), "playbooks/undeploy.yml", "-i", str(site),
              "-e", f"rosdeployment_file={spec}", "-e", f"kuberos_kubeconfig={cluster.kubeconfig}"],
@@ -120,7 +104,6 @@ def burst(cluster, tmp_path_factory):
             if node.metadata.name != "edge-3":
                 core.delete_node(node.metadata.name)
         moto.stop()
-        log.close()
 
 
 def _log(state) -> str:
@@ -160,19 +143,24 @@ def test_a_peak_the_edge_cannot_hold_gets_a_cloud_vm_which_is_released_after(bur
     state, exporters = burst, burst["exporters"]
     wait_for(lambda: _sync(state) or FIRST in exporters.servers, 60, "the first planner Running")
     assert _planners(state) == {FIRST: "edge-3"} and _vms(state) == {}
+    marks = {"peak": time.monotonic()}
     exporters.values[FIRST] = 3.0  # three times the target: two instances wanted, the edge holds one
 
     wait_for(lambda: _vms(state, "running"), 120, "a VM launched for the fleet", lambda: _log(state))
+    marks["vm_running"] = time.monotonic()
     assert list(_vms(state, "pending", "running")) == [VM], "the budget allows one VM"
     wait_for(lambda: _planners(state).get(SECOND) == VM, 120, "the second planner placed on the VM", lambda: _log(state))
     wait_for(lambda: _sync(state) or SECOND in exporters.servers, 60, "the second planner Running")
+    marks["placed"] = time.monotonic()
     blocked = state["core"].list_namespaced_event(NAMESPACE, field_selector="reason=ModuleScaleBlocked").items
     assert blocked and "no node" in blocked[0].message
     assert _demand(state)["instances"] == 0, "once placed, the fleet lacks nothing"
 
     exporters.values[FIRST] = exporters.values[SECOND] = 0.0  # the peak is over
+    marks["peak_over"] = time.monotonic()
     wait_for(lambda: SECOND not in _planners(state), 60, "the VM's planner drained and removed", lambda: _log(state))
     wait_for(lambda: _vms(state, "terminated") == {VM: "terminated"}, 120, "the idle VM released", lambda: _log(state))
+    marks["released"] = time.monotonic()
     wait_for(lambda: not [n for n in state["core"].list_node().items if n.metadata.name == VM], 30, "its node removed")
     assert _planners(state) == {FIRST: "edge-3"}, "the edge planner stayed where it was"
     wait_for(lambda: f"released ['{VM}']" in _log(state), 60, "the provisioner's run reported", lambda: _log(state))
@@ -181,3 +169,14 @@ def test_a_peak_the_edge_cannot_hold_gets_a_cloud_vm_which_is_released_after(bur
     assert "burst-secret-not-for-output" not in text, "credentials never reach the controller's log"
     robots = state["core"].read_namespaced_config_map("burst-planning-motion-planner-robots", NAMESPACE).data
     assert robots == {FIRST: "burst-1,burst-2"}
+    if os.environ.get(REPORT_ENV):  # the burst figures for bench/results/scaling.json (bench/RESULTS.md says how)
+        figures = {
+            "vms_provisioned": len(_vms(state)),
+            "vms_released": len(_vms(state, "terminated")),
+            "peak_to_vm_running_s": round(marks["vm_running"] - marks["peak"], 1),
+            "peak_to_instance_running_s": round(marks["placed"] - marks["peak"], 1),
+            "peak_over_to_vm_released_s": round(marks["released"] - marks["peak_over"], 1),
+            "release_after_s": 5, "scale_down_window_s": 6, "drain_s": 3,
+        }  # fmt: skip
+        with open(os.environ[REPORT_ENV], "w", encoding="utf-8") as handle:
+            json.dump(figures, handle, indent=1)

@@ -7,6 +7,7 @@ within the window, and down with a drain: the robots move to the instance that s
 
 from __future__ import annotations
 
+import contextlib
 import http.server
 import json
 import os
@@ -85,31 +86,23 @@ class Exporters:
             server.server_close()
 
 
-@pytest.fixture(scope="module")
-def scaled(cluster, tmp_path_factory):
-    work = tmp_path_factory.mktemp("scaling")
-    spec = work / "scaled-planning.yml"
-    spec.write_text(SPEC)
-    deployed = cluster.deploy(str(spec), work / "render")
-    assert deployed.returncode == 0, deployed.stdout[-4000:]
-    exporters = Exporters(str(work / "targets.json"))
-    prometheus = Prometheus(
-        str(work),
-        {},
-        [{"job_name": "modules", "file_sd_configs": [{"files": [exporters.targets_file], "refresh_interval": "1s"}]}],
-    )
+@contextlib.contextmanager
+def watched_controller(cluster, work, namespace: str, *extra: str, env=None):
+    """A controller process (no leader election, 1 s resync) that reads module gauges from a real Prometheus, which
+    scrapes one exporter per instance pod (``Exporters``); yields (exporters, prometheus, the controller's log)."""
+    exporters = Exporters(str(work / "targets.json"), namespace=namespace)
+    discovery = [{"files": [exporters.targets_file], "refresh_interval": "1s"}]
+    prometheus = Prometheus(str(work), {}, [{"job_name": "modules", "file_sd_configs": discovery}])
     log = open(work / "controller.log", "w+", encoding="utf-8")
-    env = {**os.environ, "PYTHONPATH": os.path.join(ROOT, ".collections")}
     controller = subprocess.Popen(
         [sys.executable, "-m", "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller",
          "--kubeconfig", cluster.kubeconfig, "--grace", "2", "--resync", "1", "--no-leader-elect", "--dashboard-port", "0",
-         "--prometheus-url", f"http://127.0.0.1:{prometheus.port}"],
-        stdout=log, stderr=subprocess.STDOUT, env=env,
+         "--prometheus-url", f"http://127.0.0.1:{prometheus.port}", *extra],
+        stdout=log, stderr=subprocess.STDOUT, env=env or {**os.environ, "PYTHONPATH": os.path.join(ROOT, ".collections")},
+        cwd=ROOT,
     )  # fmt: skip
-    core, apps, _ = cluster.clients()
-    state = {"core": core, "apps": apps, "exporters": exporters, "prometheus": prometheus, "log": log, "spec": str(spec)}
     try:
-        yield state
+        yield exporters, prometheus, log
     finally:
         controller.terminate()
         try:
@@ -118,11 +111,23 @@ def scaled(cluster, tmp_path_factory):
             controller.kill()
         prometheus.close()
         exporters.close()
-        undeployed = cluster.undeploy(str(spec))
-        assert undeployed.returncode == 0, undeployed.stdout[-3000:]
-        left = apps.list_namespaced_deployment(NAMESPACE, label_selector="kuberos.io/deployment=scaled-planning").items
-        assert [d.metadata.name for d in left] == [], "undeploy removes the instances scaling added too"
         log.close()
+
+
+@pytest.fixture(scope="module")
+def scaled(cluster, tmp_path_factory):
+    work = tmp_path_factory.mktemp("scaling")
+    spec = work / "scaled-planning.yml"
+    spec.write_text(SPEC)
+    deployed = cluster.deploy(str(spec), work / "render")
+    assert deployed.returncode == 0, deployed.stdout[-4000:]
+    core, apps, _ = cluster.clients()
+    with watched_controller(cluster, work, NAMESPACE) as (exporters, prometheus, log):
+        yield {"core": core, "apps": apps, "exporters": exporters, "prometheus": prometheus, "log": log, "spec": str(spec)}
+    undeployed = cluster.undeploy(str(spec))  # after the controller stopped: nothing re-creates what is removed
+    assert undeployed.returncode == 0, undeployed.stdout[-3000:]
+    left = apps.list_namespaced_deployment(NAMESPACE, label_selector="kuberos.io/deployment=scaled-planning").items
+    assert [d.metadata.name for d in left] == [], "undeploy removes the instances scaling added too"
 
 
 def _controller_log(state) -> str:
