@@ -125,7 +125,7 @@ def _step(instances, values, ready=None, state=None, windows=None, now=0.0, plac
     return scaling.step(
         dep, module, instances, state or scaling.ScaleState(), {i.name for i in instances} if ready is None else ready,
         values, windows or scaling.Windows(), now, place or (lambda robots: (_Node("edge-2"), "edge", 5.0, "most free")),
-        lambda robot, node: True,
+        lambda robot, node: isinstance(node, str) and node.startswith("edge-"),  # a node's name, as the inventory has it
     )  # fmt: skip
 
 

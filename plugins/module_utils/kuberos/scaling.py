@@ -296,7 +296,7 @@ def step(dep, module, instances: list, state: ScaleState, ready: set[str], value
                 return result
             placed[name] = (node, tier, latency, reason)
         new = list(placed)
-        grown, moved = grow({n: by_name[n].robots for n in active}, new, lambda r, n: n not in placed or fits(r, placed[n][0]))
+        grown, moved = grow({n: by_name[n].robots for n in active}, new, lambda r, n: n not in placed or fits(r, placed[n][0].name))
         template = by_name[active[0]]
         for name in new:
             node, tier, latency, reason = placed[name]
