@@ -223,10 +223,15 @@ def reliable_qos(depth: int = 10):
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
 
 
-def latched_qos():
+SCENE_HISTORY = 120  # planning scenes a late subscriber gets: about a minute at perception's 2 Hz
+
+
+def latched_qos(depth: int = 1):
+    """Reliable and transient local: a subscriber that joins later gets the last ``depth`` messages. Planning scenes
+    keep ``SCENE_HISTORY``: a planner that takes a robot over mid-cycle (scaling) has the scene the cycle names."""
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-    return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def sensor_qos():

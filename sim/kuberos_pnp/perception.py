@@ -94,7 +94,10 @@ def main(argv: list[str] | None = None) -> None:
             self.max_rate = float(common.declare(self, "max_rate_hz", 2.0))
             self.inputs = {r: RobotInput() for r in robots}
             self.pub_scene = {
-                r: self.create_publisher(MarkerArray, common.topic(r, common.SCENE_OBJECTS), common.latched_qos()) for r in robots
+                r: self.create_publisher(
+                    MarkerArray, common.topic(r, common.SCENE_OBJECTS), common.latched_qos(common.SCENE_HISTORY)
+                )
+                for r in robots
             }
             self.pub_points = {
                 r: self.create_publisher(PointCloud2, common.topic(r, common.SCENE_POINTS), common.sensor_qos()) for r in robots

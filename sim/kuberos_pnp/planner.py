@@ -23,11 +23,12 @@ Once its worker processes run and its subscriptions exist it logs a `planner_rea
 a coordinator matched with its subscription can send.
 
 Scaled (docs/scaling.md): with `KUBEROS_ROBOTS_FILE` the planner reads its robots from that file and follows its
-changes (every 0.5 s): a robot added is subscribed to; a robot removed is kept for `handover_s` seconds, in which
-the planner still answers its requests that name a scene it had before it lost the robot (the cycle in progress),
-then unsubscribed. A robot added while running is answered only for scenes this planner has (the robot's previous
-planner answers the rest, and this one stays silent), so that a request is never answered "unknown scene" during a
-handover. Its load gauge
+changes (every 0.5 s): a robot added is subscribed to, and gets the robot's recent planning scenes at once (they
+are published with a history of `SCENE_HISTORY`, so the scene a cycle in progress names is there); a robot removed
+is still answered for `handover_s` seconds (until the new planner's subscription has surely matched; the
+coordinator takes the first of two answers), then unsubscribed; requests already taken are answered (drained). A
+robot added while running whose named scene has not arrived within 0.5 s is left to its previous planner (no
+"unknown scene" answer during a handover). Its load gauge
 `kuberos_planner_queue_depth` (requests waiting or being solved, averaged over the last 10 s) is written to
 `KUBEROS_METRICS_FILE` (Prometheus text format) and, with `metrics_port` (not 0), served on that port at
 `/metrics`.
@@ -131,14 +132,13 @@ def main(argv: list[str] | None = None) -> None:
             self.history = int(common.declare(self, "scene_history", 600))
             self.scene_wait = float(common.declare(self, "scene_wait", 3.0))
             seed = int(common.declare(self, "seed", 0))
-            self.handover_s = float(common.declare(self, "handover_s", 15.0))
+            self.handover_s = float(common.declare(self, "handover_s", 5.0))
             metrics_port = int(common.declare(self, "metrics_port", 0))
             self.race = planner_list(first, listed, parallel)
             pool_started = time.monotonic()
             self.planner = planning.Planner(parallel=len(self.race), planners=self.race, seed=seed)
             pool_s = time.monotonic() - pool_started
             self.scenes: dict[str, dict[str, list]] = {}
-            self.scene_seen: dict[tuple[str, str], float] = {}  # (robot, scene) -> when it arrived
             self.requests: queue.Queue = queue.Queue(maxsize=256)
             self.results = {}
             self.wiring: dict[str, list] = {}  # robot -> its subscriptions
@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> None:
             self.wiring[robot] = [
                 self.create_subscription(
                     MarkerArray, common.topic(robot, common.SCENE_OBJECTS), lambda m, r=robot: self.on_scene(r, m),
-                    common.latched_qos(),
+                    common.latched_qos(common.SCENE_HISTORY),
                 ),
                 self.create_subscription(
                     JointTrajectory, common.topic(robot, common.PLAN_REQUEST), lambda m, r=robot: self.on_request(r, m),
@@ -219,19 +219,14 @@ def main(argv: list[str] | None = None) -> None:
             scenes = self.scenes.setdefault(robot, {})
             key = common.scene_key(msg.markers[0].header.stamp)
             scenes[key] = boxes_from_markers(msg)
-            self.scene_seen.setdefault((robot, key), time.monotonic())
             while len(scenes) > self.history:
-                self.scene_seen.pop((robot, next(iter(scenes))), None)
                 scenes.pop(next(iter(scenes)))
 
         def mine(self, robot: str, msg) -> bool:
-            """Whether this planner answers a request: always for its robots, except that in a handover the old
-            planner answers for scenes it had before it lost the robot and the new one for the others."""
-            _request, values = common.decode_tag(msg.header.frame_id)
-            seen = self.scene_seen.get((robot, values.get("scene", "")))
-            if robot in self.lost:
-                return seen is not None and seen <= self.lost[robot]
-            return True
+            """Whether this planner takes a request: always for its robots; for a robot it lost, only during the
+            handover (until the new planner's subscription surely matched; a request both answer is answered twice,
+            and the coordinator takes the first). What it took before is answered either way (drained)."""
+            return robot not in self.lost or time.monotonic() - self.lost[robot] < self.handover_s
 
         def taking_over(self, robot: str) -> bool:
             return robot in self.added and time.monotonic() - self.added[robot] < self.handover_s

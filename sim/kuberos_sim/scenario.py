@@ -115,7 +115,7 @@ def strategy_spec(
         if name == "motion-planner":
             module["rosParameters"] = {**module.get("rosParameters", {}), "seed": int(seed)}
             if strategy == "edge-scaled":
-                module["rosParameters"]["handover_s"] = 15.0
+                module["rosParameters"]["handover_s"] = 5.0
         if name == "task-coordinator":
             command = (
                 f"python3 -m kuberos_pnp.coordinator --ros-args -p tasks_per_minute:={tasks_per_minute:g} -p max_cycles:={cycles}"

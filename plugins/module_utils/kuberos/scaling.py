@@ -7,7 +7,8 @@ The controller (``kuberos_controller.controller``) measures the signal and acts;
   target)``, unchanged within a tolerance of 10 %;
 - ``Windows``: a recommendation counts only as much as the window allows: scale up to the lowest recommendation of
   the last ``scaleUpWindow``, down to the highest of the last ``scaleDownWindow``, and never down before the window
-  has been watched whole (after a restart, a takeover or a change, the window starts again);
+  has been watched whole (after a restart, a takeover or a step, the window starts again; the recommendations of
+  the window stay, so a step up is followed by another only when the window's lowest asks for it);
 - ``bounds``: ``minInstances``..``maxInstances``, never fewer than the robots need at ``robotsPerInstance`` and
   never more instances than robots;
 - ``grow`` / ``shrink``: sticky re-assignment: an instance added takes robots from the instances that serve the
@@ -57,8 +58,9 @@ class Windows:
     history: list[tuple[float, int]] = field(default_factory=list)
 
     def restart(self, now: float) -> None:
+        """After a step: the scale-down window starts again (it must be watched whole); the recommendations stay, so
+        the scale-up window still damps the next step up."""
         self.since = now
-        self.history.clear()
 
     def desired(self, policy: ScalingPolicy, now: float, current: int, recommendation: int) -> tuple[int, str]:
         """The instance count to move to now, and why it is held back when it is."""
@@ -296,7 +298,8 @@ def step(dep, module, instances: list, state: ScaleState, ready: set[str], value
                 return result
             placed[name] = (node, tier, latency, reason)
         new = list(placed)
-        grown, moved = grow({n: by_name[n].robots for n in active}, new, lambda r, n: n not in placed or fits(r, placed[n][0].name))
+        may_serve = lambda r, n: n not in placed or fits(r, placed[n][0].name)  # noqa: E731
+        grown, moved = grow({n: by_name[n].robots for n in active}, new, may_serve)
         template = by_name[active[0]]
         for name in new:
             node, tier, latency, reason = placed[name]
