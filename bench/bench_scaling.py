@@ -11,9 +11,10 @@ In the simulator (docs/simulation.md; real ROS 2 modules, real physics, real loa
 
 Per run: planning latency p50/p95 as the coordinators measured it, the modules' CPU-seconds (robots, edge and cloud
 cgroups over the window from all robots ready to the last cycle; the physics apart) and, for edge-scaled, the
-planner's instances over time. The results print as Markdown; ``--json`` writes them (headline keys
-``dedicated_p50_ms``, ``scaled_p50_ms``, ``dedicated_cpu_s``, ``scaled_cpu_s`` for the first fleet size, and every
-run under ``runs``); ``--plot`` draws the instances over time.
+planner's instances over time. The results print as Markdown; ``--json`` writes them (the keys
+``dedicated_p50_ms``, ``scaled_p50_ms``, ``dedicated_cpu_s``, ``scaled_cpu_s``, ``latency_ratio`` and ``targets_met``
+for the largest fleet size, where scaling acts, the same per size under ``by_robots``, and every run under ``runs``);
+``--plot`` draws the instances over time.
 
     sudo .venv/bin/python bench/bench_scaling.py --json bench/results/scaling.json --plot docs/images/scaling-instances.png
 """
@@ -66,6 +67,25 @@ def summary(row: dict) -> dict:
     }
 
 
+def headline(runs: list[dict], robots: int) -> dict:
+    """The issue's keys for one fleet size, and whether the targets hold: scaled within 1.25x of dedicated latency
+    (p50) at fewer CPU-seconds than dedicated."""
+    by = {r["strategy"]: r for r in runs if r["robots"] == robots}
+    found = {
+        "headline_robots": robots,
+        "dedicated_p50_ms": by.get("edge-dedicated", {}).get("plan_p50_ms"),
+        "scaled_p50_ms": by.get("edge-scaled", {}).get("plan_p50_ms"),
+        "shared_p50_ms": by.get("edge-shared", {}).get("plan_p50_ms"),
+        "dedicated_cpu_s": by.get("edge-dedicated", {}).get("cpu_s"),
+        "scaled_cpu_s": by.get("edge-scaled", {}).get("cpu_s"),
+        "shared_cpu_s": by.get("edge-shared", {}).get("cpu_s"),
+    }
+    if found["dedicated_p50_ms"] and found["scaled_p50_ms"] and found["dedicated_cpu_s"] is not None:
+        found["latency_ratio"] = round(found["scaled_p50_ms"] / found["dedicated_p50_ms"], 2)
+        found["targets_met"] = found["latency_ratio"] <= TARGET_LATENCY_RATIO and found["scaled_cpu_s"] < found["dedicated_cpu_s"]
+    return found
+
+
 def table(runs: list[dict]) -> str:
     lines = [
         "| robots | strategy | plan p50 ms | plan p95 ms | module CPU-s | edge CPU-s | window s | cycles ok | planners |",
@@ -94,9 +114,12 @@ def plot(runs: list[dict], path: str) -> None:
                 continue
             end = r["window_s"] or 0
             if r["strategy"] == "edge-scaled" and r["timeline"]:
-                times = [p["t"] for p in r["timeline"]]
-                axis.step(times, [p["instances"] for p in r["timeline"]], where="post", label="scaled: planners", color="C2")
-                values = [p["value"] if p["value"] is not None else float("nan") for p in r["timeline"]]
+                timeline = list(r["timeline"])
+                if timeline[0]["t"] > 0:  # the deployed count before the first step (one planner per 8 robots)
+                    timeline.insert(0, {"t": 0.0, "instances": -(-robots // 8), "value": None})
+                times = [p["t"] for p in timeline]
+                axis.step(times, [p["instances"] for p in timeline], where="post", label="scaled: planners", color="C2")
+                values = [p["value"] if p["value"] is not None else float("nan") for p in timeline]
                 twin = axis.twinx()
                 twin.plot(times, values, color="C2", alpha=0.35, linestyle=":", label="queue per planner")
                 twin.set_ylabel("queue per planner (10 s mean)")
@@ -111,6 +134,11 @@ def plot(runs: list[dict], path: str) -> None:
         axis.legend(loc="upper left", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def redraw(path_json: str, path_png: str) -> None:
+    with open(path_json, encoding="utf-8") as handle:
+        plot(json.load(handle)["runs"], path_png)
 
 
 def main(argv=None) -> int:
@@ -140,23 +168,17 @@ def main(argv=None) -> int:
             runs.append(summary(row))
             evaluate.progress(f"  p50 {runs[-1]['plan_p50_ms']} ms, module CPU {runs[-1]['cpu_s']} s")
     print(table(runs))
-    first = [r for r in runs if r["robots"] == sizes[0]]
-    by = {r["strategy"]: r for r in first}
-    result = {
-        "dedicated_p50_ms": by.get("edge-dedicated", {}).get("plan_p50_ms"),
-        "scaled_p50_ms": by.get("edge-scaled", {}).get("plan_p50_ms"),
-        "shared_p50_ms": by.get("edge-shared", {}).get("plan_p50_ms"),
-        "dedicated_cpu_s": by.get("edge-dedicated", {}).get("cpu_s"),
-        "scaled_cpu_s": by.get("edge-scaled", {}).get("cpu_s"),
-        "shared_cpu_s": by.get("edge-shared", {}).get("cpu_s"),
-        "headline_robots": sizes[0],
-        "target_latency_ratio": TARGET_LATENCY_RATIO,
-        "runs": runs,
-        "command": " ".join(["bench/bench_scaling.py", *(argv if argv is not None else sys.argv[1:])]),
-        "commit": evaluate.git_commit(),
-        "machine": f"{os.cpu_count()} cores, {platform.machine()}",
-        "date": started,
-    }
+    result = dict(headline(runs, sizes[-1]), by_robots={n: headline(runs, n) for n in sizes})
+    result.update(
+        {
+            "target_latency_ratio": TARGET_LATENCY_RATIO,
+            "runs": runs,
+            "command": " ".join(["bench/bench_scaling.py", *(argv if argv is not None else sys.argv[1:])]),
+            "commit": evaluate.git_commit(),
+            "machine": f"{os.cpu_count()} cores, {platform.machine()}",
+            "date": started,
+        }
+    )
     if args.json:
         previous = {}
         if os.path.exists(args.json):

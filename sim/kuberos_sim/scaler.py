@@ -59,6 +59,10 @@ class SimScaler:
 
     def start(self) -> SimScaler:
         self.started = time.monotonic()
+        for module in self.modules:  # where it starts, before any step
+            count = len(self._instances(module))
+            self.timeline.append({"t": 0.0, "module": module.name, "instances": count, "running": count, "value": None,
+                                  "held": "", "events": []})  # fmt: skip
         self.thread.start()
         return self
 
