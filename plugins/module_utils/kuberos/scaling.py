@@ -298,7 +298,10 @@ def step(dep, module, instances: list, state: ScaleState, ready: set[str], value
                 return result
             placed[name] = (node, tier, latency, reason)
         new = list(placed)
-        may_serve = lambda r, n: n not in placed or fits(r, placed[n][0].name)  # noqa: E731
+
+        def may_serve(robot, name):
+            return name not in placed or fits(robot, placed[name][0].name)
+
         grown, moved = grow({n: by_name[n].robots for n in active}, new, may_serve)
         template = by_name[active[0]]
         for name in new:
