@@ -68,6 +68,17 @@ options:
         pod's C(/metrics). Empty reads the pods.
     type: str
     default: ""
+  burst_command:
+    description:
+      - The cloud provisioner the controller runs when a fleet lacks room, with C(-e cloud_vms_fleet=<fleet>) appended
+        (docs/cloud.md, burst), e.g. C(ansible-playbook playbooks/cloud.yml -i inventories/local -e cloud_vms_burst=true).
+        Empty runs none (the demand is still written).
+    type: str
+    default: ""
+  burst_release_after:
+    description: Seconds without demand before the provisioner runs to release idle VMs.
+    type: float
+    default: 300.0
   pythonpath:
     description: Directories that hold C(ansible_collections/kuberos/platform), for the controller's Python.
     type: list
@@ -175,6 +186,8 @@ ARGUMENT_SPEC = dict(
     node_names=dict(type="list", elements="str", default=[]),
     dashboard_port=dict(type="int", default=8611),
     prometheus_url=dict(type="str", default=""),
+    burst_command=dict(type="str", default=""),
+    burst_release_after=dict(type="float", default=300.0),
 )
 
 
@@ -194,6 +207,8 @@ def command(params: dict, index: int = 1) -> list[str]:
         "--dashboard-port", str(params["dashboard_port"] + index - 1 if params["dashboard_port"] else 0),
         *(["--node-name", node] if node else []),
         *(["--prometheus-url", params["prometheus_url"]] if params["prometheus_url"] else []),
+        *(["--burst-command", params["burst_command"], "--burst-release-after", f"{params['burst_release_after']:g}"]
+          if params["burst_command"] else []),
     ]  # fmt: skip
 
 
