@@ -100,15 +100,11 @@ class SimScaler:
             ready = {n for n, text in texts.items() if text is not None}
             gauges = {n: gauge_value(text, module.scaling.metric) for n, text in texts.items() if text is not None}
             values = {n: v for n, v in gauges.items() if v is not None}
-            limit = module.requirements.max_latency_ms
-
-            def fits(robot, node, limit=limit):
-                return limit is None or self.record.inventory.latency_ms(robot, node) <= limit
-
             result = scaling.step(
                 dep, module, instances, self.states.get(module.name, scaling.ScaleState()), ready, values,
                 self.windows.setdefault(module.name, scaling.Windows()), now,
-                lambda robots, module=module: scheduler.choose(dep, module, tuple(robots)), fits,
+                lambda robots, module=module: scheduler.choose(dep, module, tuple(robots)),
+                scaling.within_latency(module, self.record.inventory),
             )  # fmt: skip
             self.states[module.name] = result.state
             others = [i for i in self.record.placement.instances if i.module != module.name or i.deployment != dep.name]

@@ -16,6 +16,7 @@ DEVICE_PREFIX = "devices.kuberos.io/"
 FLEET_ACCESS_PREFIX = "fleet-access.kuberos.io/"
 ROBOT_TAINT = "kuberos.io/robot"
 ROLES = {"onboard": "robot", "edge": "edge", "cloud": "cloud"}
+TIER_OF_ROLE = {role: tier for tier, role in ROLES.items()}
 LATENCY_ANNOTATION = "kuberos.io/latency-ms"  # a node that joined after deploy: its latency to the robots
 
 
@@ -54,7 +55,7 @@ def node_from_cluster(obj: dict, default_latency_ms: float) -> Node | None:
 
     meta = obj.get("metadata") or {}
     found = meta.get("labels") or {}
-    tier = {v: k for k, v in ROLES.items()}.get(found.get(ROLE, ""))
+    tier = TIER_OF_ROLE.get(found.get(ROLE, ""))
     name = found.get(HOSTNAME) or meta.get("name", "")
     if tier not in ("edge", "cloud") or not name:
         return None

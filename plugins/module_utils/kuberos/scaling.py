@@ -214,6 +214,16 @@ class Step:
         return bool(self.start or self.stop or self.events)
 
 
+def within_latency(module, inventory):
+    """``fits(robot, node)`` for ``step``: may the robot be served from that node (the module's max_latency)."""
+    limit = module.requirements.max_latency_ms
+
+    def fits(robot: str, node: str) -> bool:
+        return limit is None or inventory.latency_ms(robot, node) <= limit
+
+    return fits
+
+
 def _names(deployment: str, module: str, used: set[str], count: int) -> list[str]:
     from .naming import shared_instance_name
 

@@ -171,6 +171,7 @@ class Controller:
         self.fleet_of: dict[str, str] = {}  # fleet namespace -> fleet
         self.blocked: dict[tuple, str] = {}  # (namespace, deployment, module) -> the blocked scale-up last reported
         self.burst = None  # a Burst runner (--burst-command): provisions cloud VMs when a fleet lacks room
+        self._access: tuple[int, dict] = (-1, {})  # (node store generation, fleet -> the nodes labelled with its access)
 
     # -- fencing --------------------------------------------------------------------------------
     def _may_write(self) -> dict:
@@ -442,15 +443,30 @@ class Controller:
         for node in record.inventory.nodes.values():
             latency[node.tier] = max(latency.get(node.tier, 0.0), node.latency_ms)
         extra = []
-        for obj in self.nodes.snapshot():
-            labels = (obj.get("metadata") or {}).get("labels") or {}
-            if labels.get(node_labels.HOSTNAME, obj["metadata"]["name"]) in record.inventory.nodes:
-                continue
-            tier = {v: k for k, v in node_labels.ROLES.items()}.get(labels.get(node_labels.ROLE, ""), "")
-            node = node_labels.node_from_cluster(obj, latency.get(tier, 50.0))
-            if node is not None and record.spec.fleet in node.fleets:
-                extra.append(node)
+        for name, tier, obj in self._fleet_nodes(record.spec.fleet):
+            if name not in record.inventory.nodes:
+                node = node_labels.node_from_cluster(obj, latency.get(tier, 50.0))
+                if node is not None:
+                    extra.append(node)
         return dataclasses.replace(record, inventory=record.inventory.with_nodes(extra)) if extra else record
+
+    def _fleet_nodes(self, fleet: str) -> list[tuple[str, str, dict]]:
+        """(inventory name, tier, Node object) of the edge and cloud nodes labelled with ``fleet``'s access; the nodes
+        are gone through once per change of the node store, not once per record and pass."""
+        generation = self.nodes.generation
+        if self._access[0] != generation:
+            by_fleet: dict[str, list] = {}
+            for obj in self.nodes.snapshot():
+                labels = obj["metadata"].get("labels") or {}
+                tier = node_labels.TIER_OF_ROLE.get(labels.get(node_labels.ROLE, ""), "")
+                if tier not in ("edge", "cloud"):
+                    continue
+                name = labels.get(node_labels.HOSTNAME, obj["metadata"]["name"])
+                for key, value in labels.items():
+                    if key.startswith(node_labels.FLEET_ACCESS_PREFIX) and value == "true":
+                        by_fleet.setdefault(key[len(node_labels.FLEET_ACCESS_PREFIX) :], []).append((name, tier, obj))
+            self._access = (generation, by_fleet)
+        return self._access[1].get(fleet, [])
 
     def reconcile_record(self, configmap: dict, view: ClusterView, now: float) -> float | None:
         record = self._record(configmap)
@@ -513,19 +529,8 @@ class Controller:
         self.reported[key] = stranded
         modules = {m.name: m for m in record.spec.modules}
         for inst in record.placement.instances:
-            module = modules.get(inst.module)
-            if inst.name in stranded and module is not None and "cloud" in module.tiers:
-                self.shortfalls.append(
-                    capacity.Shortfall(
-                        record.spec.fleet,
-                        record.deployment,
-                        inst.module,
-                        inst.cpu_millis,
-                        inst.memory_bytes,
-                        inst.gpu,
-                        stranded[inst.name],
-                    )
-                )
+            if inst.name in stranded:
+                self._lacks(modules.get(inst.module), inst, stranded[inst.name])
         for line in decision.waiting:
             log.debug("%s/%s waits: %s", record.namespace, record.deployment, line)
         applied = 0 if record.rollout else self.converge(record, rview)
@@ -561,14 +566,10 @@ class Controller:
         """Instance name -> its Running, Ready pod (plain dict), for the instances ``names``."""
         found = {}
         for pod in self.pods.snapshot():
-            meta = pod["metadata"]
-            inst = (meta.get("labels") or {}).get(INSTANCE)
-            if meta.get("namespace") != namespace or inst not in names or meta.get("deletionTimestamp"):
-                continue
-            status = pod.get("status") or {}
-            ready = any(c.get("type") == "Ready" and c.get("status") == "True" for c in status.get("conditions") or [])
-            if status.get("phase") == "Running" and ready:
-                found[inst] = pod
+            seen = pod_view(pod, {})
+            if seen and seen.namespace == namespace and seen.instance in names and seen.phase == "Running" and seen.ready:
+                if not seen.deleting:
+                    found[seen.instance] = pod
         return found
 
     def scale(self, record: Record, view: ClusterView, now: float) -> tuple[float | None, list]:
@@ -595,18 +596,15 @@ class Controller:
             windows = self.windows.setdefault((record.namespace, dep.name, module.name), scaling.Windows())
             if scheduler is None:
                 scheduler = self._scheduler(record, view)
-            limit = module.requirements.max_latency_ms
-
-            def fits(robot, node, limit=limit, inventory=scheduler.inventory):
-                return limit is None or inventory.latency_ms(robot, node) <= limit
-
             result = scaling.step(
                 dep, module, instances, scaling.ScaleState.from_dict(states.get(state_key)), ready, values, windows, now,
-                lambda robots, module=module, chooser=scheduler: chooser.choose(dep, module, tuple(robots)), fits,
+                lambda robots, module=module, chooser=scheduler: chooser.choose(dep, module, tuple(robots)),
+                scaling.within_latency(module, scheduler.inventory),
             )  # fmt: skip
             summaries.append(result.summary)
+            blocked_key = (record.namespace, dep.name, module.name)
             if not any(reason == "ModuleScaleBlocked" for _n, reason, _m, _w in result.events):
-                self.blocked.pop((record.namespace, dep.name, module.name), None)
+                self.blocked.pop(blocked_key, None)
             if result.wake_at is not None:
                 wakes.append(result.wake_at)
             states[state_key] = result.state.to_dict()
@@ -615,21 +613,9 @@ class Controller:
                 placement = type(placement)(**{**placement.__dict__, "instances": others + result.instances})
             start.extend(result.start)
             stop.extend(result.stop)
-            blocked_key = (record.namespace, dep.name, module.name)
             for name, reason, message, warning in result.events:
-                if reason == "ModuleScaleBlocked" and "cloud" in module.tiers:
-                    self.shortfalls.append(
-                        capacity.Shortfall(
-                            dep.fleet,
-                            dep.name,
-                            module.name,
-                            instances[0].cpu_millis,
-                            instances[0].memory_bytes,
-                            instances[0].gpu,
-                            message,
-                        )
-                    )
                 if reason == "ModuleScaleBlocked":
+                    self._lacks(module, instances[0], message)  # one more instance of the module has no node
                     if self.blocked.get(blocked_key) == message:
                         continue  # said once; the shortfall above stands each pass
                     self.blocked[blocked_key] = message
@@ -647,6 +633,13 @@ class Controller:
             self.parsed.pop(key, None)
         self._apply_scaled(record, modules, start, stop)
         return (min(wakes) if wakes else None), events
+
+    def _lacks(self, module, inst, why: str) -> None:
+        """An instance like ``inst`` found no node: the fleet lacks its resources, if the module may run in the cloud."""
+        if module is not None and "cloud" in module.tiers:
+            self.shortfalls.append(
+                capacity.Shortfall(inst.fleet, inst.deployment, inst.module, inst.cpu_millis, inst.memory_bytes, inst.gpu, why)
+            )
 
     def _apply_robots(self, obj: dict, manager: str, cache_key: tuple) -> None:
         self._apply(obj, manager)

@@ -34,7 +34,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import Record, catalog_of
 
 RTT_ANNOTATION = "kuberos.io/rtt-ms"
-TIER_OF_ROLE = {role: tier for tier, role in node_labels.ROLES.items()}
 RESOURCES = ("cpu", "memory", "gpu", "pods")
 MAX_EVENTS = 500
 
@@ -141,7 +140,7 @@ def _node_rows(snapshot: Snapshot, names: dict[str, str]) -> tuple[list[dict], d
             {
                 "name": name,
                 "node": meta["name"],
-                "tier": TIER_OF_ROLE.get(node_label.get(node_labels.ROLE, ""), node_label.get(node_labels.ROLE, "")),
+                "tier": node_labels.TIER_OF_ROLE.get(node_label.get(node_labels.ROLE, ""), node_label.get(node_labels.ROLE, "")),
                 "fleet": node_label.get(node_labels.FLEET, ""),
                 "robot": node_label.get(node_labels.ROBOT, ""),
                 "arch": node_label.get(node_labels.ARCH) or node_label.get("kubernetes.io/arch", ""),
