@@ -9,6 +9,13 @@ In the simulator (docs/simulation.md; real ROS 2 modules, real physics, real loa
 - ``edge-scaled``: as edge-shared, the planner scaled on ``kuberos_planner_queue_depth`` between 1 and 8 instances
   (``kuberos_sim.scenario.PLANNER_SCALING``) by the controller's scaling step (``kuberos_sim.scaler``).
 
+Then, with ``--burst-robots`` (default 8; 0: none), one ``edge-burst`` run: as edge-scaled on a site whose edge holds
+two planners and that has no cloud node; the instances the edge cannot hold make the fleet's demand, cloud VMs are
+provisioned for them within the budget (kuberos_sim.cloud: the burst rule of the cloud_vms role; a VM is a new
+host of the run) and released after the peak. Its keys: ``vms_provisioned``, ``vms_released`` (by the burst rule,
+not at the run's end) and ``burst_sim`` (the VMs' log, the instances that ran on them, the latency they served);
+``burst_cluster`` keeps the local-cluster burst figures (tests/cluster/test_burst.py with KUBEROS_BURST_REPORT).
+
 Per run: planning latency p50/p95 as the coordinators measured it, the modules' CPU-seconds (robots, edge and cloud
 cgroups over the window from all robots ready to the last cycle; the physics apart) and, for edge-scaled, the
 planner's instances over time. The results print as Markdown; ``--json`` writes them (the keys
@@ -57,6 +64,9 @@ def summary(row: dict) -> dict:
         "cycle_p50_s": row.get("cycle_p50_s"),
         "cpu_s": cpu_seconds(row),
         "cpu_edge_s": round((row.get("cpu_edge_cores") or 0.0) * (row.get("window_s") or 0.0), 1),
+        # from deploy to the last cycle: the start of the modules deploy placed (before the window) counts too, as the
+        # start of the planners scaling adds (inside it) does
+        "cpu_with_startup_s": round(cpu_seconds(row) + (row.get("startup_cpu_s") or 0.0), 1),
         "window_s": row.get("window_s"),
         "cpu_outside_cores": row.get("cpu_outside_cores"),
         "instances_mean": scaled.get("instances_mean"),
@@ -79,6 +89,8 @@ def headline(runs: list[dict], robots: int) -> dict:
         "dedicated_cpu_s": by.get("edge-dedicated", {}).get("cpu_s"),
         "scaled_cpu_s": by.get("edge-scaled", {}).get("cpu_s"),
         "shared_cpu_s": by.get("edge-shared", {}).get("cpu_s"),
+        "dedicated_cpu_with_startup_s": by.get("edge-dedicated", {}).get("cpu_with_startup_s"),
+        "scaled_cpu_with_startup_s": by.get("edge-scaled", {}).get("cpu_with_startup_s"),
     }
     if found["dedicated_p50_ms"] and found["scaled_p50_ms"] and found["dedicated_cpu_s"] is not None:
         found["latency_ratio"] = round(found["scaled_p50_ms"] / found["dedicated_p50_ms"], 2)
@@ -88,27 +100,31 @@ def headline(runs: list[dict], robots: int) -> dict:
 
 def table(runs: list[dict]) -> str:
     lines = [
-        "| robots | strategy | plan p50 ms | plan p95 ms | module CPU-s | edge CPU-s | window s | cycles ok | planners |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| robots | strategy | plan p50 ms | plan p95 ms | CPU-s | with start | edge CPU-s | window s | cycles ok | planners |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in runs:
         planners = f"{r['instances_mean']}, {r['instances_max']}" if r["instances_mean"] is not None else "-"
         lines.append(
-            f"| {r['robots']} | {r['strategy']} | {r['plan_p50_ms']} | {r['plan_p95_ms']} | {r['cpu_s']} | {r['cpu_edge_s']} | "
+            f"| {r['robots']} | {r['strategy']} | {r['plan_p50_ms']} | {r['plan_p95_ms']} | {r['cpu_s']} | "
+            f"{r.get('cpu_with_startup_s')} | {r['cpu_edge_s']} | "
             f"{r['window_s']} | {r['cycles_ok']}/{r['cycles']} | {planners} |"
         )
     return "\n".join(lines)
 
 
-def plot(runs: list[dict], path: str) -> None:
+def plot(runs: list[dict], path: str, burst: dict | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     sizes = sorted({r["robots"] for r in runs})
-    fig, axes = plt.subplots(1, len(sizes), figsize=(6 * len(sizes), 3.6), squeeze=False)
-    for axis, robots in zip(axes[0], sizes, strict=True):
+    panels = len(sizes) + (1 if burst and burst.get("timeline") else 0)
+    fig, axes = plt.subplots(1, panels, figsize=(6 * panels, 3.6), squeeze=False)
+    if panels > len(sizes):
+        plot_burst(axes[0][-1], burst)
+    for axis, robots in zip(axes[0], sizes, strict=False):
         for r in runs:
             if r["robots"] != robots:
                 continue
@@ -136,14 +152,36 @@ def plot(runs: list[dict], path: str) -> None:
     fig.savefig(path, dpi=110)
 
 
+def plot_burst(axis, burst: dict) -> None:
+    """The burst run: planners and cloud VMs over time (VMs launched, nodes, released marked)."""
+    timeline = burst["timeline"]
+    times = [p["t"] for p in timeline]
+    axis.step(times, [p["instances"] for p in timeline], where="post", color="C2", label="planners")
+    axis.step(times, [p.get("vms", 0) for p in timeline], where="post", color="C3", label="cloud VMs (nodes)")
+    marks = {"launched": ("^", "VM launched"), "node": ("o", "VM a node"), "released": ("v", "VM released")}
+    for event, (marker, label) in marks.items():
+        at = [e["t"] for e in burst.get("log", []) if e["event"] == event and e["detail"] != "the run ended"]
+        if at:
+            axis.plot(at, [0.15] * len(at), marker, color="C3", linestyle="none", label=label)
+    if burst.get("window_s"):
+        axis.axvline(burst["window_s"], color="grey", linestyle="--", linewidth=0.8, label="last pick cycle")
+    axis.set_title(f"{burst['robots']} robots, capped edge: burst to the cloud")
+    axis.set_xlabel("seconds since every robot was ready")
+    axis.set_ylabel("count")
+    axis.set_ylim(0, max([p["instances"] for p in timeline] + [2]) + 1)
+    axis.legend(loc="upper right", fontsize=7)
+
+
 def redraw(path_json: str, path_png: str) -> None:
     with open(path_json, encoding="utf-8") as handle:
-        plot(json.load(handle)["runs"], path_png)
+        found = json.load(handle)
+    plot(found["runs"], path_png, found.get("burst_sim"))
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--robots", default="4,8", help="fleet sizes, comma separated (default 4,8)")
+    parser.add_argument("--robots", default="4,8", help="fleet sizes, comma separated (default 4,8; empty: the burst run only)")
+    parser.add_argument("--burst-robots", type=int, default=8, help="fleet size of the edge-burst run (default 8; 0: none)")
     parser.add_argument("--rate", type=float, default=12.0, help="pick tasks per minute and robot (default 12)")
     parser.add_argument("--cycles", type=int, default=4, help="pick cycles per robot, 1 to 4 (default 4)")
     parser.add_argument("--seed", type=int, default=1)
@@ -167,31 +205,100 @@ def main(argv=None) -> int:
                 row = {"strategy": strategy, "robots": robots, "error": f"{type(exc).__name__}: {exc}"[:500]}
             runs.append(summary(row))
             evaluate.progress(f"  p50 {runs[-1]['plan_p50_ms']} ms, module CPU {runs[-1]['cpu_s']} s")
-    print(table(runs))
-    result = dict(headline(runs, sizes[-1]), by_robots={n: headline(runs, n) for n in sizes})
-    result.update(
-        {
-            "target_latency_ratio": TARGET_LATENCY_RATIO,
-            "runs": runs,
-            "command": " ".join(["bench/bench_scaling.py", *(argv if argv is not None else sys.argv[1:])]),
-            "commit": evaluate.git_commit(),
-            "machine": f"{os.cpu_count()} cores, {platform.machine()}",
-            "date": started,
-        }
-    )
+    burst = None
+    if args.burst_robots:
+        evaluate.progress(f"edge-burst, {args.burst_robots} robots, {args.rate:g} tasks/min, {args.cycles} cycles")
+        try:
+            row = evaluate.run_one(
+                "edge-burst", args.burst_robots, args.rate, args.cycles, args.out, args.seed, args.time_limit, args.cpu_scale
+            )
+        except Exception as exc:  # reported like the others
+            row = {"strategy": "edge-burst", "robots": args.burst_robots, "error": f"{type(exc).__name__}: {exc}"[:500]}
+        burst = burst_figures(row, started, argv)
+        evaluate.progress(f"  VMs provisioned {burst['vms_provisioned']}, released {burst['vms_released']}")
+    if runs:
+        print(table(runs))
+    if burst:
+        print(burst_table(burst))
+    previous = {}
+    if args.json and os.path.exists(args.json):
+        with open(args.json, encoding="utf-8") as handle:
+            previous = json.load(handle)
+    if runs:
+        result = dict(headline(runs, sizes[-1]), by_robots={n: headline(runs, n) for n in sizes})
+        result.update(
+            {
+                "target_latency_ratio": TARGET_LATENCY_RATIO,
+                "runs": runs,
+                "command": " ".join(["bench/bench_scaling.py", *(argv if argv is not None else sys.argv[1:])]),
+                "commit": evaluate.git_commit(),
+                "machine": f"{os.cpu_count()} cores, {platform.machine()}",
+                "date": started,
+            }
+        )
+    else:  # the burst run only: the comparison stays as recorded
+        result = {k: v for k, v in previous.items() if k not in BURST_KEYS}
+    if burst:
+        result.update({"vms_provisioned": burst["vms_provisioned"], "vms_released": burst["vms_released"], "burst_sim": burst})
+    else:
+        result.update({k: previous[k] for k in ("vms_provisioned", "vms_released", "burst_sim") if k in previous})
+    cluster = previous.get("burst_cluster") or previous.get("burst")  # written by tests/cluster/test_burst.py
+    if cluster:
+        result["burst_cluster"] = cluster
     if args.json:
-        previous = {}
-        if os.path.exists(args.json):
-            with open(args.json, encoding="utf-8") as handle:
-                previous = json.load(handle)
-        for key in ("vms_provisioned", "vms_released", "burst"):  # the burst run's, written by its own benchmark
-            if key in previous:
-                result[key] = previous[key]
         with open(args.json, "w", encoding="utf-8") as handle:
             json.dump(result, handle, indent=1)
-    if args.plot:
-        plot(runs, args.plot)
+    if args.plot and (runs or burst):
+        plot(runs or result.get("runs", []), args.plot, burst or result.get("burst_sim"))
     return 0
+
+
+BURST_KEYS = ("vms_provisioned", "vms_released", "burst", "burst_sim", "burst_cluster")
+
+
+def burst_figures(row: dict, started: str, argv) -> dict:
+    """The edge-burst run's figures: VMs provisioned and released by the burst rule, the planners that ran on them,
+    their latency, the run's own figures, and the planners and VMs over time."""
+    found = dict(row.get("burst") or {})
+    scaled = row.get("scaling") or {}
+    return {
+        "vms_provisioned": found.get("vms_provisioned", 0),
+        "vms_released": found.get("vms_released", 0),
+        "vms_left_at_end": found.get("vms_left_at_end"),
+        "robots": row.get("robots"),
+        "finished": row.get("finished"),
+        "cycles_ok": row.get("cycles_ok"),
+        "cycles": row.get("cycles"),
+        "plan_p50_ms": row.get("plan_p50_ms"),
+        "plan_p95_ms": row.get("plan_p95_ms"),
+        "vm_plan_p50_ms": found.get("vm_plan_p50_ms"),
+        "plans_served_from_vms": found.get("plans_served_from_vms"),
+        "instances_on_vms": found.get("instances_on_vms"),
+        "cpu_s": cpu_seconds(row),
+        "window_s": row.get("window_s"),
+        "instance_type": found.get("instance_type"),
+        "max_vms": found.get("max_vms"),
+        "boot_s": found.get("boot_s"),
+        "release_after_s": found.get("release_after_s"),
+        "log": found.get("log", []),
+        "timeline": scaled.get("timeline"),
+        "steps": scaled.get("steps"),
+        "error": row.get("error") or (scaled.get("errors") or [None])[0],
+        "where": "the simulator (kuberos_sim.cloud): real ROS 2 modules; a VM is a new host of the run",
+        "command": " ".join(["bench/bench_scaling.py", *(argv if argv is not None else sys.argv[1:])]),
+        "commit": evaluate.git_commit(),
+        "date": started,
+    }
+
+
+def burst_table(burst: dict) -> str:
+    lines = ["| t s | VM event | VM | detail |", "|---|---|---|---|"]
+    lines += [f"| {e['t']} | {e['event']} | {e['vm']} | {e['detail']} |" for e in burst["log"]]
+    lines.append(
+        f"\nplan p50 {burst['plan_p50_ms']} ms (from VMs {burst['vm_plan_p50_ms']} ms over {burst['plans_served_from_vms']}"
+        f" requests), cycles {burst['cycles_ok']}/{burst['cycles']}, module CPU {burst['cpu_s']} s"
+    )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

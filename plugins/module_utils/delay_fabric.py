@@ -11,7 +11,8 @@ sends and writes each to the destination host's TUN once ``delay_ms[src][dst]`` 
 - ``not_ipv4``: anything but IPv4 (the hosts have IPv6 disabled; this catches the rest);
 - ``queue_full``: a pair already holding ``queue_packets`` packets or ``queue_bytes`` bytes in flight, or all
   pairs together ``total_bytes``;
-- ``write_error``: the destination TUN refused the packet.
+- ``write_error``: the destination TUN refused the packet;
+- ``host_removed``: in flight to a host detached by a reload (its fd is closed and its number may be reused).
 
 Standard library only; run as a script (``python fabric.py CONFIG.json``) by the runtime. CONFIG::
 
@@ -21,7 +22,12 @@ Standard library only; run as a script (``python fabric.py CONFIG.json``) by the
      "stats_file": "...", "stats_interval": 1.0, "queue_packets": 8192, "queue_bytes": 33554432,
      "total_bytes": 268435456}
 
-Prints ``fabric ready`` once every TUN is attached. SIGTERM or SIGINT: stop, write the statistics, exit 0.
+Prints ``fabric ready`` once every TUN is attached. SIGHUP: read CONFIG again (hosts can come and go while it
+runs): attach the hosts it lists that are new (by ``node``), detach those it no longer lists, take its ``delay_ms``
+(packets in flight keep the time they were given; every other setting stays as started), then print
+``fabric reloaded: N hosts``; a new host that cannot be attached, or a CONFIG that cannot be read, changes nothing
+and prints ``fabric reload failed: <reason>``. SIGTERM or SIGINT: stop, write the statistics, exit 0. Every signal
+wakes the loop at once (``signal.set_wakeup_fd``), not only when its wait runs out.
 """
 
 from __future__ import annotations
@@ -46,7 +52,7 @@ IFF_NO_PI = 0x1000
 PR_SET_TIMERSLACK = 29
 READ_SIZE = 65536 + 64
 READ_BATCH = 64  # packets read from one TUN before the others get a turn
-DROP_REASONS = ("multicast", "unknown_destination", "not_ipv4", "queue_full", "write_error")
+DROP_REASONS = ("multicast", "unknown_destination", "not_ipv4", "queue_full", "write_error", "host_removed")
 
 
 def ipv4_destination(packet: bytes) -> bytes | None:
@@ -54,6 +60,14 @@ def ipv4_destination(packet: bytes) -> bytes | None:
     if len(packet) < 20 or packet[0] >> 4 != 4:
         return None
     return packet[16:20]
+
+
+def parse_address(address: str) -> bytes:
+    """``10.213.64.10`` -> its 4 bytes."""
+    parts = [int(x) for x in address.split(".")]
+    if len(parts) != 4 or not all(0 <= x <= 255 for x in parts):
+        raise ValueError(f"{address!r} is not an IPv4 address")
+    return bytes(parts)
 
 
 def parse_network(cidr: str) -> tuple[int, int]:
@@ -120,17 +134,23 @@ def _libc_call(name: str, *args) -> None:
 def open_tun(netns: str, name: str) -> int:
     """A non-blocking fd attached to the TUN device ``name`` of the named network namespace."""
     home = os.open("/proc/self/ns/net", os.O_RDONLY)
-    target = os.open(f"/var/run/netns/{netns}", os.O_RDONLY)
     try:
-        _libc_call("setns", target, CLONE_NEWNET)
+        target = os.open(f"/var/run/netns/{netns}", os.O_RDONLY)
         try:
-            fd = os.open("/dev/net/tun", os.O_RDWR | os.O_NONBLOCK)
-            fcntl.ioctl(fd, TUNSETIFF, struct.pack("16sH22x", name.encode(), IFF_TUN | IFF_NO_PI))
+            _libc_call("setns", target, CLONE_NEWNET)
+            try:
+                fd = os.open("/dev/net/tun", os.O_RDWR | os.O_NONBLOCK)
+                try:
+                    fcntl.ioctl(fd, TUNSETIFF, struct.pack("16sH22x", name.encode(), IFF_TUN | IFF_NO_PI))
+                except OSError:
+                    os.close(fd)
+                    raise
+            finally:
+                _libc_call("setns", home, CLONE_NEWNET)
         finally:
-            _libc_call("setns", home, CLONE_NEWNET)
+            os.close(target)
     finally:
         os.close(home)
-        os.close(target)
     return fd
 
 
@@ -143,7 +163,7 @@ class Fabric:
         self.queue_packets = int(config.get("queue_packets", 8192))
         self.queue_bytes = int(config.get("queue_bytes", 32 << 20))
         self.total_bytes = int(config.get("total_bytes", 256 << 20))
-        self.broadcasts = frozenset(bytes(int(x) for x in b.split(".")) for b in config.get("broadcasts", []))
+        self.broadcasts = frozenset(parse_address(b) for b in config.get("broadcasts", []))
         self.fds: dict[int, str] = {}  # fd -> node
         self.by_address: dict[bytes, tuple[int, str]] = {}  # address -> (fd, node)
         self.by_network: list[tuple[int, int, int, str]] = []  # (network, mask, fd, node): networks behind a host
@@ -151,15 +171,73 @@ class Fabric:
         self.sequence = 0
         self.stats = Stats()
         self.running = True
+        self.reload_requested = False  # SIGHUP: run() calls its ``reload`` at the end of the current turn
 
-    def attach(self) -> None:
-        for host in self.config["hosts"]:
-            fd = open_tun(host["netns"], host.get("tun", "eth0"))
+    def attach(self, opener=open_tun) -> None:
+        """Attach every host of the config; ``opener(netns, tun)`` gives a host's fd."""
+        self.reload(self.config, opener)
+
+    def reload(self, config: dict, opener=open_tun) -> None:
+        """Make the hosts those ``config`` lists: the new ones (by node) attached, those attached already kept as
+        they are, the others detached; its ``delay_ms`` taken. All or nothing: when a new host cannot be attached
+        (``opener`` raises) or its entry is not valid, the fds opened so far are closed and the error raised, with
+        nothing changed."""
+        hosts = {host["node"]: host for host in config["hosts"]}
+        delay_ms = {src: {dst: float(ms) for dst, ms in row.items()} for src, row in config["delay_ms"].items()}
+        attached = self.by_node()
+        kept = {address for address, (_fd, node) in self.by_address.items() if node in hosts}
+        new = []
+        for node, host in hosts.items():
+            if node in attached:
+                continue
+            address = parse_address(host["address"])
+            if address in kept:
+                raise ValueError(f"{node}: address {host['address']} is another host's")
+            kept.add(address)
+            new.append((host, address, [parse_network(route) for route in host.get("routes", ())]))
+        opened: list[tuple[int, dict, bytes, list[tuple[int, int]]]] = []
+        try:
+            for host, address, routes in new:
+                opened.append((opener(host["netns"], host.get("tun", "eth0")), host, address, routes))
+        except BaseException:
+            for fd, *_entry in opened:
+                os.close(fd)
+            raise
+        for node in [n for n in attached if n not in hosts]:
+            self.detach(node)
+        for fd, host, address, routes in opened:
             self.fds[fd] = host["node"]
-            self.by_address[bytes(int(x) for x in host["address"].split("."))] = (fd, host["node"])
-            for route in host.get("routes", ()):
-                network, mask = parse_network(route)
-                self.by_network.append((network, mask, fd, host["node"]))
+            self.by_address[address] = (fd, host["node"])
+            self.by_network.extend((network, mask, fd, host["node"]) for network, mask in routes)
+        self.config = {**self.config, "hosts": list(config["hosts"]), "delay_ms": delay_ms}
+        self.delay_ms = delay_ms
+
+    def by_node(self) -> dict[str, int]:
+        """Node -> the fd of its TUN, for every attached host."""
+        return {node: fd for fd, node in self.fds.items()}
+
+    def detach(self, node: str) -> None:
+        """Close a host's fd and forget its address and networks; its packets in flight are dropped
+        (``host_removed``), so that a new fd of the same number never receives them."""
+        fd = self.by_node()[node]
+        kept = []
+        for entry in self.heap:
+            if entry[2] != fd:
+                kept.append(entry)
+                continue
+            size = len(entry[3])
+            pair = entry[4]
+            pair.in_flight_packets -= 1
+            pair.in_flight_bytes -= size
+            self.stats.in_flight_bytes -= size
+            self._drop("host_removed", pair)
+        if len(kept) != len(self.heap):
+            heapq.heapify(kept)
+            self.heap = kept
+        del self.fds[fd]
+        self.by_address = {a: target for a, target in self.by_address.items() if target[0] != fd}
+        self.by_network = [entry for entry in self.by_network if entry[2] != fd]
+        os.close(fd)
 
     def lookup(self, destination: bytes) -> tuple[int, str] | None:
         """The host a destination address belongs to: its own address, else a network behind it."""
@@ -249,10 +327,13 @@ class Fabric:
             json.dump(self.stats.to_dict(self.delay_ms), handle, indent=1, sort_keys=True)
         os.replace(tmp, path)
 
-    def run(self) -> None:
+    def run(self, wakeup: int | None = None, reload=None) -> None:
+        """Forward until ``running`` is cleared. ``wakeup``: an fd that becomes readable when a signal arrives (it is
+        drained); ``reload``: called once a turn is over when ``reload_requested`` was set, to reload."""
         interval = float(self.config.get("stats_interval", 1.0))
         next_stats = time.monotonic() + interval
-        fds = list(self.fds)
+        watched = [wakeup] if wakeup is not None else []
+        fds = watched + list(self.fds)
         while self.running:
             now = time.monotonic()
             wait = min(next_stats, self.heap[0][0] if self.heap else next_stats) - now
@@ -261,12 +342,29 @@ class Fabric:
             except InterruptedError:
                 readable = []
             for fd in readable:
-                self.read_ready(fd)
+                if fd == wakeup:
+                    _drain(fd)
+                else:
+                    self.read_ready(fd)
             now = time.monotonic()
             self.deliver_due(now)
             if now >= next_stats:
                 self.write_stats()
                 next_stats = now + interval
+            if self.reload_requested and self.running:
+                self.reload_requested = False
+                if reload is not None:
+                    reload()
+                fds = watched + list(self.fds)
+
+
+def _drain(fd: int) -> None:
+    """Read a non-blocking fd empty."""
+    try:
+        while os.read(fd, 512):
+            pass
+    except (BlockingIOError, InterruptedError):
+        pass
 
 
 def main(argv: list[str]) -> int:
@@ -281,8 +379,27 @@ def main(argv: list[str]) -> int:
     def stop(_signum, _frame) -> None:
         fabric.running = False
 
+    def hangup(_signum, _frame) -> None:
+        fabric.reload_requested = True
+
+    def reload() -> None:
+        try:
+            with open(argv[1], encoding="utf-8") as handle:
+                config = json.load(handle)
+            fabric.reload(config)
+        except (OSError, ValueError, LookupError, TypeError, AttributeError) as error:
+            print(f"fabric reload failed: {error}", flush=True)
+            return
+        fabric.write_stats()
+        print(f"fabric reloaded: {len(fabric.fds)} hosts", flush=True)
+
+    wakeup, woken = os.pipe()
+    os.set_blocking(wakeup, False)
+    os.set_blocking(woken, False)
+    signal.set_wakeup_fd(woken, warn_on_full_buffer=False)
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGHUP, hangup)
     try:
         ctypes.CDLL(None).prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0)  # wake within a microsecond of the deadline
         os.setpriority(os.PRIO_PROCESS, 0, -10)
@@ -291,7 +408,7 @@ def main(argv: list[str]) -> int:
     fabric.attach()
     fabric.write_stats()
     print(f"fabric ready: {len(fabric.fds)} hosts", flush=True)
-    fabric.run()
+    fabric.run(wakeup, reload)
     fabric.write_stats()
     print(f"fabric stopped: {fabric.stats.packets} packets forwarded, {sum(fabric.stats.drops.values())} dropped", flush=True)
     return 0

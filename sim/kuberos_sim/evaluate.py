@@ -36,6 +36,7 @@ from kuberos_sim import metrics, scenario
 
 PHYSICS = "python3 -m kuberos_pnp.robot"
 STARTUP_LIMIT = 600.0  # s for every robot's coordinator to find its planner, controller, scene and joint states
+BURST_LINGER_S = 240.0  # edge-burst: s after the last cycle for the scale-down, the drain and the VMs' release
 
 
 def rendered_inventory(rendered: str):
@@ -84,13 +85,14 @@ def run_one(
     cpu_scale: float,
     startup_limit: float = STARTUP_LIMIT,
 ) -> dict:
+    from kuberos_sim.cloud import SimCloud
     from kuberos_sim.runtime import Runtime
     from kuberos_sim.runtime.runtime import machine_cpu_seconds
     from kuberos_sim.scaler import SimScaler, load_record
 
     directory = os.path.join(out, "runs", run_name(strategy, robots, rate, seed))
     os.makedirs(directory, exist_ok=True)
-    inventory = scenario.site_inventory(robots)
+    inventory = scenario.site_inventory(robots, strategy)
     inventory_file = scenario.write_yaml(os.path.join(directory, "inventory.yml"), inventory)
     spec = scenario.strategy_spec(strategy, rate, cycles, seed=seed, startup_timeout=startup_limit)
     spec_file = scenario.write_yaml(os.path.join(directory, "pick-and-place.yml"), spec)
@@ -115,16 +117,23 @@ def run_one(
                 cgroup="hardware",
             )
         ready, not_ready = wait_for_ready(runtime, robots, max(30.0, startup_limit + 30 - (time.monotonic() - launched)))
-        scaler = SimScaler(runtime, load_record(rendered)).start() if strategy == "edge-scaled" else None
+        burst = SimCloud(runtime, scenario.FLEET, latency_ms=scenario.CLOUD_RTT_MS) if strategy == "edge-burst" else None
+        scaler = SimScaler(runtime, load_record(rendered), cloud=burst).start() if strategy in scenario.SCALED else None
         started = time.monotonic()
         cpu_start, machine_start, fabric_start = runtime.cpu_seconds(), machine_cpu_seconds(), runtime.fabric_cpu_seconds()
         finished = wait_for_cycles(runtime, robots, cycles, time_limit) if ready else False
         window = time.monotonic() - started
-        if scaler is not None:
-            scaler.stop()
         cpu_end, machine_end, fabric_end = runtime.cpu_seconds(), machine_cpu_seconds(), runtime.fabric_cpu_seconds()
         records = collect(runtime)
         fabric = runtime.fabric_stats()
+        if burst is not None:  # after the peak: the scaler goes on until the VMs are drained and released
+            wait_for_release(burst, BURST_LINGER_S)
+        if scaler is not None:
+            scaler.stop()
+        if burst is not None:
+            burst.release_all()
+    if burst is not None:
+        tiers.update({name: "cloud" for name in burst.vms})  # the hosts the run's VMs were
     cpu = cpu_by_tier(cpu_start, cpu_end, tiers)
     startup_cpu = cpu_by_tier({}, cpu_start, tiers)
     sim_seconds = sum(max(0.0, cpu_end[k] - cpu_start.get(k, 0.0)) for k in cpu_end)
@@ -152,9 +161,40 @@ def run_one(
         row["not_ready"] = not_ready
     if scaler is not None:
         row["scaling"] = scaling_summary(scaler, window)
+    if burst is not None:
+        row["burst"] = burst_summary(burst, scaler, records, window)
     with open(os.path.join(directory, "records.json"), "w", encoding="utf-8") as handle:
         json.dump({"row": row, "records": records, "fabric": fabric}, handle, indent=1, default=str)
     return row
+
+
+def wait_for_release(burst, limit: float) -> None:
+    """Until every VM the burst launched is released (its instances scaled down and drained, the fleet quiet for
+    the release time), or ``limit`` seconds."""
+    if not burst.live():
+        return
+    progress(f"  after the peak: waiting up to {limit:.0f} s for the cloud VMs to be released")
+    deadline = time.monotonic() + limit
+    while burst.live() and time.monotonic() < deadline:
+        time.sleep(1.0)
+
+
+def burst_summary(burst, scaler, records: list[dict], window: float) -> dict:
+    """VMs provisioned and released (times in seconds since every robot was ready), the planner instances that ran on
+    them, and the planning latency of the requests those planners answered."""
+    found = burst.summary()
+    vms = set(burst.vms)
+    plans = [r for r in records if r.get("kind") == "plan" and r.get("planner_node") in vms]
+    served = [r["latency_ms"] for r in plans if r.get("latency_ms") is not None and r.get("reason") != "timeout"]
+    found.update(
+        {
+            "window_s": round(window, 1),
+            "instances_on_vms": sorted(name for name, node in scaler.placed.items() if node in vms),
+            "plans_served_from_vms": len(served),
+            "vm_plan_p50_ms": None if not served else round(metrics.percentile(served, 50), 1),
+        }
+    )
+    return found
 
 
 def scaling_summary(scaler, window: float) -> dict:
@@ -167,7 +207,7 @@ def scaling_summary(scaler, window: float) -> dict:
         "instances_max": max((p[1] for p in points), default=None),
         "steps": [e for t in scaler.timeline for e in t["events"]],
         "errors": scaler.errors,
-        "timeline": [{k: t[k] for k in ("t", "instances", "running", "value")} for t in scaler.timeline],
+        "timeline": [{k: t[k] for k in ("t", "instances", "running", "value", "vms")} for t in scaler.timeline],
         "window_s": round(window, 1),
     }
 

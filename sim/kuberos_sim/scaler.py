@@ -12,7 +12,12 @@ The signal is the module's own Prometheus exposition. In a cluster the controlle
 from the file the runtime names in ``KUBEROS_METRICS_FILE`` (the pick-and-place planner writes it beside serving
 it). An instance counts as Ready once its process runs and has written the file.
 
-Every step is kept in ``timeline`` (time, instances, the mean signal, the event), for the evaluation's
+With a ``cloud`` (``kuberos_sim.cloud.SimCloud``) it also does the controller's part of a burst: the instances a
+blocked step could not place are what the fleet lacks (``kuberos.capacity``: the demand the controller writes to
+``kuberos-capacity``), handed to the cloud's provisioner run each pass; the VMs that have become nodes join the
+resource model the next step places against, as the controller adds the nodes labelled with the fleet's access.
+
+Every step is kept in ``timeline`` (time, instances, the mean signal, the VMs, the event), for the evaluation's
 instances-over-time plot.
 """
 
@@ -25,12 +30,13 @@ import time
 
 import yaml
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, scaling
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import capacity, naming, scaling
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import render_deployment
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import parse_record
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Scheduler
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.signals import gauge_value
 
+from .cloud import rfc3339 as cloud_stamp
 from .runtime.runtime import metrics_file
 
 
@@ -44,9 +50,11 @@ def load_record(rendered_dir: str):
 
 
 class SimScaler:
-    def __init__(self, runtime, record, period: float = 2.0):
+    def __init__(self, runtime, record, period: float = 2.0, cloud=None):
         self.runtime = runtime
         self.record = record
+        self.cloud = cloud
+        self.demand: dict | None = None  # the fleet's demand.json as the controller would write it
         self.period = period
         self.states: dict[str, scaling.ScaleState] = {}
         self.windows: dict[str, scaling.Windows] = {}
@@ -56,13 +64,16 @@ class SimScaler:
         self.thread = threading.Thread(target=self._loop, name="sim-scaler", daemon=True)
         self.modules = [m for m in record.spec.modules if m.scaling is not None]
         self._robots_data: dict[str, dict] = {}
+        self.placed: dict[str, str] = {}  # every instance this scaler started -> its node
 
     def start(self) -> SimScaler:
         self.started = time.monotonic()
+        if self.cloud is not None:
+            self.cloud.start()
         for module in self.modules:  # where it starts, before any step
             count = len(self._instances(module))
             self.timeline.append({"t": 0.0, "module": module.name, "instances": count, "running": count, "value": None,
-                                  "held": "", "events": []})  # fmt: skip
+                                  "held": "", "vms": 0, "events": []})  # fmt: skip
         self.thread.start()
         return self
 
@@ -91,9 +102,17 @@ class SimScaler:
         except OSError:
             return None
 
+    def inventory(self):
+        """The record's resource model with the cloud's VMs that are nodes now."""
+        if self.cloud is None:
+            return self.record.inventory
+        return self.record.inventory.with_nodes(self.cloud.nodes())
+
     def tick(self, now: float) -> None:
         dep = self.record.spec
-        scheduler = Scheduler.around(self.record.inventory, self.record.placement)
+        inventory = self.inventory()
+        scheduler = Scheduler.around(inventory, self.record.placement)
+        shortfalls = []
         for module in self.modules:
             instances = self._instances(module)
             texts = {i.name: self._signal(i.name) for i in instances}
@@ -104,8 +123,12 @@ class SimScaler:
                 dep, module, instances, self.states.get(module.name, scaling.ScaleState()), ready, values,
                 self.windows.setdefault(module.name, scaling.Windows()), now,
                 lambda robots, module=module: scheduler.choose(dep, module, tuple(robots)),
-                scaling.within_latency(module, self.record.inventory),
+                scaling.within_latency(module, inventory),
             )  # fmt: skip
+            for _name, reason, message, _warning in result.events:
+                found = capacity.shortfall(module, instances[0], message) if reason == "ModuleScaleBlocked" else None
+                if found is not None:
+                    shortfalls.append(found)
             self.states[module.name] = result.state
             others = [i for i in self.record.placement.instances if i.module != module.name or i.deployment != dep.name]
             self.record.placement.instances = others + result.instances
@@ -119,9 +142,14 @@ class SimScaler:
                     "running": len(result.instances),
                     "value": result.summary.get("value"),
                     "held": result.summary.get("held", ""),
+                    "vms": len([v for v in self.cloud.live() if v.running]) if self.cloud is not None else 0,
                     "events": [f"{reason}: {message}" for _name, reason, message, _warning in result.events],
                 }
             )
+        if self.cloud is not None:
+            self.demand = capacity.advance(self.demand, capacity.demand(shortfalls).get(dep.fleet), cloud_stamp(now))
+            for line in self.cloud.reconcile(self.demand, now):
+                self.timeline[-1]["events"].append(f"Cloud {line}")
 
     def _act(self, module, result) -> None:
         dep = self.record.spec
@@ -137,5 +165,6 @@ class SimScaler:
             self._robots_data[module.name] = robots_map["data"]
         for name in result.start:
             self.runtime.start_deployment(name)
+            self.placed[name] = self.runtime.rendered.deployments[name].node
         for name in result.stop:
             self.runtime.stop_deployment(name)

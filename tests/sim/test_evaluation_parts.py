@@ -14,9 +14,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import se
 pytestmark = pytest.mark.sim
 
 
-def raw_inventory(robots: int) -> dict:
+def raw_inventory(robots: int, strategy: str = "") -> dict:
     """The scenario's Ansible inventory as the fleet_inventory filter would hand it to the core."""
-    root = scenario.site_inventory(robots)["all"]
+    root = scenario.site_inventory(robots, strategy)["all"]
     hosts, groups = {}, {}
     for group, body in root["children"].items():
         groups[group] = sorted(body["hosts"])
@@ -284,6 +284,25 @@ def test_the_scaled_strategy_scales_only_the_planner_on_its_queue():
     assert modules["motion-planner"]["strategy"] == "shared" and modules["perception"]["strategy"] == "shared"
     assert "scaling" not in modules["perception"]
     assert "edge-scaled" not in scenario.MATRIX and "scaling" not in str(scenario.strategy_spec("edge-shared", 12, 3))
+
+
+def test_the_burst_site_holds_two_planners_on_its_edge_and_lets_the_planner_into_the_cloud():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Scheduler
+
+    spec = scenario.strategy_spec("edge-burst", 12, 4)
+    raw = raw_inventory(8, "edge-burst")
+    assert raw["groups"]["edge"] == ["edge-1"] and "cloud" not in raw["groups"], "no cloud node until one is launched"
+    deployments, placement = service.load_and_place(spec, raw)
+    (planner,) = [m for m in deployments[0].modules if m.name == "motion-planner"]
+    assert planner.scaling is not None and planner.tiers == ("edge", "cloud") and planner.requirements.max_latency_ms == 50
+    assert {i.node for i in placement.instances if i.tier != "onboard"} == {"edge-1"}
+    scheduler = Scheduler.around(load_inventory(raw), placement)
+    node, _tier, _latency, _why = scheduler.choose(deployments[0], planner, ("robot-1",))
+    assert node is not None and node.name == "edge-1", "room for a second planner"
+    scheduler.take(node.name, planner.resources.cpu_millis, planner.resources.memory_bytes, planner.resources.gpu)
+    assert scheduler.choose(deployments[0], planner, ("robot-1",))[0] is None, "no room for a third: the cloud is lacking"
+    assert "edge-burst" not in scenario.MATRIX
 
 
 def test_the_planners_queue_gauge_is_a_windowed_mean_the_scaler_can_read():

@@ -4,9 +4,10 @@ A probe RosDeployment is rendered with the project's own code (two discovery ser
 module on each robot and one per robot on the edge, printing its node name, params file and where
 kuberos_sim imports from) and run by ``Runtime`` unchanged. Measured here: ping RTTs through the fabric
 against the inventory, multicast blocked between hosts while the rendered discovery servers connect
-participants, a CPU quota enforced by cgroups, and teardown leaving nothing behind.
+participants, a CPU quota enforced by cgroups, a host added and removed while the run goes on, and teardown
+leaving nothing behind.
 
-The pure parts (the delay rule, the fabric's queueing, reading a rendered directory) run anywhere; the rest
+The pure parts (the delay rule, the fabric's queueing and reloading, reading a rendered directory) run anywhere; the rest
 needs root, `ip netns`, TUN and cgroup v1 cpu/cpuacct (skipped otherwise), and the ROS 2 wheels for the
 discovery test (fails otherwise, as test_discovery_netns does). Every wait is bounded; traffic stays
 between the run's namespaces.
@@ -14,9 +15,11 @@ between the run's namespaces.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -37,6 +40,7 @@ from test_discovery_netns import LISTENER, TALKER, TOPIC, require_ros  # noqa: E
 from ansible_collections.kuberos.platform.plugins.module_utils import render_dir  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, service  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import Node  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table  # noqa: E402
 
 pytestmark = pytest.mark.sim
@@ -202,10 +206,124 @@ def test_fabric_delays_forwards_in_order_drops_multicast_unknown_and_overflow():
         assert len(os.read(read_a, 65536)) == 64 + 65 + 66  # a pipe merges them: the first three, the fourth dropped
         stats = fabric.stats.to_dict(fabric.delay_ms)
         assert stats["packets"] == 3 and stats["pairs"]["b->a"]["delay_ms"] == 50.0
-        assert stats["drops"] == {"multicast": 1, "unknown_destination": 1, "not_ipv4": 1, "queue_full": 1, "write_error": 0}
+        assert stats["drops"] == {
+            "multicast": 1, "unknown_destination": 1, "not_ipv4": 1, "queue_full": 1, "write_error": 0, "host_removed": 0
+        }  # fmt: skip
     finally:
         os.close(read_a)
         os.close(write_a)
+
+
+class PipeHosts:
+    """Pipes standing in for the hosts' TUN devices: ``open`` is the fabric's opener (the fabric writes a host's
+    packets to the write end, which it closes on detach); ``read`` takes what reached a host."""
+
+    def __init__(self, failing: tuple[str, ...] = ()):
+        self.read_ends: dict[str, int] = {}
+        self.write_ends: dict[str, int] = {}
+        self.failing = failing
+
+    def open(self, namespace: str, _tun: str) -> int:
+        if namespace in self.failing:
+            raise FileNotFoundError(f"/var/run/netns/{namespace}")
+        read, write = os.pipe()
+        os.set_blocking(read, False)
+        self.read_ends[namespace], self.write_ends[namespace] = read, write
+        return write
+
+    def read(self, namespace: str) -> bytes:
+        try:
+            return os.read(self.read_ends[namespace], 65536)
+        except BlockingIOError:
+            return b""
+
+    def close(self) -> None:
+        for fd in self.read_ends.values():
+            os.close(fd)
+
+
+def fabric_config(hosts: dict[str, str], delay_ms: dict) -> dict:
+    return {"hosts": [{"node": n, "netns": f"ns-{n}", "address": a} for n, a in hosts.items()], "delay_ms": delay_ms}
+
+
+def test_fabric_reload_attaches_detaches_drops_in_flight_packets_and_takes_new_delays():
+    pipes = PipeHosts(failing=("ns-bad",))
+    fabric = fabric_module.Fabric(fabric_config({"a": "10.0.0.1", "b": "10.0.0.2"}, {"b": {"a": 50.0}, "a": {"b": 50.0}}))
+    try:
+        fabric.attach(pipes.open)
+        fabric.receive("b", ipv4("10.0.0.1", 64), now=100.0)  # in flight to a when a goes
+        fabric.receive("a", ipv4("10.0.0.2", 65), now=100.0)  # sent by a before it went: still delivered
+        fabric.reload(fabric_config({"b": "10.0.0.2", "c": "10.0.0.3"}, {"b": {"c": 5.0}, "c": {"b": 5.0}}), pipes.open)
+        assert sorted(fabric.by_node()) == ["b", "c"] and len(fabric.heap) == 1
+        assert fabric.stats.drops["host_removed"] == 1 and fabric.stats.pairs[("b", "a")].drops == 1
+        assert fabric.stats.in_flight_bytes == 65 and fabric.stats.pairs[("b", "a")].in_flight_bytes == 0
+        fabric.receive("b", ipv4("10.0.0.1"), now=101.0)  # a's address is no host's now
+        assert fabric.stats.drops["unknown_destination"] == 1
+        fabric.receive("b", ipv4("10.0.0.3", 66), now=101.0)  # to the new host, with the new delay
+        fabric.deliver_due(101.0049)
+        assert pipes.read("ns-c") == b""
+        fabric.deliver_due(101.005)
+        assert len(pipes.read("ns-c")) == 66 and len(pipes.read("ns-b")) == 65
+        # a later host may get a's old fd number: none of a's packets reaches it
+        fabric.reload(fabric_config({"b": "10.0.0.2", "c": "10.0.0.3", "d": "10.0.0.4"}, {}), pipes.open)
+        fabric.deliver_due(200.0)
+        assert pipes.read("ns-d") == b"" and fabric.stats.packets == 2
+        stats = fabric.stats.to_dict(fabric.delay_ms)
+        assert stats["pairs"]["b->c"]["delay_ms"] == 0.0 and stats["dropped"] == 2  # the last delays taken
+        # a host that cannot be attached: nothing changes, the fds opened for it are closed
+        with pytest.raises(FileNotFoundError):
+            fabric.reload(fabric_config({"b": "10.0.0.2", "e": "10.0.0.5", "bad": "10.0.0.6"}, {"b": {"e": 9.0}}), pipes.open)
+        assert sorted(fabric.by_node()) == ["b", "c", "d"] and fabric.delay_ms == {}
+        with pytest.raises(OSError):
+            os.fstat(pipes.write_ends["ns-e"])  # opened before "bad" failed, closed since
+    finally:
+        for fd in list(fabric.fds):
+            os.close(fd)
+        pipes.close()
+
+
+def wait_for_line(path, text: str, count: int, process: subprocess.Popen, timeout: float = 10.0) -> float:
+    """Seconds until ``text`` occurs ``count`` times in the file at ``path``."""
+    start = time.monotonic()
+    while time.monotonic() - start < timeout and process.poll() is None:
+        if path.read_text().count(text) >= count:
+            return time.monotonic() - start
+        time.sleep(0.005)
+    pytest.fail(f"no {text!r} within {timeout:.0f} s (exit {process.poll()}):\n{path.read_text()}", pytrace=False)
+
+
+def test_the_fabric_reloads_on_sighup_at_once_and_survives_a_failed_reload(tmp_path):
+    """The script itself, without hosts (no root needed): its wait is 30 s long (stats_interval), yet SIGHUP and
+    SIGTERM act at once; a config naming a namespace that does not exist is refused and the fabric goes on."""
+    config = {"hosts": [], "delay_ms": {}, "stats_file": str(tmp_path / "stats.json"), "stats_interval": 30.0}
+    path, log = tmp_path / "fabric.json", tmp_path / "fabric.log"
+    path.write_text(json.dumps(config))
+    with open(log, "wb") as out:
+        fabric = subprocess.Popen([sys.executable, fabric_module.SCRIPT, str(path)], stdout=out, stderr=subprocess.STDOUT)
+    try:
+        wait_for_line(log, "fabric ready: 0 hosts", 1, fabric)
+        path.write_text(json.dumps({**config, "delay_ms": {"a": {"b": 7.0}}}))
+        fabric.send_signal(signal.SIGHUP)
+        seconds = wait_for_line(log, "fabric reloaded: 0 hosts", 1, fabric)
+        missing = {"node": "gone", "netns": "krs-test-no-such-namespace", "address": "10.0.0.9"}
+        path.write_text(json.dumps({**config, "hosts": [missing]}))
+        fabric.send_signal(signal.SIGHUP)
+        wait_for_line(log, "fabric reload failed: ", 1, fabric)
+        assert fabric.poll() is None, log.read_text()
+        fabric.send_signal(signal.SIGHUP)
+        wait_for_line(log, "fabric reload failed: ", 2, fabric)
+        path.write_text(json.dumps(config))
+        fabric.send_signal(signal.SIGHUP)
+        wait_for_line(log, "fabric reloaded: 0 hosts", 2, fabric)
+        start = time.monotonic()
+        fabric.send_signal(signal.SIGTERM)
+        assert fabric.wait(5) == 0, log.read_text()
+        print(f"reload {seconds * 1000:.1f} ms after SIGHUP, stopped {(time.monotonic() - start) * 1000:.1f} ms after SIGTERM")
+        assert seconds < 2.0 and "fabric stopped" in log.read_text()
+    finally:
+        if fabric.poll() is None:
+            fabric.kill()
+            fabric.wait()
 
 
 # --- reading a rendered directory (pure) ------------------------------------------------------------------
@@ -381,6 +499,60 @@ def test_busy_hosts_share_a_core_in_proportion_to_their_size(rendered_dirs, loca
     used = {node: (after[(node, "node")] - before[(node, "node")]) / elapsed for node in ("fetch-1", "edge-1")}
     print(f"one core shared: robot computer {used['fetch-1']:.3f}, edge server {used['edge-1']:.3f} cores")
     assert used["edge-1"] > 1.5 * used["fetch-1"], used
+
+
+def assert_rtt(runtime: Runtime, source: str, target: str) -> float:
+    """Ping from ``source`` to ``target``: the inventory's RTT, within test_ping_rtt_matches_the_inventory's bounds."""
+    expected = rtt_ms(runtime.inventory, source, target)
+    measured = ping_rtt_ms(runtime, source, target, count=10)
+    assert expected - 0.05 <= measured <= expected + max(expected * RTT_TOLERANCE, 0.75), (
+        f"{source} -> {target}: {measured:.3f} ms measured, {expected} ms expected"
+    )
+    return measured
+
+
+def test_a_host_added_and_removed_while_the_run_goes_on(rendered_dirs, local_inventory, tmp_path):
+    """A cloud VM provisioned during the run (a node the inventory did not have, as the burst adds it): made a host
+    live, no running host's address moving, reached with its latency, running a process; removed: the process
+    stopped, its namespace and cgroups gone, its CPU still counted, the fabric forwarding between the others. The
+    freed address goes to the next host added, which close() removes like the others."""
+    require_environment()
+    vm = Node("burst-1", "cloud", 8000, 16 << 30, resource_group="cloud-eu", latency_ms=30.0)
+    with Runtime(rendered_dirs["probe"], local_inventory, str(tmp_path)) as runtime:
+        runtime.start(modules=False)
+        addresses = {node: host.address for node, host in runtime.hosts.items()}
+        host = runtime.add_host("burst-1", runtime.inventory.with_nodes([vm]))
+        assert {node: runtime.hosts[node].address for node in addresses} == addresses
+        assert host.address not in addresses.values() and host.tier == "cloud" and host.cpu_cores == 1.0
+        quota = open(os.path.join(host.cgroups["node"].cpu_dir, "cpu.cfs_quota_us"), encoding="utf-8").read()
+        shares = open(os.path.join(host.cgroups["node"].cpu_dir, "cpu.shares"), encoding="utf-8").read()
+        assert (int(quota), int(shares)) == (100_000, 2048)
+        there = assert_rtt(runtime, "fetch-1", "burst-1")
+        back = assert_rtt(runtime, "burst-1", "fetch-2")
+        edge = assert_rtt(runtime, "edge-1", "burst-1")  # edge-cloud: the VM's latency
+        busy = runtime.start_on("burst-1", "busy", [sys.executable, "-c", "while True: pass"])
+        wait_until(lambda: runtime.cpu_seconds()[("burst-1", "node")] > 0.5, 20, "the VM's process used no CPU", runtime)
+        stopped = runtime.remove_host("burst-1")
+        assert stopped == [busy] and not busy.running and busy in runtime.stopped and "burst-1" not in runtime.hosts
+        assert not os.path.exists(f"/var/run/netns/{host.netns}") and not os.path.exists(f"/etc/netns/{host.netns}")
+        assert not any(os.path.exists(d) for group in host.cgroups.values() for d in group.dirs)
+        used = runtime.removed[-1].cpu_seconds["node"]
+        assert used > 0.5 and runtime.cpu_seconds()[("burst-1", "node")] == used
+        assert runtime.cpu_seconds_by_tier()["cloud"] == used  # the run's only cloud host
+        lan = assert_rtt(runtime, "fetch-2", "fetch-1")
+        again = runtime.add_host("cloud-1")  # in the fixture's inventory, not a host yet
+        assert again.address == host.address
+        cloud = assert_rtt(runtime, "fetch-1", "cloud-1")
+        pairs = runtime.fabric_stats()["pairs"]
+        assert pairs["fetch-1->burst-1"]["packets"] >= 5 and pairs["fetch-1->cloud-1"]["delay_ms"] == 20.0
+        reloads = list(runtime.fabric_reload_seconds)
+    print(f"RTT through hosts added live: fetch-1 -> burst-1 {there:.3f} ms, burst-1 -> fetch-2 {back:.3f} ms, "
+          f"edge-1 -> burst-1 {edge:.3f} ms (30 ms in the inventory), fetch-1 -> cloud-1 {cloud:.3f} ms (40), "
+          f"fetch-2 -> fetch-1 {lan:.3f} ms after the removal (1); fabric reloads "
+          f"{', '.join(f'{r * 1000:.1f}' for r in reloads)} ms; burst-1 used {used:.2f} CPU seconds")  # fmt: skip
+    assert len(reloads) == 3 and max(reloads) < 1.0, reloads  # its wait is up to a second (stats_interval) otherwise
+    assert runtime.leftovers() == [] and not runtime.close_problems, (runtime.leftovers(), runtime.close_problems)
+    assert runtime.cpu_seconds()[("burst-1", "node")] == used and ("cloud-1", "node") in runtime.cpu_seconds()
 
 
 def test_an_early_exit_is_reported_with_its_log_and_everything_is_removed(rendered_dirs, local_inventory, tmp_path):

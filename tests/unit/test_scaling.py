@@ -109,8 +109,8 @@ def test_a_leaving_instance_stops_only_after_its_drain_time():
 
 
 # -- one step ---------------------------------------------------------------------------------------------------
-def _instance(name, node, robots):
-    return Instance(name, "app", "f", "kuberos-f", "planner", node, "edge", tuple(robots), "preferred tier edge", 5.0, 500,
+def _instance(name, node, robots, tier="edge"):
+    return Instance(name, "app", "f", "kuberos-f", "planner", node, tier, tuple(robots), "preferred tier edge", 5.0, 500,
                     2**28, 0, shared=True)  # fmt: skip
 
 
@@ -120,7 +120,7 @@ class _Node:
 
 
 def _step(instances, values, ready=None, state=None, windows=None, now=0.0, place=None, policy=POLICY):
-    module = type("M", (), {"name": "planner", "scaling": policy, "robots_per_instance": 4})
+    module = type("M", (), {"name": "planner", "scaling": policy, "robots_per_instance": 4, "tiers": ("edge", "cloud")})
     dep = type("D", (), {"name": "app"})
     return scaling.step(
         dep, module, instances, state or scaling.ScaleState(), {i.name for i in instances} if ready is None else ready,
@@ -149,6 +149,20 @@ def test_a_step_down_drains_and_a_later_step_stops_the_instance():
     assert step.start == [] and step.stop == [] and step.wake_at == 15.0
     later = _step(step.instances, {}, state=step.state, now=15.0)
     assert later.stop == ["app-planner-shared-1"] and [i.name for i in later.instances] == ["app-planner-shared-0"]
+
+
+def test_a_step_down_takes_the_least_preferred_tier_first_so_a_peaks_vms_can_go():
+    instances = [
+        _instance("app-planner-shared-0", "edge-1", ["r1"]),
+        _instance("app-planner-shared-1", "edge-2", ["r2"]),
+        _instance("app-planner-shared-2", "cloud-vm-1", ["r3", "r4"], tier="cloud"),  # serves the most, leaves first
+    ]
+    windows = scaling.Windows()
+    windows.restart(-100.0)
+    step = _step(instances, {i.name: 1.2 for i in instances}, windows=windows)  # 3 -> 2
+    assert list(step.state.leaving) == ["app-planner-shared-2"], step.events
+    assert scaling.leaving_instances({"a": ("r1",), "b": ("r2", "r3")}, 1, {"b": 1}) == ["b"]
+    assert scaling.leaving_instances({"a": ("r1",), "b": ("r2", "r3")}, 1) == ["a"]
 
 
 def test_a_step_holds_while_an_instance_is_not_ready_or_nothing_reports():

@@ -28,6 +28,16 @@ class Shortfall:
     why: str
 
 
+def shortfall(module, instance, why: str) -> Shortfall | None:
+    """An instance like ``instance`` of ``module`` found no node: what its fleet lacks, if the module may run in the
+    cloud (a VM could hold it); None otherwise."""
+    if module is None or "cloud" not in module.tiers:
+        return None
+    return Shortfall(
+        instance.fleet, instance.deployment, instance.module, instance.cpu_millis, instance.memory_bytes, instance.gpu, why
+    )
+
+
 def demand(shortfalls: list[Shortfall]) -> dict[str, dict]:
     """Per fleet: instances, cpu_millis, memory_bytes, gpu and the modules (``deployment/module``) lacking room."""
     fleets: dict[str, dict] = {}

@@ -114,9 +114,12 @@ def grow(assignment: dict[str, tuple[str, ...]], new: list[str], fits=lambda rob
     return {n: tuple(r) for n, r in result.items()}, moved
 
 
-def leaving_instances(assignment: dict[str, tuple[str, ...]], count: int) -> list[str]:
-    """The ``count`` instances to remove: those serving the fewest robots, the newest first among equals."""
-    order = sorted(assignment, key=lambda n: (len(assignment[n]), [-ord(c) for c in n]))
+def leaving_instances(assignment: dict[str, tuple[str, ...]], count: int, rank=None) -> list[str]:
+    """The ``count`` instances to remove: those on the least preferred tier first (``rank``: instance -> the index of
+    its tier in the module's preference; a peak's cloud instances leave before the edge ones, so that the VMs
+    provisioned for it can be released), then those serving the fewest robots, the newest first among equals."""
+    rank = rank or {}
+    order = sorted(assignment, key=lambda n: (-rank.get(n, 0), len(assignment[n]), [-ord(c) for c in n]))
     return order[:count]
 
 
@@ -334,7 +337,9 @@ def step(dep, module, instances: list, state: ScaleState, ready: set[str], value
         message = f"{module.name}: {current} -> {current + len(new)} instances ({cause}); robots move: {who}"
         result.events.append((new[0], "ModuleScaledUp", message, False))
         return result
-    leaving = leaving_instances({n: by_name[n].robots for n in active}, current - desired)
+    tiers = list(module.tiers)
+    rank = {n: tiers.index(by_name[n].tier) if by_name[n].tier in tiers else len(tiers) for n in active}
+    leaving = leaving_instances({n: by_name[n].robots for n in active}, current - desired, rank)
     node_of = {i.name: i.node for i in result.instances}
     shrunk = shrink({n: by_name[n].robots for n in active}, leaving, module.robots_per_instance,
                     lambda r, n: fits(r, node_of[n]))  # fmt: skip

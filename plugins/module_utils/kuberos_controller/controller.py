@@ -636,10 +636,9 @@ class Controller:
 
     def _lacks(self, module, inst, why: str) -> None:
         """An instance like ``inst`` found no node: the fleet lacks its resources, if the module may run in the cloud."""
-        if module is not None and "cloud" in module.tiers:
-            self.shortfalls.append(
-                capacity.Shortfall(inst.fleet, inst.deployment, inst.module, inst.cpu_millis, inst.memory_bytes, inst.gpu, why)
-            )
+        found = capacity.shortfall(module, inst, why)
+        if found is not None:
+            self.shortfalls.append(found)
 
     def _apply_robots(self, obj: dict, manager: str, cache_key: tuple) -> None:
         self._apply(obj, manager)

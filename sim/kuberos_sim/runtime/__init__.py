@@ -7,13 +7,14 @@ from __future__ import annotations
 
 from .delays import LAN_RTT_MS, rtt_ms
 from .processes import SimProcess
-from .runtime import DEFAULT_CPU_SCALE, Host, ProcessExitedError, Runtime, environment_problem
+from .runtime import DEFAULT_CPU_SCALE, Host, ProcessExitedError, RemovedHost, Runtime, environment_problem
 
 __all__ = [
     "DEFAULT_CPU_SCALE",
     "LAN_RTT_MS",
     "Host",
     "ProcessExitedError",
+    "RemovedHost",
     "Runtime",
     "SimProcess",
     "environment_problem",

@@ -17,6 +17,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.background_proces
 
 ETC_NETNS = "/etc/netns"
 TUN = "eth0"
+FIRST_HOST = 9  # hosts get the subnet's 10th address and on; the first nine are left free
 
 
 class CommandError(RuntimeError):
@@ -45,9 +46,19 @@ def host_addresses(subnet: str, nodes: list[str]) -> dict[str, str]:
     """Node -> address: the subnet's 10th, 11th, ... address, in the given order."""
     network = ipaddress.ip_network(subnet)
     hosts = list(network.hosts())
-    if len(nodes) > len(hosts) - 10:
+    if len(nodes) > len(hosts) - FIRST_HOST:
         raise ValueError(f"{len(nodes)} hosts do not fit in {subnet}")
-    return {node: str(hosts[9 + index]) for index, node in enumerate(nodes)}
+    return {node: str(hosts[FIRST_HOST + index]) for index, node in enumerate(nodes)}
+
+
+def free_address(subnet: str, used) -> str:
+    """The lowest of the subnet's 10th, 11th, ... addresses not in ``used``: for a host added while others run,
+    whose addresses stay as they are."""
+    taken = set(used)
+    for address in list(ipaddress.ip_network(subnet).hosts())[FIRST_HOST:]:
+        if str(address) not in taken:
+            return str(address)
+    raise ValueError(f"no address of {subnet} is free")
 
 
 def create_host(namespace: str, address: str, prefix_len: int, mtu: int) -> None:

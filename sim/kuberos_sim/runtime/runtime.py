@@ -7,8 +7,11 @@
         runtime.cpu_seconds()[("fetch-1", "node")], runtime.fabric_stats()
     # closed: processes stopped, namespaces, cgroups and /etc/netns/<ns> removed; figures kept
 
-Hosts are the nodes the Deployments are pinned to, plus those added with ``add_host`` before ``start``.
-Each is a network namespace ``krs-<suffix>-<node>`` (netns.py) with a TUN eth0 whose packets the fabric
+Hosts are the nodes the Deployments are pinned to, plus those added with ``add_host``. Hosts can come and go
+while the run goes on (cloud VMs provisioned for a peak): ``add_host`` after ``start`` makes the host at once, with
+the lowest free address (a running host's never moves), and the fabric reloads its config (SIGHUP);
+``remove_host`` stops the host's processes, detaches it from the fabric and removes it, its CPU seconds still
+counted. Each is a network namespace ``krs-<suffix>-<node>`` (netns.py) with a TUN eth0 whose packets the fabric
 process (fabric.py) delays by the inventory's latencies (delays.py), and two cgroups,
 ``kuberos-sim-<suffix>/<node>`` with the node's scaled CPU quota (and a weight in proportion to it) and
 ``.../<node>.hardware`` without one (with the default weight; cgroups.py). Every container of
@@ -26,6 +29,7 @@ import secrets
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -38,7 +42,9 @@ from .rendered import Deployment, RenderedDir, configmap_files, load_rendered, p
 DEFAULT_CPU_SCALE = 0.125  # a 4-CPU robot gets half a core, a 16-CPU edge server 2 cores (capped at this machine's)
 DEFAULT_SUBNET = "10.213.64.0/24"  # exists only inside the run's namespaces
 DEFAULT_MTU = 65000  # Fast DDS's 64 KB datagrams cross unfragmented
-FABRIC_READY_TIMEOUT = 15.0
+FABRIC_READY_TIMEOUT = 15.0  # the fabric attaching every host at start, or reloading its config
+FABRIC_RELOADED = "fabric reloaded"  # the fabric's line once it reloaded its config (SIGHUP)
+FABRIC_RELOAD_FAILED = "fabric reload failed"  # its line when it could not (it keeps the hosts it had)
 SERVER_READY_TIMEOUT = 20.0  # a discovery server binding its UDP port
 SETTLE_SECONDS = 1.5  # modules exiting this soon after start are reported
 STOP_TIMEOUT = 5.0  # per signal (SIGINT, SIGTERM) before SIGKILL
@@ -65,6 +71,15 @@ class Host:
     address: str
     cpu_cores: float
     cgroups: dict[str, cgroups.Cgroup] = field(default_factory=dict)
+
+
+@dataclass
+class RemovedHost:
+    """A host removed while the run went on, with its figures then."""
+
+    host: Host
+    cpu_seconds: dict[str, float]  # "node" | "hardware" -> CPU seconds its cgroup used in all
+    tun_tx_dropped: int = 0  # packets its TUN dropped before the fabric read them (see Runtime.fabric_stats)
 
 
 def default_prefix() -> str:
@@ -114,11 +129,16 @@ class Runtime:
         self.cgroup_parent = f"kuberos-sim-{self.suffix}"
         self.hosts: dict[str, Host] = {}
         self.processes: dict[str, SimProcess] = {}
-        self.stopped: list[SimProcess] = []  # processes of Deployments stopped while the run went on
+        self.stopped: list[SimProcess] = []  # processes of Deployments (or hosts) stopped while the run went on
+        self.removed: list[RemovedHost] = []  # hosts removed while the run went on, in the order they were
+        self.fabric_reload_seconds: list[float] = []  # how long each reload of the fabric took (SIGHUP to its line)
+        # hosts and removed change together: a scaler's thread adds and removes hosts while the figures are read
+        self._hosts_lock = threading.Lock()
         self.fabric: subprocess.Popen | None = None
         self._started = self._closed = False
         self._etc_netns_created = False
         self._fabric_config: dict = {}
+        self._fabric_config_path = self._fabric_log = ""
         self._final_cpu: dict[tuple[str, str], float] | None = None
         self._final_fabric: dict | None = None
         self._final_fabric_cpu: float | None = None
@@ -145,27 +165,111 @@ class Runtime:
         if problems:
             raise SpecError(problems, title="the rendered deployment does not fit the inventory")
 
-    def add_host(self, node: str) -> None:
-        """Simulate this inventory node too (before ``start``), e.g. a robot computer no module runs on."""
+    def add_host(self, node: str, inventory=None) -> Host | None:
+        """Simulate this inventory node too: a robot computer no module runs on, or a cloud VM provisioned while the
+        run goes on. ``inventory`` replaces the run's (it must hold every host and ``node``, e.g. the run's
+        ``inventory.with_nodes([...])``). Before ``start`` the node is planned with the others (None returned).
+        After, its host is made at once and returned: namespace, cgroups, the lowest free address (no running
+        host's moves), its /etc/netns hosts file, and the fabric attached to it (config rewritten with the delays
+        recomputed, SIGHUP, waited for). When any of that fails, what it made is removed, the inventory restored
+        and the error raised (RuntimeError with the fabric log's tail when the fabric did not reload)."""
         if self._started:
-            raise RuntimeError("hosts can only be added before start()")
-        self._check_nodes([node])
-        if node not in self._nodes:
-            self._nodes.append(node)
+            self._require_started()
+            if node in self.hosts:
+                raise ValueError(f"{node!r} is a host of this run already")
+        previous = self.inventory
+        if inventory is not None:
+            self.inventory = inventory
+        try:
+            self._check_nodes([*self._nodes, node], self.rendered.deployments.values())
+        except SpecError:
+            self.inventory = previous
+            raise
+        if not self._started:
+            if node not in self._nodes:
+                self._nodes.append(node)
+            return None
+        host, making, signalled = None, False, False
+        try:
+            host = self._make_host(node, netns.free_address(self.subnet, [h.address for h in self.hosts.values()]))
+            left = self._host_leftovers(host)
+            if left:
+                raise RuntimeError(f"{node}: an earlier host of that name left {', '.join(left)}")
+            with self._hosts_lock:
+                self.hosts[node], making = host, True
+            self._create_host(host)
+            self._etc_netns_created |= netns.write_hosts(host.netns, self._hosts_text())
+            signalled = True
+            self._reload_fabric()
+        except BaseException:
+            self.inventory = previous
+            if making:
+                with self._hosts_lock:
+                    del self.hosts[node]
+                if signalled:
+                    try:
+                        self._reload_fabric()  # detaches it, should the fabric have attached it after all
+                    except RuntimeError as error:
+                        self.close_problems.append(f"{node}: the fabric did not reload after a failed add: {error}")
+                self.close_problems.extend(self._remove_host_parts(host))
+            raise
+        self._nodes.append(node)
+        return host
+
+    def remove_host(self, node: str) -> list[SimProcess]:
+        """Stop simulating a node; the Deployments pinned to it are dropped from the run. Before ``start`` it is
+        just forgotten. While the run goes on, every process on its host is stopped (as ``stop_deployment`` stops
+        them; they go to ``stopped``), its cgroups' CPU seconds recorded (``removed``: ``cpu_seconds`` goes on
+        counting them), the fabric detached from it (config rewritten, SIGHUP, waited for), then its cgroups, namespace and
+        /etc/netns dir removed (problems in ``close_problems``). Returns the processes it stopped; RuntimeError
+        after all that when the fabric did not reload."""
+        if node not in (self.hosts if self._started else self._nodes):
+            raise KeyError(f"{node!r} is not a host of this run; hosts: {', '.join(self.hosts or self._nodes)}")
+        if self._started:
+            self._require_started()
+        for name in [d.name for d in self.rendered.deployments.values() if d.node == node]:
+            self.rendered.deployments.pop(name)
+        self._nodes.remove(node)
+        if not self._started:
+            return []
+        host = self.hosts[node]
+        processes = [p for p in self.processes.values() if p.host == node]
+        stop_all(list(reversed(processes)), self.stop_timeout)
+        for process in processes:
+            self.processes.pop(process.name, None)
+            self.stopped.append(process)
+        removed = RemovedHost(host, {kind: g.usage_seconds() for kind, g in host.cgroups.items()}, _tun_tx_dropped(host.netns))
+        with self._hosts_lock:
+            self.removed.append(removed)
+            del self.hosts[node]
+        failed = None
+        try:
+            self._reload_fabric()
+        except RuntimeError as error:
+            failed = error
+        self.close_problems.extend(self._remove_host_parts(host))
+        if failed is not None:
+            raise failed
+        return processes
+
+    def _make_host(self, node: str, address: str) -> Host:
+        """The host a node is simulated as (nothing made yet): its namespace's name, the node's scaled CPU quota,
+        its ``node`` cgroup with that quota and a weight in proportion, its ``hardware`` cgroup without one."""
+        model = self.inventory.nodes[node]
+        cores = cgroups.quota_cores(model.cpu_millis, self.cpu_scale)
+        host = Host(node, model.tier, f"krs-{self.suffix}-{node}"[:60], address, cores)
+        base = f"{self.cgroup_parent}/{node}"
+        host.cgroups = {
+            "node": cgroups.Cgroup(base, cores, cgroups.shares_for(cores)),
+            "hardware": cgroups.Cgroup(f"{base}.hardware", None, cgroups.HARDWARE_SHARES),
+        }
+        return host
 
     def _plan_hosts(self) -> None:
         nodes = sorted(self._nodes)
         addresses = netns.host_addresses(self.subnet, nodes)
         for node in nodes:
-            model = self.inventory.nodes[node]
-            cores = cgroups.quota_cores(model.cpu_millis, self.cpu_scale)
-            host = Host(node, model.tier, f"krs-{self.suffix}-{node}"[:60], addresses[node], cores)
-            base = f"{self.cgroup_parent}/{node}"
-            host.cgroups = {
-                "node": cgroups.Cgroup(base, cores, cgroups.shares_for(cores)),
-                "hardware": cgroups.Cgroup(f"{base}.hardware", None, cgroups.HARDWARE_SHARES),
-            }
-            self.hosts[node] = host
+            self.hosts[node] = self._make_host(node, addresses[node])
 
     def _hosts_text(self) -> str:
         names: dict[str, str] = {host.node: host.address for host in self.hosts.values()}
@@ -181,20 +285,22 @@ class Runtime:
         names.update({name: next(iter(found)) for name, found in short.items() if len(found) == 1 and name not in names})
         return netns.hosts_file(names)
 
+    def _create_host(self, host: Host) -> None:
+        netns.create_host(host.netns, host.address, ipaddress.ip_network(self.subnet).prefixlen, self.mtu)
+        for group in host.cgroups.values():
+            group.create()
+
     def _create_hosts(self) -> None:
-        prefix_len = ipaddress.ip_network(self.subnet).prefixlen
         for host in self.hosts.values():
-            netns.create_host(host.netns, host.address, prefix_len, self.mtu)
-            for group in host.cgroups.values():
-                group.create()
+            self._create_host(host)
         text = self._hosts_text()
         for host in self.hosts.values():
             self._etc_netns_created |= netns.write_hosts(host.netns, text)
 
-    def _start_fabric(self) -> None:
-        directory = os.path.join(self.run_dir, "fabric")
-        os.makedirs(directory, exist_ok=True)
-        config = {
+    def _write_fabric_config(self) -> None:
+        """The fabric's config.json: the hosts as they are now, their delays from the inventory (replaced whole)."""
+        directory = os.path.dirname(self._fabric_config_path)
+        self._fabric_config = {
             "hosts": [{"node": h.node, "netns": h.netns, "tun": netns.TUN, "address": h.address} for h in self.hosts.values()],
             "delay_ms": delays.one_way_delays_ms(self.inventory, list(self.hosts)),
             "broadcasts": [str(ipaddress.ip_network(self.subnet).broadcast_address)],
@@ -202,15 +308,20 @@ class Runtime:
             "stats_interval": 1.0,
             **self.fabric_options,
         }
-        self._fabric_config = config
-        path = os.path.join(directory, "config.json")
-        with open(path, "w", encoding="utf-8") as handle:
-            json.dump(config, handle, indent=1)
+        with open(self._fabric_config_path + ".tmp", "w", encoding="utf-8") as handle:
+            json.dump(self._fabric_config, handle, indent=1)
+        os.replace(self._fabric_config_path + ".tmp", self._fabric_config_path)
+
+    def _start_fabric(self) -> None:
+        directory = os.path.join(self.run_dir, "fabric")
+        os.makedirs(directory, exist_ok=True)
+        self._fabric_config_path = os.path.join(directory, "config.json")
+        self._write_fabric_config()
         self._fabric_log = os.path.join(directory, "fabric.log")
         script = fabric_script.SCRIPT
         with open(self._fabric_log, "ab") as out:
             self.fabric = subprocess.Popen(
-                [sys.executable, script, path],
+                [sys.executable, script, self._fabric_config_path],
                 stdin=subprocess.DEVNULL,
                 stdout=out,
                 stderr=subprocess.STDOUT,
@@ -224,6 +335,27 @@ class Runtime:
                 break
             time.sleep(0.05)
         raise RuntimeError(f"the fabric did not start (exit {self.fabric.poll()}):\n{_read(self._fabric_log)[-3000:]}")
+
+    def _reload_fabric(self) -> None:
+        """Rewrite the fabric's config with the hosts as they are now, SIGHUP it and wait for its reload (its
+        ``fabric reloaded`` line; the seconds it took go to ``fabric_reload_seconds``). RuntimeError with the
+        log's tail when it failed, exited or took more than FABRIC_READY_TIMEOUT."""
+        if self.fabric is None:
+            raise RuntimeError("the fabric is not running")
+        self._write_fabric_config()
+        log = _read(self._fabric_log)
+        reloaded, failed = log.count(FABRIC_RELOADED), log.count(FABRIC_RELOAD_FAILED)
+        start = time.monotonic()
+        self.fabric.send_signal(signal.SIGHUP)
+        while time.monotonic() - start < FABRIC_READY_TIMEOUT:
+            log = _read(self._fabric_log)
+            if log.count(FABRIC_RELOADED) > reloaded:
+                self.fabric_reload_seconds.append(time.monotonic() - start)
+                return
+            if log.count(FABRIC_RELOAD_FAILED) > failed or self.fabric.poll() is not None:
+                break
+            time.sleep(0.01)
+        raise RuntimeError(f"the fabric did not reload its config (exit {self.fabric.poll()}):\n{log[-3000:]}")
 
     def base_env(self) -> dict[str, str]:
         """What every process gets before its own env: the ROS wheels' environment, PYTHONPATH with sim/."""
@@ -459,10 +591,18 @@ class Runtime:
         return shared
 
     def cpu_seconds(self) -> dict[tuple[str, str], float]:
-        """(host, "node" | "hardware") -> CPU seconds used in that cgroup so far (cpuacct.usage); kept after close."""
+        """(host, "node" | "hardware") -> CPU seconds used in that cgroup so far (cpuacct.usage), removed hosts
+        included (what they used until they were removed); kept after close."""
         if self._final_cpu is not None:
             return dict(self._final_cpu)
-        return {(node, kind): group.usage_seconds() for node, h in self.hosts.items() for kind, group in h.cgroups.items()}
+        used: dict[tuple[str, str], float] = {}
+        with self._hosts_lock:  # a host being removed is counted once: live or removed
+            figures = [(r.host.node, r.cpu_seconds) for r in self.removed]
+            figures += [(node, {kind: g.usage_seconds() for kind, g in h.cgroups.items()}) for node, h in self.hosts.items()]
+        for node, seconds in figures:
+            for kind, value in seconds.items():
+                used[(node, kind)] = used.get((node, kind), 0.0) + value
+        return used
 
     def fabric_cpu_seconds(self) -> float:
         """CPU seconds the fabric process used so far (it runs outside every cgroup of the run); kept after close."""
@@ -473,18 +613,22 @@ class Runtime:
         return process_cpu_seconds(self.fabric.pid)
 
     def cpu_seconds_by_tier(self) -> dict[str, float]:
-        """Tier (onboard, edge, cloud) -> CPU seconds in the node cgroups of its hosts (hardware left out)."""
+        """Tier (onboard, edge, cloud) -> CPU seconds in the node cgroups of its hosts, removed ones included
+        (hardware left out)."""
+        used_by_host = self.cpu_seconds()
+        with self._hosts_lock:
+            tiers = {r.host.node: r.host.tier for r in self.removed} | {node: h.tier for node, h in self.hosts.items()}
         totals: dict[str, float] = {}
-        for (node, kind), used in self.cpu_seconds().items():
+        for (node, kind), used in used_by_host.items():
             if kind == "node":
-                tier = self.hosts[node].tier
-                totals[tier] = totals.get(tier, 0.0) + used
+                totals[tiers[node]] = totals.get(tiers[node], 0.0) + used
         return totals
 
     def fabric_stats(self) -> dict:
         """Packets, bytes and drops (by reason and per pair) of the fabric so far, written by it every second,
         plus ``tun_tx_dropped``: per host, packets the kernel dropped before the fabric read them (a host
-        sending faster than the fabric reads overflows its TUN queue). Final figures after close."""
+        sending faster than the fabric reads overflows its TUN queue; a removed host's until it was). Final
+        figures after close."""
         if self._final_fabric is not None:
             return self._final_fabric
         path = self._fabric_config.get("stats_file")
@@ -493,7 +637,14 @@ class Runtime:
                 stats = json.load(handle)
         except (OSError, ValueError):
             return {}
-        stats["tun_tx_dropped"] = {node: _tun_tx_dropped(host.netns) for node, host in self.hosts.items()}
+        with self._hosts_lock:
+            removed, hosts = list(self.removed), list(self.hosts.values())
+        dropped: dict[str, int] = {}
+        for figures in removed:
+            dropped[figures.host.node] = dropped.get(figures.host.node, 0) + figures.tun_tx_dropped
+        for host in hosts:
+            dropped[host.node] = dropped.get(host.node, 0) + _tun_tx_dropped(host.netns)
+        stats["tun_tx_dropped"] = dropped
         return stats
 
     # --- teardown -------------------------------------------------------------------------------------
@@ -513,7 +664,7 @@ class Runtime:
     def _teardown(self) -> None:
         problems = self.close_problems
         stop_all(list(reversed(self.processes.values())), self.stop_timeout)
-        if self.hosts:
+        if self.hosts or self.removed:
             self._final_cpu = self.cpu_seconds()
         if self.fabric is not None:
             self._final_fabric_cpu = self.fabric_cpu_seconds()
@@ -527,9 +678,10 @@ class Runtime:
                 problems.append("the fabric did not stop on SIGTERM; killed")
             self._final_fabric = self.fabric_stats()
         for host in self.hosts.values():
-            for group in host.cgroups.values():
-                problems.extend(group.remove())
-            problems.extend(netns.delete_host(host.netns))
+            problems.extend(self._remove_host_parts(host))
+        for host in self._removed_hosts():
+            if self._host_leftovers(host):  # its removal had problems: once more
+                problems.extend(self._remove_host_parts(host))
         problems.extend(cgroups.remove_parent(self.cgroup_parent))
         if self._etc_netns_created:
             try:
@@ -537,16 +689,38 @@ class Runtime:
             except OSError:
                 pass  # another run's namespaces have files there
 
+    @staticmethod
+    def _remove_host_parts(host: Host) -> list[str]:
+        """Remove a host's cgroups (killing what is left in them), namespace and /etc/netns dir; problems as text."""
+        problems = []
+        for group in host.cgroups.values():
+            problems.extend(group.remove())
+        problems.extend(netns.delete_host(host.netns))
+        return problems
+
+    @staticmethod
+    def _host_leftovers(host: Host) -> list[str]:
+        """What of a host exists on the machine: its namespace, /etc/netns dir, cgroup dirs."""
+        found = [f"netns {host.netns}"] if os.path.exists(f"/var/run/netns/{host.netns}") else []
+        if os.path.exists(os.path.join(netns.ETC_NETNS, host.netns)):
+            found.append(f"/etc/netns/{host.netns}")
+        return found + [d for group in host.cgroups.values() for d in group.dirs if os.path.isdir(d)]
+
+    def _removed_hosts(self) -> list[Host]:
+        """Removed hosts whose node is not a host again (one added anew has the same names), each once."""
+        return list({r.host.netns: r.host for r in self.removed if r.host.node not in self.hosts}.values())
+
     def leftovers(self) -> list[str]:
-        """What of this run still exists on the machine (empty after a clean close)."""
+        """What of this run still exists on the machine (empty after a clean close), removed hosts included."""
         found = [f"netns {h.netns}" for h in self.hosts.values() if os.path.exists(f"/var/run/netns/{h.netns}")]
         found += [f"/etc/netns/{h.netns}" for h in self.hosts.values() if os.path.exists(os.path.join(netns.ETC_NETNS, h.netns))]
+        found += [item for host in self._removed_hosts() for item in self._host_leftovers(host)]
         found += [
             os.path.join(root, self.cgroup_parent)
             for root in (cgroups.CPU_ROOT, cgroups.CPUACCT_ROOT)
             if os.path.exists(os.path.join(root, self.cgroup_parent))
         ]
-        found += [f"pid {p.pid} ({p.name})" for p in self.processes.values() if p.running]
+        found += [f"pid {p.pid} ({p.name})" for p in [*self.stopped, *self.processes.values()] if p.running]
         if self.fabric is not None and self.fabric.poll() is None:
             found.append(f"fabric pid {self.fabric.pid}")
         return found
