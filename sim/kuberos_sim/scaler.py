@@ -55,6 +55,7 @@ class SimScaler:
         self.record = record
         self.cloud = cloud
         self.demand: dict | None = None  # the fleet's demand.json as the controller would write it
+        self.lacking: dict[str, str | None] = {}  # module -> why it still lacks a node (scaling.lacking)
         self.period = period
         self.states: dict[str, scaling.ScaleState] = {}
         self.windows: dict[str, scaling.Windows] = {}
@@ -125,10 +126,11 @@ class SimScaler:
                 lambda robots, module=module: scheduler.choose(dep, module, tuple(robots)),
                 scaling.within_latency(module, inventory),
             )  # fmt: skip
-            for _name, reason, message, _warning in result.events:
-                found = capacity.shortfall(module, instances[0], message) if reason == "ModuleScaleBlocked" else None
-                if found is not None:
-                    shortfalls.append(found)
+            why = scaling.lacking(result, self.lacking.get(module.name))
+            self.lacking[module.name] = why
+            found = capacity.shortfall(module, instances[0], why) if why is not None else None
+            if found is not None:
+                shortfalls.append(found)
             self.states[module.name] = result.state
             others = [i for i in self.record.placement.instances if i.module != module.name or i.deployment != dep.name]
             self.record.placement.instances = others + result.instances

@@ -252,3 +252,18 @@ def test_a_pods_own_metric_is_scraped_from_its_address_and_a_silent_pod_gives_no
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_a_shortfall_stands_while_the_step_that_found_it_waits_and_ends_when_a_step_decides():
+    instances = [_instance("app-planner-shared-0", "edge-1", ["r1", "r2", "r3", "r4"])]
+    full = _step(instances, {"app-planner-shared-0": 9.0}, place=lambda robots: (None, None, None, ["edge-2: cpu full"]))
+    why = scaling.lacking(full, None)
+    assert full.decided and "edge-2: cpu full" in why
+    waiting = _step(instances, {"app-planner-shared-0": 9.0}, ready=set())  # an instance it placed is not Ready yet
+    assert not waiting.decided and scaling.lacking(waiting, why) == why, "still lacking while the step waits"
+    silent = _step(instances, {})
+    assert not silent.decided and scaling.lacking(silent, why) == why
+    windows = scaling.Windows()
+    windows.restart(-100.0)
+    calm = _step(instances, {"app-planner-shared-0": 2.0}, windows=windows)  # at the target: nothing more wanted
+    assert calm.decided and calm.events == [] and scaling.lacking(calm, why) is None

@@ -211,10 +211,22 @@ class Step:
     events: list[tuple[str, str, str, bool]] = field(default_factory=list)  # (object, reason, message, warning)
     summary: dict = field(default_factory=dict)  # for the status: instances, desired, signal, held
     wake_at: float | None = None
+    decided: bool = False  # False: held before deciding (a handover, a drain, an instance not Ready, no signal)
 
     @property
     def changed(self) -> bool:
         return bool(self.start or self.stop or self.events)
+
+
+def lacking(result: Step, previous: str | None) -> str | None:
+    """Why the module still lacks a node after this step (the fleet's demand for the cloud), or None: the step's own
+    ``ModuleScaleBlocked`` message; else, while a step is held before it decides (the instances it did place being
+    handed robots or not Ready yet), the previous step's. A shortfall stands until a step decides without it, so
+    that a VM provisioned for it is not released as idle while the step waits."""
+    blocked = next((message for _name, reason, message, _warning in result.events if reason == "ModuleScaleBlocked"), None)
+    if blocked is not None:
+        return blocked
+    return None if result.decided else previous
 
 
 def within_latency(module, inventory):
@@ -282,12 +294,14 @@ def step(dep, module, instances: list, state: ScaleState, ready: set[str], value
     if any(n not in ready for n in active):
         summary["held"] = "waiting for every instance to be Ready"
         return result
+    result.decided = True  # from here on the step decides (to hold by its windows, to change, or that it cannot)
     recommendation = recommend(current, reported, policy.target)
     if current < low or current > high:
         desired, held = min(max(current, low), high), ""
         cause = f"{current} is outside {low}..{high} instances"
     elif recommendation is None:
         summary["held"] = "no signal from the instances"
+        result.decided = False
         return result
     else:
         desired, held = windows.desired(policy, now, current, min(max(recommendation, low), high))

@@ -170,6 +170,7 @@ class Controller:
         self.demand_written: dict[str, dict] = {}  # fleet namespace -> the demand.json last written
         self.fleet_of: dict[str, str] = {}  # fleet namespace -> fleet
         self.blocked: dict[tuple, str] = {}  # (namespace, deployment, module) -> the blocked scale-up last reported
+        self.lacking: dict[tuple, str] = {}  # the same key -> why it still lacks a node (scaling.lacking)
         self.burst = None  # a Burst runner (--burst-command): provisions cloud VMs when a fleet lacks room
         self._access: tuple[int, dict] = (-1, {})  # (node store generation, fleet -> the nodes labelled with its access)
 
@@ -191,6 +192,7 @@ class Controller:
         self.robots_written.clear()
         self.demand_written.clear()
         self.blocked.clear()
+        self.lacking.clear()
 
     # -- observing --------------------------------------------------------------------------
     def _node_names(self) -> dict[str, str]:
@@ -613,9 +615,14 @@ class Controller:
                 placement = type(placement)(**{**placement.__dict__, "instances": others + result.instances})
             start.extend(result.start)
             stop.extend(result.stop)
+            why = scaling.lacking(result, self.lacking.get(blocked_key))
+            if why is None:
+                self.lacking.pop(blocked_key, None)
+            else:  # one more instance of the module has no node (and, while the step waits, still has none)
+                self.lacking[blocked_key] = why
+                self._lacks(module, instances[0], why)
             for name, reason, message, warning in result.events:
                 if reason == "ModuleScaleBlocked":
-                    self._lacks(module, instances[0], message)  # one more instance of the module has no node
                     if self.blocked.get(blocked_key) == message:
                         continue  # said once; the shortfall above stands each pass
                     self.blocked[blocked_key] = message
