@@ -26,6 +26,7 @@ import itertools
 import json
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import time
@@ -91,6 +92,8 @@ def run_one(
     from kuberos_sim.scaler import SimScaler, load_record
 
     directory = os.path.join(out, "runs", run_name(strategy, robots, rate, seed))
+    # A rerun into the same directory starts clean: the figures are read from the processes' logs, which append.
+    shutil.rmtree(os.path.join(directory, "run"), ignore_errors=True)
     os.makedirs(directory, exist_ok=True)
     inventory = scenario.site_inventory(robots, strategy)
     inventory_file = scenario.write_yaml(os.path.join(directory, "inventory.yml"), inventory)
