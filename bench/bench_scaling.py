@@ -157,7 +157,13 @@ def plot_burst(axis, burst: dict) -> None:
     timeline = burst["timeline"]
     times = [p["t"] for p in timeline]
     axis.step(times, [p["instances"] for p in timeline], where="post", color="C2", label="planners")
-    axis.step(times, [p.get("vms", 0) for p in timeline], where="post", color="C3", label="cloud VMs (nodes)")
+    vms, count = [(0.0, 0)], 0  # VMs that are nodes, from the cloud's log (launched VMs boot first)
+    for e in burst.get("log", []):
+        if e["event"] in ("node", "released") and e["detail"] != "the run ended":
+            count += 1 if e["event"] == "node" else -1
+            vms.append((e["t"], count))
+    end = max(times[-1], vms[-1][0])
+    axis.step([t for t, _ in vms] + [end], [n for _, n in vms] + [count], where="post", color="C3", label="cloud VMs (nodes)")
     marks = {"launched": ("^", "VM launched"), "node": ("o", "VM a node"), "released": ("v", "VM released")}
     for event, (marker, label) in marks.items():
         at = [e["t"] for e in burst.get("log", []) if e["event"] == event and e["detail"] != "the run ended"]
@@ -169,7 +175,7 @@ def plot_burst(axis, burst: dict) -> None:
     axis.set_xlabel("seconds since every robot was ready")
     axis.set_ylabel("count")
     axis.set_ylim(0, max([p["instances"] for p in timeline] + [2]) + 1)
-    axis.legend(loc="upper right", fontsize=7)
+    axis.legend(loc="center right", fontsize=7)
 
 
 def redraw(path_json: str, path_png: str) -> None:

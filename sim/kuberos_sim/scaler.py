@@ -152,6 +152,7 @@ class SimScaler:
             self.demand = capacity.advance(self.demand, capacity.demand(shortfalls).get(dep.fleet), cloud_stamp(now))
             for line in self.cloud.reconcile(self.demand, now):
                 self.timeline[-1]["events"].append(f"Cloud {line}")
+            self.timeline[-1]["vms"] = len([v for v in self.cloud.live() if v.running])  # after this pass's run
 
     def _act(self, module, result) -> None:
         dep = self.record.spec
