@@ -52,6 +52,7 @@ CNI_PLUGINS = ("bridge", "host-local", "loopback", "portmap")
 NODE_COMPONENTS = ("containerd", "kubelet", "kube-proxy")
 SHARED_COMPONENTS = ("fabric", "apiserver-relay", "coredns")
 CLUSTER_DOMAIN = "cluster.local"
+DEVICE_PLUGIN_SOCKET = "/var/lib/kubelet/device-plugins/kubelet.sock"  # fixed in the kubelet, whatever --root-dir is
 
 
 class RealNodeError(RuntimeError):
@@ -619,9 +620,26 @@ class RealNodes:
             f"--node-labels={labels}",
             "--v=1",
         ]
-        changed = self._start("kubelet", kubelet, net.name, net.netns) or changed
+        since = time.time()
+        if self._start("kubelet", kubelet, net.name, net.netns):
+            changed = True
+            self._wait_for_device_plugin_socket(net, since)
         proxy = [self.binaries["kube-proxy"], f"--config={os.path.join(directory, 'kube-proxy.json')}", "--v=1"]
         return self._start("kube-proxy", proxy, net.name, net.netns) or changed
+
+    def _wait_for_device_plugin_socket(self, net: NodeNet, since: float, timeout: float = 10.0) -> None:
+        """Until this kubelet has bound its device-plugin socket (or exited, or ``timeout``). The path is fixed in the
+        kubelet, not under ``--root-dir``, so every kubelet of this host binds the same one, removing the file first:
+        started together, one removed another's file between that one's remove and bind, and the other failed with
+        "address already in use". Started one after another, each binds in turn (no device plugins are used here)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not self._exited("kubelet", net.name):
+            try:
+                if os.stat(DEVICE_PLUGIN_SOCKET).st_mtime >= since:
+                    return
+            except OSError:
+                pass
+            time.sleep(0.05)
 
     def _cgroups(self, net: NodeNet) -> None:
         """The kubelet's cgroup root in every v1 hierarchy (cpuset needs the parent's cpus and mems)."""
