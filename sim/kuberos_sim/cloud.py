@@ -21,7 +21,6 @@ Every launch, node, refusal and release is kept in ``log`` (seconds since ``star
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster import cloud
@@ -32,11 +31,6 @@ REGION = "eu-central-1"
 BUDGET = {"max_vms": 2, "instance_types": {"c5.2xlarge": {"cpu": 8, "memory": "16Gi", "hourly_price": 0.388}}}
 BOOT_S = 10.0
 RELEASE_AFTER_S = 20.0
-
-
-def rfc3339(epoch: float) -> str:
-    """The controller's stamp format for ``since`` and ``quiet_since`` in demand.json."""
-    return datetime.datetime.fromtimestamp(epoch, datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 @dataclasses.dataclass
@@ -96,9 +90,13 @@ class SimCloud:
     def live(self) -> list[SimVm]:
         return [v for v in self.vms.values() if v.released_at is None]
 
+    def running(self) -> list[SimVm]:
+        """The live VMs whose boot is over: nodes now."""
+        return [v for v in self.live() if v.running]
+
     def nodes(self) -> list:
         """The resource model's nodes of the VMs that are nodes now (as the inventory would read them)."""
-        running = [dataclasses.replace(v.vm, state="running") for v in self.live() if v.running]
+        running = [dataclasses.replace(v.vm, state="running") for v in self.running()]
         hosts = cloud.inventory_hosts(running, self.request.site, self.budget)
         return [cloud.cloud_node(name, variables) for name, variables in hosts.items()]
 

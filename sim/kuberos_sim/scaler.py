@@ -36,7 +36,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Scheduler
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.signals import gauge_value
 
-from .cloud import rfc3339 as cloud_stamp
 from .runtime.runtime import metrics_file
 
 
@@ -144,15 +143,15 @@ class SimScaler:
                     "running": len(result.instances),
                     "value": result.summary.get("value"),
                     "held": result.summary.get("held", ""),
-                    "vms": len([v for v in self.cloud.live() if v.running]) if self.cloud is not None else 0,
+                    "vms": len(self.cloud.running()) if self.cloud is not None else 0,
                     "events": [f"{reason}: {message}" for _name, reason, message, _warning in result.events],
                 }
             )
         if self.cloud is not None:
-            self.demand = capacity.advance(self.demand, capacity.demand(shortfalls).get(dep.fleet), cloud_stamp(now))
+            self.demand = capacity.advance(self.demand, capacity.demand(shortfalls).get(dep.fleet), capacity.stamp(now))
             for line in self.cloud.reconcile(self.demand, now):
                 self.timeline[-1]["events"].append(f"Cloud {line}")
-            self.timeline[-1]["vms"] = len([v for v in self.cloud.live() if v.running])  # after this pass's run
+            self.timeline[-1]["vms"] = len(self.cloud.running())  # after this pass's run
 
     def _act(self, module, result) -> None:
         dep = self.record.spec

@@ -51,7 +51,7 @@ class Hosts:
 
 def demand(instances: int, previous=None, at: float = 1000.0) -> dict:
     shortfalls = [capacity.Shortfall("f", "app", "planner", 1000, 2**28, 0, "no node")] * instances
-    return capacity.advance(previous, capacity.demand(shortfalls).get("f"), sim_cloud.rfc3339(at))
+    return capacity.advance(previous, capacity.demand(shortfalls).get("f"), capacity.stamp(at))
 
 
 def test_launch_boot_node_and_release_after_the_quiet_period(monkeypatch):

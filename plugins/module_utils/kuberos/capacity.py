@@ -9,6 +9,7 @@ fleet's namespace (``demand.json``).
 
 from __future__ import annotations
 
+import datetime
 from dataclasses import dataclass
 
 CONFIGMAP = "kuberos-capacity"
@@ -26,6 +27,11 @@ class Shortfall:
     memory_bytes: int
     gpu: int
     why: str
+
+
+def stamp(epoch: float) -> str:
+    """The stamps of ``since`` and ``quiet_since`` (RFC 3339, UTC, whole seconds), as a provisioner reads them back."""
+    return datetime.datetime.fromtimestamp(epoch, datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def shortfall(module, instance, why: str) -> Shortfall | None:

@@ -99,7 +99,7 @@ def _epoch(stamp: str | None) -> float | None:
 
 
 def _now_rfc3339() -> str:
-    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+    return capacity.stamp(time.time())
 
 
 def _failpoint(name: str) -> bool:
