@@ -74,7 +74,7 @@ def parse_network(cidr: str) -> tuple[int, int]:
     """``10.232.1.0/24`` -> (network, mask) as integers."""
     address, _sep, bits = cidr.partition("/")
     mask = (0xFFFFFFFF << (32 - int(bits or 32))) & 0xFFFFFFFF
-    return int.from_bytes(bytes(int(x) for x in address.split(".")), "big") & mask, mask
+    return int.from_bytes(parse_address(address), "big") & mask, mask
 
 
 def is_multicast_or_broadcast(address: bytes, broadcasts: frozenset[bytes] = frozenset()) -> bool:
