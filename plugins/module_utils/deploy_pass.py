@@ -47,7 +47,11 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantities import parse_cpu, parse_memory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name, record_placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployments, name_clash_problems
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import (
+    file_reader,
+    load_rosdeployments,
+    name_clash_problems,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import compare, deploy_table
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
 from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
@@ -224,7 +228,7 @@ class DeployPass:
         params = self.params
         self.catalog = load_catalog(params["catalog"]) if params.get("catalog") else None
         self.spec_text = read_text(params["src"], params["src"])  # read once: parsed here, kept in the record
-        self.deployments = load_rosdeployments(self.spec_text, params["src"], self.catalog)
+        self.deployments = load_rosdeployments(self.spec_text, params["src"], self.catalog, file_reader(params["src"]))
         self.inventory = load_inventory(params["inventory"])
         self._lap("validate")
 
@@ -277,6 +281,7 @@ class DeployPass:
                 revisions=revisions,
                 spec_text=self.spec_text,
                 clusters=self.inventory.clusters,
+                model=self.inventory,
             )
         except OSError as exc:
             raise RenderDirError(f"cannot write the render directory {params['dest']}: {exc}") from exc

@@ -4,10 +4,15 @@ Secrets), shared by the ``rosdeployment_render`` and ``rosdeployment`` modules. 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, Problem, SpecError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     bridge_secret_name,
+    device_parameters_of,
+    launch_argument_problems,
     object_order,
     render_deployment,
     render_remote,
@@ -79,14 +84,41 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
 
 
 def render_to_dir(
-    params: dict, deployments, placement: Placement, catalog, check_mode: bool, revisions=None, spec_text=None, clusters=None
+    params: dict,
+    deployments,
+    placement: Placement,
+    catalog,
+    check_mode: bool,
+    revisions=None,
+    spec_text=None,
+    clusters=None,
+    model=None,
 ) -> dict:
     """Render ``deployments`` as ``placement`` places them into ``params["dest"]`` (written unless ``check_mode``).
 
     ``params`` holds the render options (``render_args.RENDER_ARGS``), ``src``, ``dest``, ``inventory`` (raw, for the
     records; None renders no record) and ``field_manager``. ``spec_text`` is the spec file's text when the caller has
-    read it already; ``clusters`` the inventory's third-party clusters (``Inventory.clusters``)."""
+    read it already; ``clusters`` the inventory's third-party clusters (``Inventory.clusters``); ``model`` the inventory's
+    model when the caller has it (else it is read from ``params["inventory"]``), for the nodes' device parameters."""
     options = render_options(params)
+    if model is None and params["inventory"] is not None:
+        model = load_inventory(params["inventory"])
+    if model is not None:
+        options = replace(options, device_parameters=device_parameters_of(model))
+    missing = launch_argument_problems(deployments, placement, options)
+    if missing:
+        raise SpecError(
+            [
+                Problem(
+                    "inventory",
+                    f"node {node}.kuberos_device_parameters.{device}",
+                    f"has no parameter {parameter!r}, which launch argument {argument} of module {module} "
+                    f"(deployment {deployment}) takes; expected it in the node's kuberos_device_parameters",
+                )
+                for deployment, module, node, argument, device, parameter in missing
+            ],
+            title="a launch argument takes a device parameter the inventory does not give",
+        )
     objects = render_deployment(deployments, placement, options)
     remote = {}
     if placement.bridges:

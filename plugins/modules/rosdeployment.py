@@ -118,6 +118,14 @@ EXAMPLES = r"""
 """
 
 RETURN = r"""
+notes:
+  description: >-
+    What the translation of a spec in the reference format (kind ApplicationDeployment) ignored or chose, each with
+    the file, line and field (docs/rosdeployment.md, "The reference format"); empty for a RosDeployment.
+  returned: when state is present
+  type: list
+  elements: str
+  sample: ["app.yml:12: rosModules[0].requirements.dynamicRescheduling: False (bool) is accepted and not used: ..."]
 table:
   description: Where every module of every robot runs, read back from the cluster (the placement when not applied).
   returned: when state is present
@@ -246,6 +254,7 @@ def run(module: AnsibleModule) -> dict:
                 )
     return {
         **result,
+        "notes": [note for dep in work.deployments for note in dep.notes],
         "placement": work.placement.to_dict(),
         "dest": rendered["dest"],
         "files": rendered["files"],

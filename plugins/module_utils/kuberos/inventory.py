@@ -24,15 +24,22 @@ CLUSTERS_GROUP = "clusters"  # third-party clusters, reached through the KubeROS
 DEFAULT_BRIDGE_NODE_PORT = naming.BRIDGE_NODE_PORT
 # The host variables of the resource model (docs/inventory.md); other kuberos_* variables are site settings.
 HOST_VARS = (
-    "kuberos_arch", "kuberos_cpu", "kuberos_default_latency_ms", "kuberos_devices", "kuberos_fleet", "kuberos_fleets",
-    "kuberos_gpu", "kuberos_latency_ms", "kuberos_link_latency_ms", "kuberos_memory", "kuberos_node_name", "kuberos_pods",
-    "kuberos_resource_group", "kuberos_robot", "kuberos_shared",
+    "kuberos_arch", "kuberos_cpu", "kuberos_default_latency_ms", "kuberos_device_parameters", "kuberos_devices",
+    "kuberos_fleet", "kuberos_fleets", "kuberos_gpu", "kuberos_latency_ms", "kuberos_link_latency_ms", "kuberos_memory",
+    "kuberos_node_name", "kuberos_pods", "kuberos_resource_group", "kuberos_robot", "kuberos_shared",
     # third-party clusters (their API server, CA and token are credentials, never part of the model)
     "kuberos_cluster_domain", "kuberos_bridge_endpoint", "kuberos_bridge_node_port",
 )  # fmt: skip
 DEFAULT_LATENCY_MS = {"onboard": 0.0, "edge": 5.0, "cloud": 50.0}
 _NAME = re.compile(r"[a-z0-9]([-a-z0-9.]*[a-z0-9])?")  # fullmatch: no trailing line break
 _LABEL_VALUE = re.compile(r"[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?")
+
+
+def _scalar_text(value) -> str:
+    """A parameter value as a launch argument writes it (YAML's true/false for booleans)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
 
 
 @dataclass(frozen=True)
@@ -47,6 +54,8 @@ class Node:
     pods: int = 110
     arch: str = "amd64"
     devices: frozenset = frozenset()
+    # Per device, its parameters (kuberos_device_parameters): ((device, ((name, value), ...)), ...), sorted.
+    device_parameters: tuple = ()
     robot: str | None = None
     fleet: str | None = None
     fleets: tuple[str, ...] = ()
@@ -345,10 +354,37 @@ class _Loader:
                     host, "kuberos_devices",
                     f"{describe(device)} is not valid; expected device names of lowercase letters, digits and '-'",
                 )  # fmt: skip
+        parameters = self.device_parameters(host, hv.get("kuberos_device_parameters"), devices)
         return dict(
             name=node_name, tier=tier, cpu_millis=cpu, memory_bytes=memory, gpu=gpu, pods=pods, arch=str(arch),
-            devices=frozenset(devices),
+            devices=frozenset(devices), device_parameters=parameters,
         )  # fmt: skip
+
+    def device_parameters(self, host: str, raw, devices: list) -> tuple:
+        """kuberos_device_parameters: a mapping of the host's devices to mappings of parameter names to scalars."""
+        var = "kuberos_device_parameters"
+        if raw is None:
+            return ()
+        if not isinstance(raw, dict):
+            self.problem(host, var, f"{describe(raw)} is not valid; expected a mapping of device names to parameters")
+            return ()
+        out = []
+        for device, params in raw.items():
+            if device not in devices:
+                self.problem(
+                    host, f"{var}.{device}",
+                    f"names a device the host does not carry; expected one of kuberos_devices ({', '.join(devices) or 'none'})",
+                )  # fmt: skip
+                continue
+            if not isinstance(params, dict) or not all(
+                isinstance(k, str) and k and isinstance(v, (str, int, float, bool)) for k, v in params.items()
+            ):
+                self.problem(
+                    host, f"{var}.{device}", f"{describe(params)} is not valid; expected a mapping of parameter names to values"
+                )
+                continue
+            out.append((device, tuple(sorted((k, _scalar_text(v)) for k, v in params.items()))))
+        return tuple(sorted(out))
 
     def robot(self, host: str, hv: dict, common: dict) -> None:
         """A robot's own computer: an onboard node of its fleet, and the robot with its link overrides."""

@@ -10,8 +10,16 @@ ROS parameters.
 from __future__ import annotations
 
 import copy
+import hashlib
+import shlex
 from dataclasses import dataclass
 
+from . import cyclonedds
+
+try:  # TEMPORARY until fastdds.py lands
+    from .fastdds import TRANSPORT_ENV
+except ImportError:
+    TRANSPORT_ENV = ()
 from . import labels as node_labels
 from . import naming, scaling
 from .launch import container_name, launch_argv, split_amount
@@ -57,12 +65,43 @@ ROBOTS_DIR = "/etc/kuberos-robots"  # a scaled module's robots: one file per ins
 RMW = "rmw_fastrtps_cpp"
 
 
+MAPS_ANNOTATION = "kuberos.io/parameter-maps"  # a hash of the maps a pod reads: a changed map restarts its readers
+CYCLONEDDS_VOLUME = "cyclonedds"
+
+
 @dataclass(frozen=True)
 class RenderOptions:
     cluster_domain: str = "cluster.local"
     discovery_image: str = "ros:jazzy-ros-base"
     image_pull_policy: str = "IfNotPresent"
     bridge_image: str = "ghcr.io/kuberos/bridge:0.2.0"
+    # The inventory's device parameters per node (inventory.device_parameters): ((node, ((device, ((name, value),
+    # ...)), ...)), ...); launch arguments '{device:<device>.<parameter>}' take their value from the instance's node.
+    device_parameters: tuple = ()
+
+    def device_parameter(self, node: str, device: str, parameter: str) -> str | None:
+        for name, devices in self.device_parameters:
+            if name == node:
+                return dict(dict(devices).get(device, ())).get(parameter)
+        return None
+
+
+def device_parameters_of(inventory) -> tuple:
+    """``RenderOptions.device_parameters`` of an inventory model (``inventory.Inventory``)."""
+    return tuple(sorted((name, node.device_parameters) for name, node in inventory.nodes.items() if node.device_parameters))
+
+
+def launch_argument_problems(deployments: list[RosDeployment], placement: Placement, options: RenderOptions) -> list:
+    """(deployment, module, node, argument, device, parameter) of every device parameter a placed instance's launch
+    arguments take that its node's inventory entry does not give (kuberos_device_parameters)."""
+    modules = {(d.name, m.name): m for d in deployments for m in d.modules}
+    missing = []
+    for inst in placement.instances:
+        module = modules.get((inst.deployment, inst.module))
+        for argument in module.launch_arguments if module else ():
+            if argument.device and options.device_parameter(inst.node, argument.device, argument.parameter) is None:
+                missing.append((inst.deployment, inst.module, inst.node, argument.name, argument.device, argument.parameter))
+    return missing
 
 
 def discovery_server_list(servers: list[DiscoveryServer], cluster_domain: str) -> str:
@@ -205,21 +244,128 @@ def _params_configmap(dep: RosDeployment, module: RosModule, namespace: str, bas
     }
 
 
+def parameter_map_configmap(dep: RosDeployment, pmap, base_labels: dict) -> dict:
+    """A parameter map as a ConfigMap of the fleet's namespace: key-value maps key by key, a yaml map as its file."""
+    data = {pmap.file_name: pmap.text} if pmap.type == "yaml" else dict(pmap.values)
+    return {
+        "apiVersion": "v1",
+        "kind": "ConfigMap",
+        "metadata": {
+            "name": naming.parameter_map_name(dep.name, pmap.name),
+            "namespace": naming.fleet_namespace(dep.fleet),
+            "labels": dict(base_labels),
+            "annotations": {"kuberos.io/parameter-map": pmap.name},
+        },
+        "data": data,
+    }
+
+
+def _maps_hash(dep: RosDeployment, module: RosModule) -> str:
+    digest = hashlib.sha256()
+    for name in module.maps:
+        pmap = dep.parameter_map(name)
+        digest.update(repr((pmap.name, pmap.type, pmap.values, pmap.text)).encode())
+    return digest.hexdigest()[:16]
+
+
+def cyclonedds_peers(dep: RosDeployment, placement: Placement, cluster_domain: str) -> dict[str, list[str]]:
+    """Each instance of a Cyclone DDS deployment and the DNS names of the instances it talks with: those serving one
+    of its robots (so that the lists are symmetric: a moved instance is found again through the others' lists)."""
+    instances = [i for i in placement.instances if i.deployment == dep.name and not i.cluster]
+    peers = {}
+    for inst in instances:
+        robots = set(inst.robots)
+        peers[inst.name] = sorted(
+            f"{other.name}.{other.namespace}.svc.{cluster_domain}"
+            for other in instances
+            if other.name != inst.name and robots & set(other.robots)
+        )
+    return peers
+
+
+def cyclonedds_objects(dep: RosDeployment, placement: Placement, base_labels: dict, options: RenderOptions) -> list[dict]:
+    """A Cyclone DDS deployment's peer lists (one ConfigMap, a configuration file per instance) and a headless
+    Service per instance that gives it its stable DNS name (ready or not: a peer is named before it is Ready)."""
+    namespace = naming.fleet_namespace(dep.fleet)
+    peers = cyclonedds_peers(dep, placement, options.cluster_domain)
+    objects = [
+        {
+            "apiVersion": "v1",
+            "kind": "ConfigMap",
+            "metadata": {"name": naming.cyclonedds_configmap_name(dep.name), "namespace": namespace, "labels": dict(base_labels)},
+            "data": {f"{name}.xml": cyclonedds.config_xml(names, dep.ros_domain_id) for name, names in sorted(peers.items())},
+        }
+    ]
+    for inst in placement.instances:
+        if inst.deployment != dep.name or inst.cluster:
+            continue
+        objects.append(
+            {
+                "apiVersion": "v1",
+                "kind": "Service",
+                "metadata": {
+                    "name": inst.name,
+                    "namespace": inst.namespace,
+                    "labels": {**base_labels, MODULE: inst.module, INSTANCE: inst.name},
+                },
+                "spec": {"clusterIP": "None", "publishNotReadyAddresses": True, "selector": {INSTANCE: inst.name}},
+            }
+        )
+    return objects
+
+
+def _launch_words(module: RosModule, inst: Instance, options: RenderOptions) -> list[str]:
+    """``name:=value`` of each launch argument, a device's parameter taken from the instance's node."""
+    words = []
+    for argument in module.launch_arguments:
+        value = argument.value
+        if argument.device:
+            value = options.device_parameter(inst.node, argument.device, argument.parameter) or ""
+        words.append(f"{argument.name}:={value}")
+    return words
+
+
+# Sources ROS (the image's distribution) and the module's workspace, then runs the launch line: "$@" as given (a
+# literal argv), or the one word after the workspace as a bash command line (shell: true).
+_SOURCE = (
+    'if [ -n "${ROS_DISTRO:-}" ] && [ -f "/opt/ros/$ROS_DISTRO/setup.bash" ]; then . "/opt/ros/$ROS_DISTRO/setup.bash"; fi; '
+    'if [ -f "$0/setup.bash" ]; then . "$0/setup.bash"; else echo "kuberos: no $0/setup.bash to source" >&2; fi; '
+)
+
+
+def _command(module: RosModule, number: int, line: str, inst: Instance, options: RenderOptions) -> dict:
+    """The container's command and args for launch line ``number``: a literal argv (the image's entrypoint kept),
+    or through bash when the module sources a workspace or runs its lines as shell command lines."""
+    words = _launch_words(module, inst, options) if number == 0 else []
+    if module.shell:
+        script = " ".join([line, *(shlex.quote(w) for w in words)])
+        if module.workspace:
+            return {"command": ["/bin/bash", "-c", _SOURCE + 'eval "$1"', module.workspace, script]}
+        return {"command": ["/bin/bash", "-c", script]}
+    argv = launch_argv(line) + words
+    if module.workspace:
+        return {"command": ["/bin/bash", "-c", _SOURCE + 'exec "$@"', module.workspace, *argv]}
+    # args, not command: the image's entrypoint stays (ROS images source their setup there)
+    return {"args": argv}
+
+
 def container_argvs(launch: tuple[str, ...]) -> list[list[str]]:
     """Each launch line's argv, literal and without a shell (``launch.launch_argv``): one container each."""
     return [launch_argv(line) for line in launch]
 
 
-def _module_containers(module: RosModule, inst: Instance, env: list[dict], options: RenderOptions) -> list[dict]:
+def _module_containers(
+    module: RosModule, inst: Instance, env: list[dict], options: RenderOptions, dep_name: str = "", rmw: str = "fastdds"
+) -> list[dict]:
     """One container per launch line, all of the module's image, environment and volumes. The placement counted
     the instance's cpu and memory once: the containers' requests add up to exactly that (divided evenly, the
     first container taking the remainder), each container's memory limit is its memory request, and GPUs go to
     the first container (a GPU serves one container)."""
-    argvs = container_argvs(module.launch)
-    cpu = split_amount(inst.cpu_millis, len(argvs))
-    memory = split_amount(inst.memory_bytes, len(argvs))
+    cpu = split_amount(inst.cpu_millis, len(module.launch))
+    memory = split_amount(inst.memory_bytes, len(module.launch))
     containers = []
-    for number, argv in enumerate(argvs):
+    registry = module.registry
+    for number, line in enumerate(module.launch):
         resources = {
             "requests": {"cpu": format_cpu(cpu[number]), "memory": format_memory(memory[number])},
             "limits": {"memory": format_memory(memory[number])},
@@ -230,17 +376,26 @@ def _module_containers(module: RosModule, inst: Instance, env: list[dict], optio
         container = {
             "name": container_name(module.name, number),
             "image": module.image,
-            "imagePullPolicy": options.image_pull_policy,
-            # args, not command: the image's entrypoint stays (ROS images source their setup there)
-            "args": argv,
+            "imagePullPolicy": (registry.pull_policy if registry else "") or options.image_pull_policy,
+            **_command(module, number, line, inst, options),
             "env": copy.deepcopy(env),
             "resources": resources,
         }
+        if module.env_from:
+            container["envFrom"] = [
+                {"configMapRef": {"name": naming.parameter_map_name(dep_name, name)}} for name in module.env_from
+            ]
+        if module.privileged:
+            container["securityContext"] = {"privileged": True}
         mounts = []
         if module.ros_parameters:
             mounts.append({"name": "ros-parameters", "mountPath": PARAMS_DIR, "readOnly": True})
         if module.scaling:
             mounts.append({"name": "robots", "mountPath": ROBOTS_DIR, "readOnly": True})
+        for position, (_map, directory) in enumerate(module.parameter_files):
+            mounts.append({"name": f"parameter-file-{position}", "mountPath": directory, "readOnly": True})
+        if rmw == "cyclonedds":
+            mounts.append({"name": CYCLONEDDS_VOLUME, "mountPath": cyclonedds.CONFIG_DIR, "readOnly": True})
         if mounts:
             container["volumeMounts"] = mounts
         containers.append(container)
@@ -285,9 +440,19 @@ def _module_deployment(
     if module.version:
         labels[VERSION] = module.version
         labels[CATALOG_MODULE] = module.catalog_module
+    if dep.rmw == "cyclonedds":
+        middleware = [
+            {"name": "RMW_IMPLEMENTATION", "value": cyclonedds.RMW_CYCLONEDDS},
+            {"name": "CYCLONEDDS_URI", "value": f"file://{cyclonedds.CONFIG_DIR}/{inst.name}.xml"},
+        ]
+    else:
+        middleware = [
+            {"name": "ROS_DISCOVERY_SERVER", "value": discovery},
+            {"name": "RMW_IMPLEMENTATION", "value": RMW},
+            *({"name": name, "value": value} for name, value in TRANSPORT_ENV),
+        ]
     env = [
-        {"name": "ROS_DISCOVERY_SERVER", "value": discovery},
-        {"name": "RMW_IMPLEMENTATION", "value": RMW},
+        *middleware,
         {"name": "ROS_DOMAIN_ID", "value": str(dep.ros_domain_id)},
         {"name": "KUBEROS_FLEET", "value": dep.fleet},
         # A scaled module's robots change while it runs: they are in a file it watches, not in its pod template.
@@ -303,15 +468,24 @@ def _module_deployment(
     env.extend({"name": name, "value": value} for name, value in sorted(module.env))
     pod_spec = {
         **_selector_and_tolerations(inst.node, inst.tier, inst.robots[0] if inst.robots else None),
-        "containers": _module_containers(module, inst, env, options),
+        "containers": _module_containers(module, inst, env, options, dep.name, dep.rmw),
     }
     volumes = []
     if module.ros_parameters:
         volumes.append({"name": "ros-parameters", "configMap": {"name": params_configmap_name(dep.name, module.name)}})
     if module.scaling:
         volumes.append({"name": "robots", "configMap": {"name": naming.robots_configmap_name(dep.name, module.name)}})
+    for position, (name, _directory) in enumerate(module.parameter_files):
+        volumes.append({"name": f"parameter-file-{position}", "configMap": {"name": naming.parameter_map_name(dep.name, name)}})
+    if dep.rmw == "cyclonedds":
+        volumes.append({"name": CYCLONEDDS_VOLUME, "configMap": {"name": naming.cyclonedds_configmap_name(dep.name)}})
     if volumes:
         pod_spec["volumes"] = volumes
+    if module.registry and module.registry.pull_secret:
+        pod_spec["imagePullSecrets"] = [{"name": module.registry.pull_secret}]
+    template_meta = {"labels": pod_labels}
+    if module.maps:
+        template_meta["annotations"] = {MAPS_ANNOTATION: _maps_hash(dep, module)}
     return {
         "apiVersion": "apps/v1",
         "kind": "Deployment",
@@ -329,7 +503,7 @@ def _module_deployment(
             "replicas": 1,
             "strategy": dict(UPGRADE_STRATEGIES[module.upgrade]),
             "selector": {"matchLabels": {INSTANCE: inst.name}},
-            "template": {"metadata": {"labels": pod_labels}, "spec": pod_spec},
+            "template": {"metadata": template_meta, "spec": pod_spec},
         },
     }
 
@@ -510,6 +684,10 @@ def render_remote(
                 if module.ros_parameters and (dep.name, module.name) not in seen_params:
                     seen_params.add((dep.name, module.name))
                     objects.append(_params_configmap(dep, module, namespace, base_labels))
+                for name in module.maps:
+                    if (dep.name, "map", name) not in seen_params:
+                        seen_params.add((dep.name, "map", name))
+                        objects.append(parameter_map_configmap(dep, dep.parameter_map(name), base_labels))
                 objects.append(_unpinned(_module_deployment(dep, module, inst, discovery, base_labels, remote_options)))
             for obj in objects:
                 obj["metadata"].setdefault("annotations", {})[CLUSTER_ANNOTATION] = bridge.cluster
@@ -554,6 +732,11 @@ def render_deployment(
         dep = by_name[inst.deployment]
         module = modules[(inst.deployment, inst.module)]
         base_labels = module_labels(dep)
+        if (dep.name, "deployment") not in seen_params:
+            seen_params.add((dep.name, "deployment"))
+            objects.extend(parameter_map_configmap(dep, pmap, base_labels) for pmap in dep.parameter_maps)
+            if dep.rmw == "cyclonedds":
+                objects.extend(cyclonedds_objects(dep, placement, base_labels, options))
         if module.ros_parameters and (dep.name, module.name) not in seen_params:
             seen_params.add((dep.name, module.name))
             objects.append(_params_configmap(dep, module, inst.namespace, base_labels))

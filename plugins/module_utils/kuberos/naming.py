@@ -45,6 +45,16 @@ def parameters_configmap_name(deployment: str, module: str) -> str:
     return dns_label(deployment, module, "params")
 
 
+def parameter_map_name(deployment: str, parameter_map: str) -> str:
+    """The ConfigMap of one of a deployment's parameter maps (``parameterMaps``; '.' and '_' become '-')."""
+    return dns_label(deployment, "map", parameter_map)
+
+
+def cyclonedds_configmap_name(deployment: str) -> str:
+    """The ConfigMap of a Cyclone DDS deployment's peer lists (one configuration file per instance)."""
+    return dns_label(deployment, "cyclonedds")
+
+
 def robots_configmap_name(deployment: str, module: str) -> str:
     """The ConfigMap that tells a scaled shared module's instances which robots each serves (one per module)."""
     return dns_label(deployment, module, "robots")

@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 from . import naming
 from .errors import Problem, SpecError
 from .inventory import Inventory, load_inventory
-from .manifests import COMPONENT, DEPLOYMENT, MANAGED_BY, RenderOptions
+from .manifests import COMPONENT, DEPLOYMENT, MANAGED_BY, RenderOptions, device_parameters_of
 from .placement import Placement
-from .spec import RosDeployment, load_rosdeployments
+from .spec import RosDeployment, file_reader, load_rosdeployments
 from .third_party import yaml
 
 RECORD_LABEL = "kuberos.io/record"
@@ -277,6 +277,8 @@ def _record_pair(dep, number, cause, source, line, spec_packed, options, field_m
     namespace = naming.fleet_namespace(dep.fleet)
     used = _catalog_for(dep, catalog)
     catalog_packed = {"catalog.json.gz": _pack(used.to_dict())} if used is not None else {}
+    if dep.files:
+        catalog_packed[FILES_KEY] = _pack(dict(dep.files))
     revision = {
         "apiVersion": "v1",
         "kind": "ConfigMap",
@@ -348,6 +350,15 @@ def _packed_size(packed: str) -> int:
     return len(base64.b64decode(packed))
 
 
+FILES_KEY = "files.json.gz"  # the files a deployment's parameter maps were read from: {path as the spec wrote it: text}
+
+
+def files_of(configmap: dict):
+    """A ``read_file`` for the files a record or revision keeps (``spec.file_reader``)."""
+    packed = (configmap.get("binaryData") or {}).get(FILES_KEY)
+    return file_reader("", _unpack(packed) if packed else {})
+
+
 def spec_text_of(configmap: dict) -> str:
     """The spec text a record or revision keeps: its deployment's document (format 2), or the whole file (format 1)."""
     if (configmap.get("data") or {}).get("format") == "1":
@@ -391,7 +402,11 @@ def parse_revision(configmap: dict):
         name = data["deployment"]
         catalog = catalog_of(configmap)
         text = spec_text_of(configmap)
-        found = list(load_rosdeployments(text, f"{where} (revision {data.get('revision')})", catalog=catalog))
+        found = list(
+            load_rosdeployments(
+                text, f"{where} (revision {data.get('revision')})", catalog=catalog, read_file=files_of(configmap)
+            )
+        )
         dep = next(d for d in found if d.name == name)
         return int(data["revision"]), data.get("cause", ""), dep, text, catalog
     except SpecError:
@@ -475,7 +490,10 @@ def parse_record(configmap: dict) -> Record:
             raise ValueError(f"format {data.get('format')!r}, expected one of {', '.join(FORMATS_READ)}")
         name = data["deployment"]
         deployments = load_rosdeployments(
-            spec_text_of(configmap), f"{where} (spec of {data.get('source', '?')})", catalog=catalog_of(configmap)
+            spec_text_of(configmap),
+            f"{where} (spec of {data.get('source', '?')})",
+            catalog=catalog_of(configmap),
+            read_file=files_of(configmap),
         )
         ordered = [d for d in deployments if d.name == name] + [d for d in deployments if d.name != name]
         if not ordered or ordered[0].name != name:
@@ -483,6 +501,7 @@ def parse_record(configmap: dict) -> Record:
         inventory_raw = _unpack(binary["inventory.json.gz"])
         options = json.loads(data["options.json"])
         placement = Placement.from_dict(_unpack(binary["placement.json.gz"]))
+        inventory = load_inventory(inventory_raw, f"{where} inventory")
     except SpecError:
         raise
     except (KeyError, ValueError, TypeError, OSError, EOFError) as exc:
@@ -493,12 +512,13 @@ def parse_record(configmap: dict) -> Record:
         deployment=name,
         deployments=ordered[:1],
         inventory_raw=inventory_raw,
-        inventory=load_inventory(inventory_raw, f"{where} inventory"),
+        inventory=inventory,
         placement=placement,
         options=RenderOptions(
             cluster_domain=options.get("cluster_domain", "cluster.local"),
             discovery_image=options.get("discovery_image", "ros:jazzy-ros-base"),
             image_pull_policy=options.get("image_pull_policy", "IfNotPresent"),
+            device_parameters=device_parameters_of(inventory),
         ),
         field_manager=options.get("field_manager", "kuberos"),
         resource_version=meta.get("resourceVersion", ""),

@@ -86,6 +86,8 @@ class Scheduler:
             missing = [d for d in req.devices if d not in node.devices]
             if missing:
                 return f"lacks device(s) {', '.join(missing)}"
+            if req.resource_groups and node.tier != "onboard" and node.resource_group not in req.resource_groups:
+                return f"resource group {node.resource_group}, not one of {', '.join(req.resource_groups)}"
             if req.max_latency_ms is not None:
                 for robot in robots:
                     latency = self.inventory.latency_ms(robot, node.name)

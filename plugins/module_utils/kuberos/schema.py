@@ -15,6 +15,7 @@ MAX_MODULES = 100  # modules of one RosDeployment
 MAX_MODULES_PER_FILE = 1000  # modules of all documents of one file: bounds the time a refusal takes
 
 DNS_LABEL = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
+DNS_SUBDOMAIN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$"
 # Fleet, robot and device names as the inventory writes them (docs/inventory.md).
 INVENTORY_NAME = r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?$"
 ARCH_NAME = r"^[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?$"
@@ -28,6 +29,15 @@ ROS_TOPIC = r"^/[A-Za-z0-9_~{}]+(/[A-Za-z0-9_{}]+)*$"
 ROS_TYPE = r"^[A-Za-z][A-Za-z0-9_]*/msg/[A-Z][A-Za-z0-9]*$"
 DIRECTIONS = ("to_module", "from_module")
 UPGRADES = ("surge", "recreate")
+RMWS = ("fastdds", "cyclonedds")
+MAP_TYPES = ("key-value", "yaml")
+PULL_POLICIES = ("Always", "IfNotPresent", "Never")
+# A parameter map, registry or resource group name: lowercase letters, digits, '-', '_' and '.' (the reference
+# format's names, e.g. 'publisher-param.yaml'); ConfigMap names are derived from it (naming.parameter_map_name).
+MAP_NAME = r"^[a-z0-9]([-a-z0-9_.]*[a-z0-9])?$"
+# A launch argument's name: what `name:=value` sets in `ros2 launch`.
+LAUNCH_ARGUMENT = r"^[A-Za-z_][A-Za-z0-9_.-]*$"
+ABSOLUTE_PATH = r"^/[^\x00]*$"
 # A catalog module: its name, then optionally '@' and a version range (docs/software.md).
 MODULE_REF = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(@.*\S.*)?$"
 
@@ -226,6 +236,63 @@ ROS_PARAMETERS = {
     "description": "ROS parameters, written to a ConfigMap and mounted as a parameter file.",
     "x-expected": "a mapping of parameter names to values",
 }
+_MAP_REF = {
+    "type": "string",
+    "pattern": MAP_NAME,
+    "maxLength": 100,
+    "x-expected": "the name of an entry of parameterMaps",
+}
+LAUNCH_ARGUMENTS = {
+    "type": "object",
+    "maxProperties": 200,
+    "propertyNames": {
+        "type": "string",
+        "pattern": LAUNCH_ARGUMENT,
+        "maxLength": 100,
+        "x-expected": "a launch argument name of letters, digits, '_', '.' and '-'",
+    },
+    "additionalProperties": {
+        "type": ["string", "number", "boolean"],
+        "maxLength": 4096,
+        "x-expected": "a value, '{map.key}' (a key of a parameter map) or '{device:name.parameter}' (the node's device)",
+    },
+    "description": (
+        "Appended to the first launch line as name:=value. A value '{map.key}' takes the key of a parameter map; "
+        "'{device:<device>.<parameter>}' takes the parameter the inventory gives that device of the node the "
+        "instance runs on (kuberos_device_parameters)."
+    ),
+    "x-expected": "a mapping of launch argument names to values",
+}
+ENV_FROM = {
+    "type": "array",
+    "uniqueItems": True,
+    "maxItems": 50,
+    "items": _MAP_REF,
+    "description": "key-value parameter maps whose keys become environment variables of the module's containers.",
+    "x-expected": "a list of distinct parameter map names",
+}
+PARAMETER_FILES = {
+    "type": "array",
+    "maxItems": 50,
+    "items": {
+        "type": "object",
+        "x-expected": "a mapping with map and mountPath",
+        "additionalProperties": False,
+        "required": ["map", "mountPath"],
+        "properties": {
+            "map": {**_MAP_REF, "description": "A yaml parameter map."},
+            "mountPath": {
+                "type": "string",
+                "pattern": ABSOLUTE_PATH,
+                "maxLength": 1024,
+                "description": "Directory the map's file is mounted in (read-only).",
+                "x-expected": "an absolute directory path such as '/workspace/config'",
+            },
+        },
+    },
+    "description": "yaml parameter maps mounted as files in the module's containers.",
+    "x-expected": "a list of mappings with map and mountPath",
+}
 UPGRADE = {
     "type": "string",
     "enum": list(UPGRADES),
@@ -332,6 +399,98 @@ SCHEMA = {
                 },
             },
         },
+        "rmw": {
+            "type": "string",
+            "enum": list(RMWS),
+            "default": "fastdds",
+            "description": (
+                "The ROS 2 middleware of every module: fastdds (Fast DDS with the fleet's discovery servers) or cyclonedds "
+                "(Cyclone DDS with unicast peer lists of the placed instances; no multicast)."
+            ),
+            "x-expected": "fastdds or cyclonedds",
+        },
+        "resourceGroups": {
+            "type": "array",
+            "minItems": 1,
+            "uniqueItems": True,
+            "items": {"type": "string", "pattern": MAP_NAME, "maxLength": 63, "x-expected": "a resource group name"},
+            "description": "Edge and cloud nodes the modules may use: those whose kuberos_resource_group is one of these.",
+            "x-expected": "a non-empty list of distinct resource group names",
+        },
+        "parameterMaps": {
+            "type": "array",
+            "maxItems": 100,
+            "x-expected": "a list of parameter maps",
+            "items": {
+                "type": "object",
+                "x-expected": "a mapping with name, type and data or path",
+                "additionalProperties": False,
+                "required": ["name", "type"],
+                "properties": {
+                    "name": {
+                        **_MAP_REF,
+                        "description": "Name the modules use.",
+                        "x-expected": "a name of lowercase letters, digits, '-', '_' and '.'",
+                    },
+                    "type": {
+                        "type": "string",
+                        "enum": list(MAP_TYPES),
+                        "description": "key-value: environment variables and launch values; yaml: a mounted file.",
+                        "x-expected": "key-value or yaml",
+                    },
+                    "data": {
+                        "type": "object",
+                        "description": "The map inline: key-value pairs, or the yaml file's content.",
+                        "x-expected": "a mapping",
+                    },
+                    "path": {
+                        "type": "string",
+                        "minLength": 1,
+                        "maxLength": 1024,
+                        "description": "A file holding the map (YAML), relative to the spec file.",
+                        "x-expected": "a file path relative to the spec file",
+                    },
+                },
+            },
+            "description": "Parameter maps, each a ConfigMap of the fleet's namespace.",
+        },
+        "imageRegistries": {
+            "type": "array",
+            "maxItems": 50,
+            "x-expected": "a list of registries",
+            "items": {
+                "type": "object",
+                "x-expected": "a mapping with name, pullSecret and pullPolicy",
+                "additionalProperties": False,
+                "required": ["name"],
+                "properties": {
+                    "name": {
+                        "type": "string",
+                        "pattern": MAP_NAME,
+                        "maxLength": 100,
+                        "description": "Name modules use in imageRegistry; 'default' serves modules that name none.",
+                        "x-expected": "a registry name such as 'default'",
+                    },
+                    "pullSecret": {
+                        "type": "string",
+                        "pattern": DNS_SUBDOMAIN,
+                        "maxLength": 253,
+                        "description": (
+                            "A Secret of type kubernetes.io/dockerconfigjson in the fleet's namespace (KubeROS never "
+                            "reads or prints it)."
+                        ),
+                        "x-expected": "a Secret name of lowercase letters, digits, '-' and '.'",
+                    },
+                    "pullPolicy": {
+                        "type": "string",
+                        "enum": list(PULL_POLICIES),
+                        "description": "When the kubelet pulls the image.",
+                        "x-expected": "Always, IfNotPresent or Never",
+                    },
+                },
+            },
+            "description": "Container registries the modules' images are pulled from.",
+        },
         "rosModules": {
             "type": "array",
             "minItems": 1,
@@ -390,6 +549,39 @@ SCHEMA = {
                     },
                     "scaling": SCALING,
                     "env": ENV,
+                    "envFrom": ENV_FROM,
+                    "launchArguments": LAUNCH_ARGUMENTS,
+                    "parameterFiles": PARAMETER_FILES,
+                    "imageRegistry": {
+                        "type": "string",
+                        "pattern": MAP_NAME,
+                        "maxLength": 100,
+                        "description": "The entry of imageRegistries the image is pulled with (default: the one named default).",
+                        "x-expected": "the name of an entry of imageRegistries",
+                    },
+                    "privileged": {
+                        "type": "boolean",
+                        "description": "Run the containers privileged (host devices, real-time scheduling).",
+                        "x-expected": "true or false",
+                    },
+                    "workspace": {
+                        "type": "string",
+                        "pattern": ABSOLUTE_PATH,
+                        "maxLength": 1024,
+                        "description": (
+                            "A ROS workspace's install directory whose setup.bash is sourced (after /opt/ros/$ROS_DISTRO's) "
+                            "before each launch line runs."
+                        ),
+                        "x-expected": "an absolute directory path such as '/workspace/install'",
+                    },
+                    "shell": {
+                        "type": "boolean",
+                        "description": (
+                            "Run each launch line with /bin/bash -c as written (';', '&&', variables), as the reference "
+                            "format does; default false: a literal argv, no shell."
+                        ),
+                        "x-expected": "true or false",
+                    },
                     "rosParameters": ROS_PARAMETERS,
                     "cluster": {
                         "type": "string",

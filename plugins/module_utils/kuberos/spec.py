@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import re
 from dataclasses import dataclass, field, replace
 
 from . import naming, quantities
@@ -17,7 +18,9 @@ from .catalog import Catalog, CatalogEntry
 from .errors import Problem, SpecError, describe
 from .schema import API_VERSION, KIND, MAX_MODULES, MAX_MODULES_PER_FILE, SCHEMA, TIERS
 from .semver import parse_range
+from .third_party import yaml
 from .validation import (
+    RESERVED_ENV,
     as_tuple,
     env_name_problem,
     image_reference_problem,
@@ -67,6 +70,43 @@ class Requirements:
     max_latency_ms: float | None = None
     arch: tuple[str, ...] = ()
     devices: tuple[str, ...] = ()
+    resource_groups: tuple[str, ...] = ()  # the deployment's resourceGroups: edge and cloud nodes must be in one
+
+
+@dataclass(frozen=True)
+class ParameterMap:
+    """A parameter map (``parameterMaps``; the reference format's ``rosParamMap``), a ConfigMap of the fleet."""
+
+    name: str
+    type: str  # key-value | yaml
+    values: tuple[tuple[str, str], ...] = ()  # key-value: each key and its value as text
+    text: str = ""  # yaml: the file's text
+    path: str = ""  # the file it was read from, as the spec wrote it ("" for inline data)
+
+    @property
+    def file_name(self) -> str:
+        """The yaml map's file in its mount directory (and its key in the ConfigMap)."""
+        return self.name if self.name.endswith((".yaml", ".yml")) else f"{self.name}.yaml"
+
+    def value(self, key: str) -> str | None:
+        return dict(self.values).get(key)
+
+
+@dataclass(frozen=True)
+class ImageRegistry:
+    name: str
+    pull_secret: str = ""
+    pull_policy: str = ""
+
+
+@dataclass(frozen=True)
+class LaunchArgument:
+    """``name:=value`` appended to the first launch line; a device's parameter is known once the instance is placed."""
+
+    name: str
+    value: str = ""
+    device: str = ""  # with parameter: the value is this device's parameter on the instance's node
+    parameter: str = ""
 
 
 @dataclass(frozen=True)
@@ -114,10 +154,22 @@ class RosModule:
     upgrade: str = "surge"  # surge | recreate (never two at once: modules that hold hardware)
     ros_distro: str = ""  # the catalog entry's rosDistro
     scaling: ScalingPolicy | None = None  # shared modules the controller scales
+    env_from: tuple[str, ...] = ()  # key-value parameter maps given as environment
+    launch_arguments: tuple[LaunchArgument, ...] = ()
+    parameter_files: tuple[tuple[str, str], ...] = ()  # (yaml parameter map, mount directory)
+    registry: ImageRegistry | None = None
+    privileged: bool = False
+    workspace: str = ""  # a ROS workspace's install directory, sourced before each launch line
+    shell: bool = False  # each launch line runs with /bin/bash -c as written
 
     @property
     def path(self) -> str:
         return f"rosModules[{self.index}]"
+
+    @property
+    def maps(self) -> tuple[str, ...]:
+        """The parameter maps the module's containers read (environment and files), each once."""
+        return tuple(dict.fromkeys((*self.env_from, *(m for m, _d in self.parameter_files))))
 
 
 @dataclass(frozen=True)
@@ -132,6 +184,15 @@ class RosDeployment:
     labels: tuple[tuple[str, str], ...] = ()
     source: str = "<spec>"
     lines: dict = field(default_factory=dict, compare=False, repr=False)
+    rmw: str = "fastdds"  # fastdds | cyclonedds
+    parameter_maps: tuple[ParameterMap, ...] = ()
+    resource_groups: tuple[str, ...] = ()
+    kind: str = KIND  # RosDeployment, or ApplicationDeployment (the reference format, translated)
+    notes: tuple[str, ...] = field(default=(), compare=False)  # what the translation ignored or changed, and why
+    files: tuple[tuple[str, str], ...] = field(default=(), compare=False, repr=False)  # (path, text) read for maps
+
+    def parameter_map(self, name: str) -> ParameterMap | None:
+        return next((m for m in self.parameter_maps if m.name == name), None)
 
     def line_of(self, path: str) -> int | None:
         return self.lines.get(path)
@@ -187,7 +248,133 @@ def _launch_lines(module: dict, problems: list[Problem], doc: Document, index: i
     return _as_tuple(module["launch"])
 
 
-def _semantic_module(module: dict, index: int, doc: Document, problems: list[Problem]) -> RosModule:
+@dataclass
+class _Context:
+    """What a module's fields refer to: the deployment's parameter maps, registries and resource groups."""
+
+    maps: dict = field(default_factory=dict)
+    unreadable: set = field(default_factory=set)  # maps already reported (their file cannot be used)
+    registries: dict = field(default_factory=dict)
+    resource_groups: tuple[str, ...] = ()
+    reference: bool = False  # translated from the reference format: map keys that are no variable names are noted
+    notes: list = field(default_factory=list)
+
+
+ENV_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_REFERENCE = re.compile(r"\{([^{}]*)\}")
+DEVICE_PREFIX = "device:"
+
+
+def _launch_argument(name: str, raw, ctx: _Context, devices: tuple, problem) -> LaunchArgument | None:
+    """One launch argument: a literal, '{map.key}' (resolved now) or '{device:<device>.<parameter>}' (at render)."""
+    text = _env_value(raw)
+    found = _REFERENCE.fullmatch(text.strip())
+    if found is None:
+        if "{" in text or "}" in text:
+            problem(
+                ("launchArguments", name),
+                f"{describe(text)} is not valid; expected a value, '{{map.key}}' or '{{device:<device>.<parameter>}}'",
+            )
+            return None
+        return LaunchArgument(name, text)
+    inner = found.group(1).strip()
+    if inner.startswith(DEVICE_PREFIX):
+        device, _dot, parameter = inner[len(DEVICE_PREFIX) :].rpartition(".")
+        if not device or not parameter:
+            problem(("launchArguments", name), f"{describe(text)} is not valid; expected '{{device:<device>.<parameter>}}'")
+            return None
+        if device not in devices:
+            problem(
+                ("launchArguments", name),
+                f"takes a parameter of device {device}, which requirements.devices does not list; expected the device "
+                "in requirements.devices (so that the module runs on a node that carries it)",
+            )
+            return None
+        return LaunchArgument(name, device=device, parameter=parameter)
+    names = sorted((m for m in ctx.maps if inner.startswith(m + ".")), key=len, reverse=True)
+    if not names and any(inner.startswith(m + ".") for m in ctx.unreadable):
+        return None  # its map is reported already
+    if not names:
+        known = ", ".join(sorted(ctx.maps)) or "none"
+        problem(("launchArguments", name), f"{describe(text)} names no parameter map; expected '{{map.key}}' of one of: {known}")
+        return None
+    pmap, key = ctx.maps[names[0]], inner[len(names[0]) + 1 :]
+    if pmap.type != "key-value":
+        problem(("launchArguments", name), f"parameter map {pmap.name} is a yaml file; expected a key-value map")
+        return None
+    value = pmap.value(key)
+    if value is None:
+        keys = ", ".join(k for k, _v in pmap.values) or "none"
+        problem(("launchArguments", name), f"parameter map {pmap.name} has no key {key!r}; its keys: {keys}")
+        return None
+    return LaunchArgument(name, value)
+
+
+def _map_of(name: str, kind: str, ctx: _Context, problem, parts: tuple) -> ParameterMap | None:
+    pmap = ctx.maps.get(name)
+    if pmap is None and name in ctx.unreadable:
+        return None
+    if pmap is None:
+        problem(
+            parts,
+            f"'{name}' is not a parameter map; expected one of: {', '.join(sorted(ctx.maps)) or 'none (parameterMaps is empty)'}",
+        )
+    elif pmap.type != kind:
+        problem(parts, f"parameter map {name} is {pmap.type}; expected a {kind} map")
+        return None
+    return pmap
+
+
+def _module_extras(module: dict, ctx: _Context, problem) -> dict:
+    """The fields of a module that refer to the deployment: environment and files from parameter maps, launch
+    arguments, the image registry; and privileged, workspace and shell."""
+    requirements = module.get("requirements") or {}
+    devices = tuple(requirements.get("devices") or ())
+    env_from = []
+    for position, name in enumerate(module.get("envFrom") or ()):
+        pmap = _map_of(name, "key-value", ctx, problem, ("envFrom", position))
+        if pmap is None:
+            continue
+        env_from.append(name)
+        for key, _value in pmap.values:
+            why = env_name_problem(key) if ENV_NAME_RE.fullmatch(key) else "is not an environment variable name"
+            if why and ctx.reference:
+                reason = "KubeROS sets it" if key in RESERVED_ENV or key.startswith("KUBEROS_") else "not a variable name"
+                ctx.notes.append(
+                    f"module {module['name']}: key {key!r} of parameter map {name} is not an environment variable ({reason})"
+                )
+            elif why:
+                problem(("envFrom", position), f"parameter map {name} key {key!r} {why}; expected keys that name variables")
+    files = []
+    for position, entry in enumerate(module.get("parameterFiles") or ()):
+        if _map_of(entry["map"], "yaml", ctx, problem, ("parameterFiles", position, "map")) is not None:
+            files.append((entry["map"], entry["mountPath"].rstrip("/") or "/"))
+    arguments = []
+    for name, raw in (module.get("launchArguments") or {}).items():
+        argument = _launch_argument(name, raw, ctx, devices, problem)
+        if argument is not None:
+            arguments.append(argument)
+    registry = None
+    if "imageRegistry" in module:
+        registry = ctx.registries.get(module["imageRegistry"])
+        if registry is None:
+            known = ", ".join(sorted(ctx.registries)) or "none (imageRegistries is empty)"
+            problem(("imageRegistry",), f"'{module['imageRegistry']}' is not in imageRegistries; expected one of: {known}")
+    else:
+        registry = ctx.registries.get("default")
+    return dict(
+        env_from=tuple(env_from),
+        launch_arguments=tuple(arguments),
+        parameter_files=tuple(files),
+        registry=registry,
+        privileged=bool(module.get("privileged", False)),
+        workspace=(module.get("workspace") or "").rstrip("/"),
+        shell=bool(module.get("shell", False)),
+    )
+
+
+def _semantic_module(module: dict, index: int, doc: Document, problems: list[Problem], ctx: _Context | None = None) -> RosModule:
+    ctx = ctx or _Context()
     requirements = module.get("requirements") or {}
     resources = module.get("resources") or {}
     base = ("rosModules", index)
@@ -268,6 +455,7 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
             max_latency_ms=max_latency,
             arch=tuple(_as_tuple(requirements.get("arch"))),
             devices=tuple(requirements.get("devices") or ()),
+            resource_groups=ctx.resource_groups,
         ),
         resources=Resources(cpu, memory, int(resources.get("gpu", 0))),  # 2.0 is an integer to JSON Schema
         strategy=strategy,
@@ -279,6 +467,7 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
         bridge_topics=tuple(BridgeTopic(t["name"], t["type"], t["direction"]) for t in topics),
         upgrade=module.get("upgrade") or ("recreate" if requirements.get("devices") else "surge"),
         scaling=scaling,
+        **_module_extras(module, ctx, problem),
     )
 
 
@@ -461,20 +650,96 @@ def _metadata_problems(doc: Document, broken: set[str]) -> list[Problem]:
     return problems
 
 
-def _parse_document(doc: Document, catalog: Catalog | None = None) -> RosDeployment:
+def _broken(broken: set, prefix: str) -> bool:
+    return any(path == prefix or path.startswith(prefix + ".") or path.startswith(prefix + "[") for path in broken)
+
+
+def _map_content(raw: dict, parts: tuple, doc: Document, read_file, problems: list[Problem], files: list):
+    """A parameter map's data: inline, or the YAML file ``path`` names (read with ``read_file``)."""
+    if ("data" in raw) == ("path" in raw):
+        problems.append(_problem(doc, parts, "needs data (the map inline) or path (a file), one of the two"))
+        return None, ""
+    if "data" in raw:
+        return raw["data"], ""
+    if read_file is None:
+        problems.append(_problem(doc, (*parts, "path"), "files cannot be read here (the spec has no directory); give data"))
+        return None, ""
+    try:
+        display, text = read_file(raw["path"])
+        documents = [d for d in load_documents(text, display) if d.data is not None]
+    except SpecError as exc:
+        problems.append(_problem(doc, (*parts, "path"), f"cannot be used: {exc.problems[0].message} ({exc.problems[0].source})"))
+        return None, ""
+    if len(documents) != 1 or not isinstance(documents[0].data, dict):
+        problems.append(_problem(doc, (*parts, "path"), f"{display} does not hold one YAML mapping; expected a parameter file"))
+        return None, ""
+    files.append((raw["path"], text))
+    return documents[0].data, text
+
+
+def _parameter_maps(
+    data: dict, doc: Document, broken: set, read_file, problems: list[Problem], files: list, unreadable: set
+) -> dict:
+    maps: dict[str, ParameterMap] = {}
+    for index, raw in enumerate(data.get("parameterMaps") or ()):
+        parts = ("parameterMaps", index)
+        if _broken(broken, format_path(parts)):
+            continue
+        if raw["name"] in maps:
+            problems.append(_problem(doc, (*parts, "name"), f"'{raw['name']}' is already a parameter map; expected unique names"))
+            continue
+        content, text = _map_content(raw, parts, doc, read_file, problems, files)
+        if content is None:
+            unreadable.add(raw["name"])
+            continue
+        if raw["type"] == "yaml":
+            text = text or yaml.safe_dump(content, sort_keys=False, default_flow_style=False)
+            maps[raw["name"]] = ParameterMap(raw["name"], "yaml", text=text, path=raw.get("path", ""))
+            continue
+        bad = [k for k, v in content.items() if not isinstance(k, str) or not k or not isinstance(v, (str, int, float, bool))]
+        if bad:
+            problems.append(
+                _problem(
+                    doc, parts, f"key-value map has {describe(bad[0])} with a value that is no text, number or boolean; "
+                    "expected flat key: value pairs (a yaml map holds nested parameters)",
+                )
+            )  # fmt: skip
+            continue
+        values = tuple((k, _env_value(v)) for k, v in content.items())
+        maps[raw["name"]] = ParameterMap(raw["name"], "key-value", values=values, path=raw.get("path", ""))
+    return maps
+
+
+def _registries(data: dict, doc: Document, problems: list[Problem]) -> dict:
+    registries: dict[str, ImageRegistry] = {}
+    for index, raw in enumerate(data.get("imageRegistries") or ()):
+        if raw["name"] in registries:
+            problems.append(
+                _problem(doc, ("imageRegistries", index, "name"), f"'{raw['name']}' is already a registry; expected unique names")
+            )
+        registries.setdefault(raw["name"], ImageRegistry(raw["name"], raw.get("pullSecret", ""), raw.get("pullPolicy", "")))
+    return registries
+
+
+def _parse_document(doc: Document, catalog: Catalog | None = None, read_file=None, ctx: _Context | None = None) -> RosDeployment:
     if catalog is not None and not isinstance(catalog, Catalog):
         raise TypeError(f"catalog must be a Catalog or None, not {type(catalog).__name__}")
     data = doc.data
     problems = _schema_problems(doc)
     broken = {p.path for p in problems}
+    files: list = []
+    ctx = ctx or _Context()
+    if isinstance(data, dict):
+        ctx.maps = _parameter_maps(data, doc, broken, read_file, problems, files, ctx.unreadable)
+        ctx.registries = _registries(data, doc, problems) if not _broken(broken, "imageRegistries") else {}
+        ctx.resource_groups = tuple(data.get("resourceGroups") or ()) if not _broken(broken, "resourceGroups") else ()
     modules = []
     resolved: list[tuple[RosModule, CatalogEntry]] = []
     unresolved: set[str] = set()
     names: dict[str, int] = {}
     raw_modules = data.get("rosModules") if isinstance(data, dict) else None
     for index, module in enumerate(raw_modules if isinstance(raw_modules, list) else []):
-        prefix = f"rosModules[{index}]"
-        if any(path == prefix or path.startswith(prefix + ".") or path.startswith(prefix + "[") for path in broken):
+        if _broken(broken, f"rosModules[{index}]"):
             continue  # already reported; semantic checks need a well-formed module
         if module["name"] in names:
             path = ("rosModules", index, "name")
@@ -488,7 +753,7 @@ def _parse_document(doc: Document, catalog: Catalog | None = None) -> RosDeploym
             )
         names.setdefault(module["name"], index)
         if "module" not in module:
-            modules.append(_semantic_module(module, index, doc, problems))
+            modules.append(_semantic_module(module, index, doc, problems, ctx))
             continue
         found = _resolve(module, index, doc, catalog, problems)
         if found is None:
@@ -496,7 +761,7 @@ def _parse_document(doc: Document, catalog: Catalog | None = None) -> RosDeploym
             continue
         merged, entry = found
         resolved_module = replace(
-            _semantic_module(merged, index, doc, problems),
+            _semantic_module(merged, index, doc, problems, ctx),
             version=entry.version,
             catalog_module=entry.name,
             ros_distro=entry.ros_distro,
@@ -522,6 +787,11 @@ def _parse_document(doc: Document, catalog: Catalog | None = None) -> RosDeploym
         labels=tuple(sorted((metadata.get("labels") or {}).items())),
         source=doc.source,
         lines={format_path(k): v for k, v in doc.lines.items()},
+        rmw=data.get("rmw", "fastdds"),
+        parameter_maps=tuple(ctx.maps.values()),
+        resource_groups=ctx.resource_groups,
+        notes=tuple(ctx.notes),
+        files=tuple(files),
     )
 
 
@@ -530,7 +800,7 @@ def parse_rosdeployment(data, source: str = "<spec>", lines: dict | None = None,
 
     ``catalog`` resolves the modules that name a catalog module (``module: pnp-planner@^0.2``).
     """
-    return _parse_document(Document(data, source, 0, lines or {}), catalog)
+    return _parse_any(Document(data, source, 0, lines or {}), catalog, None)
 
 
 def _module_count_problems(documents: list[Document]) -> list[Problem]:
@@ -551,8 +821,44 @@ def _module_count_problems(documents: list[Document]) -> list[Problem]:
     return []
 
 
-def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | None = None) -> list[RosDeployment]:
-    """Parse and validate every document of a spec file; all problems of all documents at once."""
+def _parse_any(doc: Document, catalog: Catalog | None, read_file) -> RosDeployment:
+    """One document in our format, or in the reference format (``kind: ApplicationDeployment``) translated."""
+    from . import reference_format
+
+    if not (isinstance(doc.data, dict) and doc.data.get("kind") == reference_format.KIND):
+        return _parse_document(doc, catalog, read_file)
+    translation = reference_format.translate(doc)
+    if translation.problems:
+        raise SpecError(translation.problems, title=f"{doc.source} is not a valid {reference_format.KIND}")
+    ctx = _Context(reference=True, notes=translation.notes)
+    try:
+        return replace(_parse_document(translation.doc, catalog, read_file, ctx), kind=reference_format.KIND)
+    except SpecError as exc:
+        raise SpecError([translation.rename(p) for p in exc.problems], title=exc.title) from None
+
+
+def file_reader(spec_path: str, files: dict | None = None):
+    """What a spec's ``parameterMaps[].path`` are read with: files relative to the spec file's directory (or, given
+    ``files``, that mapping of the paths as the spec wrote them to their text: a deployment record's copy).
+    Returns ``read(path) -> (display name, text)``; a file that cannot be read raises ``SpecError``."""
+    import os
+
+    base = os.path.dirname(os.path.abspath(spec_path)) if spec_path else ""
+
+    def read(path: str) -> tuple[str, str]:
+        if files is not None:
+            if path not in files:
+                raise SpecError([Problem(path, "", "is not among the files the record keeps")])
+            return path, files[path]
+        full = os.path.join(base, path)
+        return full, read_text(full, full, "parameter file")
+
+    return read
+
+
+def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | None = None, read_file=None) -> list[RosDeployment]:
+    """Parse and validate every document of a spec file; all problems of all documents at once. ``read_file``
+    (``file_reader``) reads the files parameter maps name; without it a map must give its data inline."""
     documents = [doc for doc in load_documents(text, source) if doc.data is not None]
     if not documents:
         raise SpecError([Problem(source, "", "no RosDeployment found; the file is empty")], title=f"{source} is not valid")
@@ -565,7 +871,7 @@ def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | No
         raise SpecError(too_many, title=f"{source} is not a valid RosDeployment")
     for doc in documents:
         try:
-            deployments.append(_parse_document(doc, catalog))
+            deployments.append(_parse_any(doc, catalog, read_file))
         except SpecError as exc:
             problems.extend(exc.problems)
     names: dict[str, str] = {}
@@ -670,7 +976,7 @@ def load_rosdeployment_file(path: str, display: str | None = None, catalog: Cata
     """Read ``path`` and validate it; errors name ``display`` (the path as the user wrote it)."""
     display = display or path
     text = read_text(path, display)
-    return load_rosdeployments(text, display, catalog)
+    return load_rosdeployments(text, display, catalog, file_reader(path))
 
 
 __all__ = [
@@ -681,6 +987,7 @@ __all__ = [
     "Resources",
     "RosDeployment",
     "RosModule",
+    "file_reader",
     "load_rosdeployment_file",
     "load_rosdeployments",
     "name_clash_problems",
