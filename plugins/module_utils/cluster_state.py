@@ -44,7 +44,7 @@ def api_clients(kubeconfig: str):
     if not os.path.exists(kubeconfig):
         raise ClusterUnreachable(f"no kubeconfig at {kubeconfig}; {START_HINT}")
     api = config.new_client_from_config(config_file=kubeconfig)
-    return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api)}
+    return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api), "batch": client.BatchV1Api(api)}
 
 
 def explain(exc: Exception, kubeconfig: str) -> str:
@@ -190,7 +190,8 @@ def node_allocations(clients, exclude_deployments: list[str], exclude_discovery_
             continue
         entry = used.setdefault(node, {"cpu": 0, "memory": 0, "gpu": 0, "pods": 0})
         entry["pods"] += 1
-        for container in spec.get("containers") or []:
+        sidecars = [c for c in spec.get("initContainers") or [] if c.get("restartPolicy") == "Always"]
+        for container in (spec.get("containers") or []) + sidecars:  # native sidecars run beside the containers
             requests = (container.get("resources") or {}).get("requests") or {}
             entry["cpu"] += quantities.parse_cpu(requests.get("cpu", "0"))
             entry["memory"] += quantities.parse_memory(requests.get("memory", "0"))

@@ -179,7 +179,7 @@ import textwrap
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import explain
+from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import api_clients, explain
 from ansible_collections.kuberos.platform.plugins.module_utils.deploy_pass import DeployPass
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
@@ -203,7 +203,34 @@ ARGUMENT_SPEC = dict(
 )
 
 
+def _batch_file(path: str) -> bool:
+    """Whether the file holds batch jobs (RosBatchJob, or the reference format's BatchJob) rather than deployments."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.batch import is_batch_document
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import load_documents, read_text
+
+    try:
+        documents = [d.data for d in load_documents(read_text(path, path), path) if d.data is not None]
+    except KuberosError:
+        return False  # reported by the deploy's own reading
+    return bool(documents) and all(is_batch_document(d) for d in documents)
+
+
+def run_batch_job(module: AnsibleModule) -> dict:
+    """A batch job given to the deploy: run it (or, with apply false, render it) as playbooks/batch.yml does."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.batch_runner import remove_batch, run_batch
+
+    params = {**module.params, "poll": 2.0}
+    if params["state"] == "absent":
+        return {"changed": False} if module.check_mode else remove_batch(api_clients(params["kubeconfig"]), params)
+    progress = []
+    result = run_batch(lambda: api_clients(params["kubeconfig"]), params, module.check_mode, progress.append)
+    outcome = "\n".join(progress + result.get("failures", []))
+    return {**result, "progress": progress, "table": result["plan"] + ("\n\n" + outcome if outcome else ""), "batch": True}
+
+
 def run(module: AnsibleModule) -> dict:
+    if _batch_file(module.params["src"]):
+        return run_batch_job(module)
     work = DeployPass(module.params, module.check_mode, module._diff)
     work.load()
     if module.params["state"] == "absent":

@@ -302,7 +302,8 @@ def test_cyclonedds_gives_each_instance_the_peers_it_talks_with(local_inventory)
         for other in names:
             assert f"{name}.kuberos-test-fleet.svc.cluster.local" in peers[other.split(".")[0]]
     services = by_name(objects, "Service")
-    assert services["talker-listener-talker-fetch-2"]["spec"]["clusterIP"] == "None"
+    ports = services["talker-listener-talker-fetch-2"]["spec"]["ports"]
+    assert [p["port"] for p in ports][:2] == [7410, 7412] and len(ports) == 32 and {p["protocol"] for p in ports} == {"UDP"}
     pod = by_name(objects, "Deployment")["talker-listener-talker-fetch-2"]["spec"]["template"]["spec"]
     env = {e["name"]: e.get("value") for e in pod["containers"][0]["env"]}
     assert env["RMW_IMPLEMENTATION"] == "rmw_cyclonedds_cpp" and "ROS_DISCOVERY_SERVER" not in env

@@ -63,3 +63,9 @@ def config_xml(peers: Sequence[str], domain_id: int = 0, max_participants: int =
             "",
         ]
     )
+
+
+def discovery_ports(domain_id: int = 0, max_participants: int = 32) -> list[int]:
+    """The unicast discovery (SPDP) port of each participant index a peer is probed on: what a Service in front of
+    an instance forwards, so that a peer's name always resolves (to the Service) and reaches whichever pod runs."""
+    return [7400 + 250 * domain_id + 10 + 2 * index for index in range(max_participants)]

@@ -284,8 +284,9 @@ def cyclonedds_peers(dep: RosDeployment, placement: Placement, cluster_domain: s
 
 
 def cyclonedds_objects(dep: RosDeployment, placement: Placement, base_labels: dict, options: RenderOptions) -> list[dict]:
-    """A Cyclone DDS deployment's peer lists (one ConfigMap, a configuration file per instance) and a headless
-    Service per instance that gives it its stable DNS name (ready or not: a peer is named before it is Ready)."""
+    """A Cyclone DDS deployment's peer lists (one ConfigMap, a configuration file per instance) and a Service per
+    instance: its name always resolves (Cyclone DDS aborts a process whose peer name does not) and forwards the
+    discovery ports to whichever pod runs the instance now; the participants then talk pod to pod."""
     namespace = naming.fleet_namespace(dep.fleet)
     peers = cyclonedds_peers(dep, placement, options.cluster_domain)
     objects = [
@@ -308,7 +309,13 @@ def cyclonedds_objects(dep: RosDeployment, placement: Placement, base_labels: di
                     "namespace": inst.namespace,
                     "labels": {**base_labels, MODULE: inst.module, INSTANCE: inst.name},
                 },
-                "spec": {"clusterIP": "None", "publishNotReadyAddresses": True, "selector": {INSTANCE: inst.name}},
+                "spec": {
+                    "selector": {INSTANCE: inst.name},
+                    "ports": [
+                        {"name": f"spdp-{index}", "port": port, "targetPort": port, "protocol": "UDP"}
+                        for index, port in enumerate(cyclonedds.discovery_ports(dep.ros_domain_id))
+                    ],
+                },
             }
         )
     return objects
@@ -430,29 +437,31 @@ def module_labels(dep: RosDeployment) -> dict:
     }
 
 
-def _module_deployment(
-    dep: RosDeployment, module: RosModule, inst: Instance, discovery: str, base_labels: dict, options: RenderOptions
-) -> dict:
-    labels = {**base_labels, MODULE: module.name, INSTANCE: inst.name}
-    if not inst.shared:
-        labels[node_labels.ROBOT] = inst.robots[0]
-    pod_labels = dict(labels)  # a version only in the Deployment's labels: relabelling alone restarts no pod
-    if module.version:
-        labels[VERSION] = module.version
-        labels[CATALOG_MODULE] = module.catalog_module
+def _middleware_env(dep: RosDeployment, inst: Instance, discovery: str | None) -> list[dict]:
+    """How the module finds its peers: the fleet's discovery servers (Fast DDS), its peer list (Cyclone DDS), or,
+    with ``discovery`` None (a batch job's run, all of whose modules share one pod), this pod only."""
+    if discovery is None:
+        rmw = cyclonedds.RMW_CYCLONEDDS if dep.rmw == "cyclonedds" else RMW
+        return [{"name": "RMW_IMPLEMENTATION", "value": rmw}, {"name": "ROS_AUTOMATIC_DISCOVERY_RANGE", "value": "LOCALHOST"}]
     if dep.rmw == "cyclonedds":
-        middleware = [
+        return [
             {"name": "RMW_IMPLEMENTATION", "value": cyclonedds.RMW_CYCLONEDDS},
             {"name": "CYCLONEDDS_URI", "value": f"file://{cyclonedds.CONFIG_DIR}/{inst.name}.xml"},
         ]
-    else:
-        middleware = [
-            {"name": "ROS_DISCOVERY_SERVER", "value": discovery},
-            {"name": "RMW_IMPLEMENTATION", "value": RMW},
-            *({"name": name, "value": value} for name, value in TRANSPORT_ENV),
-        ]
+    return [
+        {"name": "ROS_DISCOVERY_SERVER", "value": discovery},
+        {"name": "RMW_IMPLEMENTATION", "value": RMW},
+        *({"name": name, "value": value} for name, value in TRANSPORT_ENV),
+    ]
+
+
+def module_pod(
+    dep: RosDeployment, module: RosModule, inst: Instance, discovery: str | None, pod_labels: dict, options: RenderOptions
+) -> dict:
+    """The pod template (metadata and spec) of one module instance on its node. ``discovery`` None: a batch run's
+    pod, whose modules find one another on localhost only."""
     env = [
-        *middleware,
+        *_middleware_env(dep, inst, discovery),
         {"name": "ROS_DOMAIN_ID", "value": str(dep.ros_domain_id)},
         {"name": "KUBEROS_FLEET", "value": dep.fleet},
         # A scaled module's robots change while it runs: they are in a file it watches, not in its pod template.
@@ -466,9 +475,10 @@ def _module_deployment(
     if module.ros_parameters:
         env.append({"name": "KUBEROS_PARAMS_FILE", "value": f"{PARAMS_DIR}/{PARAMS_FILE}"})
     env.extend({"name": name, "value": value} for name, value in sorted(module.env))
+    rmw = dep.rmw if discovery is not None else "isolated"
     pod_spec = {
         **_selector_and_tolerations(inst.node, inst.tier, inst.robots[0] if inst.robots else None),
-        "containers": _module_containers(module, inst, env, options, dep.name, dep.rmw),
+        "containers": _module_containers(module, inst, env, options, dep.name, rmw),
     }
     volumes = []
     if module.ros_parameters:
@@ -477,7 +487,7 @@ def _module_deployment(
         volumes.append({"name": "robots", "configMap": {"name": naming.robots_configmap_name(dep.name, module.name)}})
     for position, (name, _directory) in enumerate(module.parameter_files):
         volumes.append({"name": f"parameter-file-{position}", "configMap": {"name": naming.parameter_map_name(dep.name, name)}})
-    if dep.rmw == "cyclonedds":
+    if rmw == "cyclonedds":
         volumes.append({"name": CYCLONEDDS_VOLUME, "configMap": {"name": naming.cyclonedds_configmap_name(dep.name)}})
     if volumes:
         pod_spec["volumes"] = volumes
@@ -486,6 +496,19 @@ def _module_deployment(
     template_meta = {"labels": pod_labels}
     if module.maps:
         template_meta["annotations"] = {MAPS_ANNOTATION: _maps_hash(dep, module)}
+    return {"metadata": template_meta, "spec": pod_spec}
+
+
+def _module_deployment(
+    dep: RosDeployment, module: RosModule, inst: Instance, discovery: str, base_labels: dict, options: RenderOptions
+) -> dict:
+    labels = {**base_labels, MODULE: module.name, INSTANCE: inst.name}
+    if not inst.shared:
+        labels[node_labels.ROBOT] = inst.robots[0]
+    pod_labels = dict(labels)  # a version only in the Deployment's labels: relabelling alone restarts no pod
+    if module.version:
+        labels[VERSION] = module.version
+        labels[CATALOG_MODULE] = module.catalog_module
     return {
         "apiVersion": "apps/v1",
         "kind": "Deployment",
@@ -503,7 +526,7 @@ def _module_deployment(
             "replicas": 1,
             "strategy": dict(UPGRADE_STRATEGIES[module.upgrade]),
             "selector": {"matchLabels": {INSTANCE: inst.name}},
-            "template": {"metadata": template_meta, "spec": pod_spec},
+            "template": module_pod(dep, module, inst, discovery, pod_labels, options),
         },
     }
 

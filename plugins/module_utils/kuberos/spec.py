@@ -107,6 +107,8 @@ class LaunchArgument:
     value: str = ""
     device: str = ""  # with parameter: the value is this device's parameter on the instance's node
     parameter: str = ""
+    map: str = ""  # with key: the value came from this key of this key-value parameter map
+    key: str = ""
 
 
 @dataclass(frozen=True)
@@ -307,7 +309,7 @@ def _launch_argument(name: str, raw, ctx: _Context, devices: tuple, problem) -> 
         keys = ", ".join(k for k, _v in pmap.values) or "none"
         problem(("launchArguments", name), f"parameter map {pmap.name} has no key {key!r}; its keys: {keys}")
         return None
-    return LaunchArgument(name, value)
+    return LaunchArgument(name, value, map=pmap.name, key=key)
 
 
 def _map_of(name: str, kind: str, ctx: _Context, problem, parts: tuple) -> ParameterMap | None:
