@@ -21,32 +21,27 @@ from __future__ import annotations
 
 import os
 import re
-import secrets
-import shutil
 import signal
-import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import pytest
 from helpers import ROOT
-from sshlab import run
+from netlab import Lab, Process, Processes, open_lab  # test_bridge.py and bench/bench_bridge.py import them from here
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, scheduler, spec
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import PRIVATE_SHM, ros_environment, ros_problem
+from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_problem
 
 pytestmark = pytest.mark.ros
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 TALKER = os.path.join(HERE, "ros", "talker.py")
 LISTENER = os.path.join(HERE, "ros", "listener.py")
-SUBNET = "10.213.7"  # a /24 that exists only inside the namespaces and on the bridge this module creates
 TOPIC = "/kuberos_chatter"
 STARTUP_TIMEOUT = 20.0  # a process printing that it is up
 DISCOVERY_TIMEOUT = 30.0  # a listener receiving its first message
 NEGATIVE_WINDOW = 8.0  # simple discovery gets this long to fail; with multicast it succeeds in under a second
-STOP_TIMEOUT = 5.0
 
 
 # --- ROS 2 from PyPI wheels (plugins/module_utils/ros_wheels.py) ------------------------------------------
@@ -113,84 +108,7 @@ def module_env(rendered: Rendered, module: str, robot: str) -> dict[str, str]:
     return rendered.module_env[name]
 
 
-# --- network namespaces -----------------------------------------------------------------------------------
-
-
-@dataclass
-class Lab:
-    """Namespaces kr-<role>-<suffix> with an eth0 each, on one bridge that floods no multicast."""
-
-    suffix: str = field(default_factory=lambda: secrets.token_hex(2))
-    namespaces: dict[str, str] = field(default_factory=dict)  # role -> namespace
-    addresses: dict[str, str] = field(default_factory=dict)  # role -> IPv4 address
-    ports: list[str] = field(default_factory=list)  # the bridge's ports (host ends of the veth pairs)
-    etc_netns_created: bool = False
-
-    @property
-    def bridge(self) -> str:
-        return f"krbr{self.suffix}"
-
-    def create_bridge(self) -> None:
-        # Without snooping the bridge floods multicast, to the ports that allow it: none (see add()).
-        run("ip", "link", "add", self.bridge, "type", "bridge", "mcast_snooping", "0")
-        run("ip", "link", "set", self.bridge, "up")
-
-    def add(self, role: str) -> str:
-        index = len(self.namespaces)
-        namespace, port, address = f"kr-{role}-{self.suffix}", f"krv{self.suffix}{index}", f"{SUBNET}.{10 + index}"
-        run("ip", "netns", "add", namespace)
-        self.namespaces[role] = namespace
-        run("ip", "link", "add", port, "type", "veth", "peer", "name", "eth0", "netns", namespace)
-        self.ports.append(port)
-        run("ip", "link", "set", port, "master", self.bridge, "up")
-        run("bridge", "link", "set", "dev", port, "mcast_flood", "off")
-        run("ip", "-n", namespace, "addr", "add", f"{address}/24", "dev", "eth0")
-        run("ip", "-n", namespace, "link", "set", "eth0", "up")
-        run("ip", "-n", namespace, "link", "set", "lo", "up")
-        self.addresses[role] = address
-        return namespace
-
-    def set_multicast_flood(self, on: bool) -> None:
-        for port in self.ports:
-            run("bridge", "link", "set", "dev", port, "mcast_flood", "on" if on else "off")
-
-    def write_hosts(self, names: dict[str, str]) -> None:
-        """/etc/netns/<ns>/hosts, which `ip netns exec` bind-mounts over /etc/hosts: host name -> address."""
-        if not os.path.isdir("/etc/netns"):
-            os.makedirs("/etc/netns")
-            self.etc_netns_created = True
-        lines = ["127.0.0.1 localhost", "::1 localhost", *(f"{address} {name}" for name, address in names.items())]
-        for namespace in self.namespaces.values():
-            os.makedirs(f"/etc/netns/{namespace}", exist_ok=True)
-            with open(f"/etc/netns/{namespace}/hosts", "w", encoding="utf-8") as handle:
-                handle.write("\n".join(lines) + "\n")
-
-    def close(self) -> None:
-        for namespace in self.namespaces.values():
-            run("ip", "netns", "delete", namespace, check=False)  # also removes both ends of its veth pair
-            shutil.rmtree(f"/etc/netns/{namespace}", ignore_errors=True)
-        run("ip", "link", "delete", self.bridge, check=False)
-        if self.etc_netns_created:
-            try:
-                os.rmdir("/etc/netns")
-            except OSError:
-                pass  # something else put a namespace's files there meanwhile
-
-
-def open_lab(request, first: str) -> Lab:
-    """A Lab with its bridge and a first namespace, closed at the end; skips where namespaces cannot be made."""
-    if os.geteuid() != 0:
-        pytest.skip("network namespaces need root")
-    if not shutil.which("ip") or not shutil.which("bridge") or run("ip", "netns", "list", check=False).returncode != 0:
-        pytest.skip("`ip netns` (iproute2) is not available")
-    lab = Lab()
-    request.addfinalizer(lab.close)
-    try:
-        lab.create_bridge()
-        lab.add(first)
-    except RuntimeError as error:
-        pytest.skip(f"`ip netns` is not usable here: {error}")
-    return lab
+# --- network namespaces (tests/netlab.py) -----------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -207,78 +125,7 @@ def server_role(rendered: Rendered, server: str) -> str:
     return f"ds{sorted(rendered.servers).index(server)}"
 
 
-# --- processes --------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Process:
-    name: str
-    popen: subprocess.Popen
-    log: str
-
-    def output(self) -> str:
-        with open(self.log, encoding="utf-8", errors="replace") as handle:
-            return handle.read()
-
-    def received(self) -> list[int]:
-        return [int(n) for n in re.findall(r"^received kuberos (\d+)$", self.output(), re.MULTILINE)]
-
-    def published(self) -> list[int]:
-        return [int(n) for n in re.findall(r"^published kuberos (\d+) subscribers=\d+$", self.output(), re.MULTILINE)]
-
-    def subscribers(self) -> int | None:
-        counts = re.findall(r"^published kuberos \d+ subscribers=(\d+)$", self.output(), re.MULTILINE)
-        return int(counts[-1]) if counts else None
-
-    def tail(self, lines: int = 15) -> str:
-        return f"--- {self.name} (exit {self.popen.poll()}) ---\n" + "\n".join(self.output().splitlines()[-lines:])
-
-    def kill(self, sig: int = signal.SIGTERM) -> None:
-        if self.popen.poll() is None:
-            os.killpg(self.popen.pid, sig)  # its own session: the process started here, and nothing else
-        try:
-            self.popen.wait(STOP_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.popen.pid, signal.SIGKILL)
-            self.popen.wait(STOP_TIMEOUT)
-
-
-class Processes:
-    def __init__(self, lab: Lab, directory: str):
-        self.lab, self.directory, self.started = lab, directory, []
-        self.base_env = ros_environment(log_dir=os.path.join(directory, "ros-log"))
-
-    def start(self, name: str, role: str, command: list[str], env: dict[str, str] | None = None) -> Process:
-        """Run command in the role's namespace with a private /dev/shm and the ROS environment plus env."""
-        log = os.path.join(self.directory, f"{name}.log")
-        with open(log, "wb") as out:
-            popen = subprocess.Popen(
-                [shutil.which("ip"), "netns", "exec", self.lab.namespaces[role], "sh", "-c", PRIVATE_SHM, "sh", *command],
-                env={**self.base_env, **(env or {})},
-                stdin=subprocess.DEVNULL,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-        process = Process(name, popen, log)
-        self.started.append(process)
-        return process
-
-    def tails(self) -> str:
-        return "\n".join(p.tail() for p in self.started)
-
-    def wait_until(self, condition, timeout: float, what: str) -> float:
-        """Seconds until condition() held; fails with every process's last lines after timeout seconds."""
-        start = time.monotonic()
-        while time.monotonic() - start < timeout:
-            if condition():
-                return time.monotonic() - start
-            time.sleep(0.2)
-        pytest.fail(f"{what}: not within {timeout:.0f} s\n{self.tails()}", pytrace=False)
-
-    def close(self) -> None:
-        for process in reversed(self.started):
-            process.kill()
+# --- processes (tests/netlab.py) --------------------------------------------------------------------------
 
 
 @pytest.fixture

@@ -14,14 +14,9 @@ import hashlib
 import shlex
 from dataclasses import dataclass
 
-from . import cyclonedds
-
-try:  # TEMPORARY until fastdds.py lands
-    from .fastdds import TRANSPORT_ENV
-except ImportError:
-    TRANSPORT_ENV = ()
+from . import cyclonedds, naming, scaling
 from . import labels as node_labels
-from . import naming, scaling
+from .fastdds import TRANSPORT_ENV
 from .launch import container_name, launch_argv, split_amount
 from .placement import (
     BRIDGE_CPU_MILLIS,
@@ -614,6 +609,7 @@ def _ros_env(discovery: str, domain_id: int, fleet: str) -> list[dict]:
     return [
         {"name": "ROS_DISCOVERY_SERVER", "value": discovery},
         {"name": "RMW_IMPLEMENTATION", "value": RMW},
+        *({"name": name, "value": value} for name, value in TRANSPORT_ENV),
         {"name": "ROS_DOMAIN_ID", "value": str(domain_id)},
         {"name": "KUBEROS_FLEET", "value": fleet},
     ]
