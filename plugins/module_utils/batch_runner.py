@@ -18,7 +18,12 @@ import shutil
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import batch, naming
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, Problem, SpecError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import (
+    KuberosError,
+    PlacementError,
+    Problem,
+    SpecError,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, device_parameters_of
@@ -40,10 +45,10 @@ def place(job: batch.BatchJob, inventory, allocated=None, unavailable=None) -> l
     deployments = batch.slot_deployments(job, robots)
     try:
         placement = place_modules(deployments, inventory, allocated, unavailable)
-    except SpecError as exc:
-        raise SpecError(
-            exc.problems,
-            title=f"{job.source}: {job.slots} runs at once (parallelism) do not fit; lower job.parallelism, or free nodes",
+    except PlacementError as exc:
+        raise KuberosError(
+            f"{job.source}: {job.slots} runs at once (job.parallelism) do not fit; lower job.parallelism, or free nodes. "
+            f"Each run ('run' of {job.name}-slot-<n>) needs every module of the job on one node:\n" + "\n".join(exc.failures)
         ) from None
     by_deployment = {i.deployment: i for i in placement.instances}
     return [by_deployment[d.name] for d in deployments]
@@ -175,7 +180,7 @@ class Cluster:
         from kubernetes.client.exceptions import ApiException
 
         try:
-            return self.core.read_namespaced_pod_log(pod, namespace, container=container)
+            return self.core.read_namespaced_pod_log(pod, namespace, container=container) or ""
         except ApiException as exc:  # a node without a kubelet (kwok) keeps no logs
             return f"(no log: {exc.status} {exc.reason})\n"
         except Exception as exc:
@@ -250,9 +255,11 @@ class Watch:
         status = pod.get("status") or {}
         containers = [c["name"] for c in (pod.get("spec") or {}).get("initContainers") or []]
         containers += [c["name"] for c in (pod.get("spec") or {}).get("containers") or []]
+        started = bool(status.get("startTime"))
         for container in containers:
+            text = self.cluster.log(self.namespace, pod["metadata"]["name"], container) if started else "(never started)\n"
             with open(os.path.join(folder, f"{container}.log"), "w", encoding="utf-8") as handle:
-                handle.write(self.cluster.log(self.namespace, pod["metadata"]["name"], container))
+                handle.write(text)
         messages = {
             c["name"]: ((c.get("state") or {}).get("terminated") or {}).get("message", "")
             for c in status.get("containerStatuses") or []
@@ -388,8 +395,8 @@ def run_batch(clients_factory, params: dict, check_mode: bool, progress) -> dict
     counts = watch.counts()
     result.update(
         changed=True,
-        succeeded=counts.get("succeeded", 0),
-        failed=counts.get("failed", 0),
+        runs_succeeded=counts.get("succeeded", 0),  # not "failed": Ansible would take a count for the task failing
+        runs_failed=counts.get("failed", 0),
         failures=[f"run {r['run']} repeat {r['repeat']} ({_params(r)}): {r['why']}" for r in runs if r["state"] == "failed"],
         seconds=round(time.monotonic() - started, 1),
     )

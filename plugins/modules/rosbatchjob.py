@@ -66,7 +66,7 @@ attributes:
   diff_mode:
     support: none
 author:
-  - KubeROS contributors
+  - KubeROS contributors (@kuberos)
 """
 
 EXAMPLES = r"""
@@ -89,12 +89,12 @@ runs:
   description: Runs in all (combinations times repeats).
   returned: when state is present
   type: int
-succeeded:
+runs_succeeded:
   description: Runs whose lifecycle module exited 0.
   returned: when applied
   type: int
-failed:
-  description: Runs that failed (a module's exit code, the start-up or running timeout).
+runs_failed:
+  description: Runs that failed (a module's exit code, the start-up or running timeout); a failed run does not fail the task.
   returned: when applied
   type: int
 failures:

@@ -34,7 +34,7 @@ from .placement import Instance
 from .schema import DNS_LABEL, MAP_NAME
 from .spec import LaunchArgument, Resources, RosDeployment, RosModule, _env_value, _parse_any, _parse_document
 from .validation import schema_problems, strict_validator
-from .yaml_source import Document, load_documents
+from .yaml_source import Document, format_path, load_documents
 
 KIND = "RosBatchJob"
 REFERENCE_KIND = "BatchJob"
@@ -198,8 +198,6 @@ def _job_problems(job: dict, dep: RosDeployment, doc: Document, base: tuple) -> 
 
 
 def _path(parts) -> str:
-    from .yaml_source import format_path
-
     return format_path(parts)
 
 
