@@ -1,6 +1,6 @@
 """Batch jobs (kuberos/batch.py, batch_runner.py): the grid, waves, placement, the rendered Jobs, the reference
 format's BatchJob, errors, and how a pod's status becomes a run's outcome. Every rendered object is checked against
-the Kubernetes 1.34 schema. Running them on a cluster: tests/cluster/test_batch.py."""
+the Kubernetes 1.34 schema. Running them on a cluster: tests/cluster/test_batch_on_cluster.py."""
 
 from __future__ import annotations
 
