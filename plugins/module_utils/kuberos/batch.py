@@ -189,7 +189,8 @@ def _job_problems(job: dict, dep: RosDeployment, doc: Document, base: tuple) -> 
         elif pmap.value(axis["key"]) is None:
             add(
                 ("grid", index, "key"),
-                f"parameter map {axis['map']} has no key {axis['key']!r}; its keys: {', '.join(k for k, _ in pmap.values)}",
+                f"parameter map {axis['map']} has no key {axis['key']!r}; its keys: "
+                + ", ".join(key for key, _value in pmap.values),
             )
         if (axis["map"], axis["key"]) in seen:
             add(("grid", index), f"{axis['map']}.{axis['key']} is already varied; expected each key once")
