@@ -32,12 +32,11 @@ from .errors import Problem, SpecError, describe
 from .manifests import COMPONENT, MANAGED_BY, RenderOptions, module_pod
 from .placement import Instance
 from .schema import DNS_LABEL, MAP_NAME
-from .spec import LaunchArgument, Resources, RosDeployment, RosModule, _env_value, _parse_any, _parse_document
+from .spec import BATCH_KINDS, LaunchArgument, Resources, RosDeployment, RosModule, _env_value, _parse_any, _parse_document
 from .validation import schema_problems, strict_validator
 from .yaml_source import Document, format_path, load_documents
 
-KIND = "RosBatchJob"
-REFERENCE_KIND = "BatchJob"
+KIND, REFERENCE_KIND = BATCH_KINDS
 ANY_FLEET = "kuberos-any-fleet"  # a batch job that names no fleet runs in the inventory's first fleet
 BATCH = "kuberos.io/batch"
 RUN = "kuberos.io/batch-run"

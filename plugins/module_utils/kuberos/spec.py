@@ -43,6 +43,7 @@ DEFAULT_PREFERENCE = "edge"
 DEFAULT_CPU = "100m"
 DEFAULT_MEMORY = "128Mi"
 DEFAULT_ROBOTS_PER_INSTANCE = 4
+BATCH_KINDS = ("RosBatchJob", "BatchJob")  # batch.py reads these
 MAX_QUANTITY = 2**63 - 1  # Kubernetes keeps quantities in 64-bit integers (cpu in millicores)
 _UNITS = {"cpu": "millicores", "memory": "bytes", "max_latency": "milliseconds"}
 NO_CATALOG = (
@@ -827,7 +828,11 @@ def _parse_any(doc: Document, catalog: Catalog | None, read_file) -> RosDeployme
     """One document in our format, or in the reference format (``kind: ApplicationDeployment``) translated."""
     from . import reference_format
 
-    if not (isinstance(doc.data, dict) and doc.data.get("kind") == reference_format.KIND):
+    kind = doc.data.get("kind") if isinstance(doc.data, dict) else None
+    if kind in BATCH_KINDS:
+        message = f"'{kind}' is a batch job, not a deployment; run it with playbooks/batch.yml (docs/batch.md)"
+        raise SpecError([Problem(doc.source, "kind", message, doc.line_of(("kind",)))], title=f"{doc.source} is a batch job")
+    if kind != reference_format.KIND:
         return _parse_document(doc, catalog, read_file)
     translation = reference_format.translate(doc)
     if translation.problems:
