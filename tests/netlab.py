@@ -125,6 +125,10 @@ class Process:
         with open(self.log, encoding="utf-8", errors="replace") as handle:
             return handle.read()
 
+    def numbers(self, pattern: str) -> list[int]:
+        """The integers the first group of ``pattern`` (a multi-line regex) captures in the output."""
+        return [int(n) for n in re.findall(pattern, self.output(), re.MULTILINE)]
+
     def received(self) -> list[int]:
         return [int(n) for n in re.findall(r"^received kuberos (\d+)$", self.output(), re.MULTILINE)]
 

@@ -23,7 +23,6 @@ import os
 import re
 import secrets
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -31,6 +30,7 @@ from dataclasses import dataclass
 
 import pytest
 from helpers import ROOT
+from netlab import Process
 from sshlab import run
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, manifests, scheduler, spec
@@ -148,29 +148,6 @@ def namespaces(request) -> dict[str, str]:
 
 
 # --- pods and containers ----------------------------------------------------------------------------------
-
-
-@dataclass
-class Process:
-    name: str
-    popen: subprocess.Popen
-    log: str
-
-    def output(self) -> str:
-        with open(self.log, encoding="utf-8", errors="replace") as handle:
-            return handle.read()
-
-    def numbers(self, pattern: str) -> list[int]:
-        return [int(n) for n in re.findall(pattern, self.output(), re.MULTILINE)]
-
-    def kill(self) -> None:
-        if self.popen.poll() is None:
-            os.killpg(self.popen.pid, signal.SIGTERM)  # its own session: the process started here, and nothing else
-        try:
-            self.popen.wait(STOP_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.popen.pid, signal.SIGKILL)
-            self.popen.wait(STOP_TIMEOUT)
 
 
 class Pods:
