@@ -1,8 +1,17 @@
 """Cyclone DDS without multicast: the configuration file that gives a module instance its unicast peers.
 
 Cyclone DDS has no discovery server. Pods have no multicast, so each participant is given the names of the
-module instances it talks with (their headless Services, `<instance>.<namespace>.svc.<cluster-domain>`) and
-finds them by unicast SPDP. The file is mounted under CONFIG_DIR and named by CYCLONEDDS_URI.
+module instances it talks with (each instance's Service, `<instance>.<namespace>.svc.<cluster-domain>`, which
+forwards the discovery ports of ``discovery_ports`` to the pod that runs it now) and finds them by unicast SPDP;
+after that the participants talk pod to pod. The file is mounted under CONFIG_DIR and named by CYCLONEDDS_URI.
+
+Measured with real Cyclone DDS 11 participants behind an iptables stand-in for kube-proxy
+(tests/integration/test_cyclonedds_netns.py): a name that does not resolve aborts the process at start, a Service
+whose pod does not exist yet does not (its packets are rejected, and the two meet when the later one starts); a
+participant probes a Service address only in its first ~0.3 s and drops it after 30 s, so an instance that moves
+(or starts late) is found again because its own list names the others: the lists must be symmetric, as the
+renderer makes them. (Cyclone 11's ``Peer PruneDelay="inf"`` would keep probing, but 0.10, the version in ROS 2
+Jazzy's rmw_cyclonedds_cpp, may not know the attribute, and an unknown one stops Cyclone at start.)
 """
 
 from __future__ import annotations
