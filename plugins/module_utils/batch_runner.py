@@ -26,7 +26,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, device_parameters_of
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, device_options
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import file_reader
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
@@ -46,9 +46,18 @@ def place(job: batch.BatchJob, inventory, allocated=None, unavailable=None) -> l
     try:
         placement = place_modules(deployments, inventory, allocated, unavailable)
     except PlacementError as exc:
+        field = "jobSpec.maxParallelism" if job.kind == batch.REFERENCE_KIND else "job.parallelism"
+        unit = batch.run_unit(job)
+        needs = f"cpu {unit.resources.cpu_millis}m, memory {unit.resources.memory_bytes // 2**20}Mi"
+        if unit.requirements.devices:
+            needs += f", devices {', '.join(unit.requirements.devices)}"
+        first = [line for line in exc.failures if f"{job.name}-slot-0" in line] or exc.failures[:1]
+        more = len(exc.failures) - len(first)
         raise KuberosError(
-            f"{job.source}: {job.slots} runs at once (job.parallelism) do not fit; lower job.parallelism, or free nodes. "
-            f"Each run ('run' of {job.name}-slot-<n>) needs every module of the job on one node:\n" + "\n".join(exc.failures)
+            f"{job.source}: the runs of {job.name} cannot be placed: each run needs every module of the job on one node "
+            f"({needs}), {job.slots} at once ({field}). Where the first run was tried:\n"
+            + "\n".join(first)
+            + (f"\n(and {more} more runs at once alike; a lower {field} needs fewer nodes at once)" if more else "")
         ) from None
     by_deployment = {i.deployment: i for i in placement.instances}
     return [by_deployment[d.name] for d in deployments]
@@ -332,7 +341,7 @@ def load(params: dict):
 def run_batch(clients_factory, params: dict, check_mode: bool, progress) -> dict:
     """The whole batch run; ``clients_factory()`` gives the API clients (only called when applying)."""
     job, inventory = load(params)
-    options = RenderOptions(device_parameters=device_parameters_of(inventory))
+    options = RenderOptions(**device_options(inventory))
     cluster = None
     allocated, unavailable = dict(params.get("allocated") or {}), {}
     if params["apply"]:

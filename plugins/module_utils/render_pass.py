@@ -11,7 +11,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     bridge_secret_name,
-    device_parameters_of,
+    device_options,
     launch_argument_problems,
     object_order,
     render_deployment,
@@ -104,7 +104,7 @@ def render_to_dir(
     if model is None and params["inventory"] is not None:
         model = load_inventory(params["inventory"])
     if model is not None:
-        options = replace(options, device_parameters=device_parameters_of(model))
+        options = replace(options, **device_options(model))
     missing = launch_argument_problems(deployments, placement, options)
     if missing:
         raise SpecError(

@@ -116,8 +116,8 @@ rosModules: [{name: trial, image: example/trial:1, launch: run, launchArguments:
         (("job: {module: trial,", "job: {module: trial, runningTimeout: soon,"), "job.runningTimeout: 'soon' is not valid"),
         (("job: {module: trial,", "job: {module: trial, retries: 3,"), "job.retries"),
         (
-            ("values: [1, 2]}]", f"values: {list(range(40))}}}, {{map: p, key: mass, values: {list(range(30))}}}]"),
-            "job.grid: makes 1200 runs; expected at most 1000",
+            ("values: [1, 2]}]", f"values: {list(range(400))}}}, {{map: p, key: mass, values: {list(range(30))}}}]"),
+            "job.grid: makes 12000 runs; expected at most 10000",
         ),
         (("kind: RosBatchJob", "kind: RosDeployment"), "kind: 'RosDeployment' is not a batch job"),
     ],
@@ -130,7 +130,10 @@ def test_bad_batch_jobs_name_the_field(change, expected):
 def test_reference_batch_job_errors_name_its_fields():
     text = open(GRASP, encoding="utf-8").read()
     found = problems_of(text.replace("rosModuleName: grasp-trial", "rosModuleName: missing"))
-    assert any("jobSpec.module: 'missing' is not one of rosModules" in p or "jobSpec" in p for p in found), found
+    assert any("jobSpec.lifecycleModule.rosModuleName: 'missing' is not one of rosModules" in p for p in found), found
+    found = problems_of(text.replace("paramName: object", "paramName: colour"))
+    expected = "jobSpec.varyingParameters[1].paramName: parameter map grasp-parameters has no key 'colour'"
+    assert any(expected in p for p in found), found
     found = problems_of(text.replace("repeatNum: 2", "repeatNum: none"))
     assert any("jobSpec.lifecycleModule.repeatNum" in p for p in found), found
     assert problems_of("kind: BatchJob\nmetadata: {name: x}\njobSpec: 3\n")
@@ -142,8 +145,10 @@ def test_too_many_runs_at_once_say_so(local_inventory):
     )[0]
     with pytest.raises(KuberosError) as caught:
         batch_runner.place(job, local_inventory)
-    assert "2 runs at once (job.parallelism) do not fit; lower job.parallelism" in str(caught.value)
+    assert "the runs of sweep cannot be placed: each run needs every module of the job on one node" in str(caught.value)
+    assert "(cpu 100000m, memory 128Mi), 2 at once (job.parallelism)" in str(caught.value)
     assert "edge-1 (edge): cpu: needs 100, 15.9 free of 16" in str(caught.value)
+    assert "(and 1 more runs at once alike; a lower job.parallelism needs fewer nodes at once)" in str(caught.value)
 
 
 @pytest.mark.parametrize(

@@ -21,7 +21,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     RenderOptions,
-    device_parameters_of,
+    device_options,
     launch_argument_problems,
     render_deployment,
 )
@@ -90,7 +90,7 @@ def problems_of(text: str, source: str = "ref.yml", read_file=None) -> list[str]
 
 def rendered(deployments, inventory):
     placement = place_modules(deployments, inventory)
-    options = replace(RenderOptions(), device_parameters=device_parameters_of(inventory))
+    options = replace(RenderOptions(), **device_options(inventory))
     return placement, render_deployment(deployments, placement, options), options
 
 
@@ -165,9 +165,10 @@ def test_the_example_becomes_what_the_reference_means(local_inventory):
     assert listener_pod["imagePullSecrets"] == [{"name": "registry-credentials"}]
 
 
-def test_shell_lines_run_in_bash_as_written_with_quoted_arguments(tmp_path, local_inventory):
-    """The rendered command run by bash: the workspace is sourced, the line's ';' works, and a hostile argument value
-    stays one argument (quoted), running nothing."""
+def test_launch_arguments_run_as_written_in_bash_and_literally_without_it(tmp_path, local_inventory):
+    """The rendered commands run for real. With shell (the reference format) bash sources the workspace, the line's
+    ';' works and the arguments are bash words as written: the reference's pre-quoted values lose their quotes as the
+    reference's shell would. Without shell, a value is one argument, whatever it holds, and runs nothing."""
     workspace = tmp_path / "ws"
     workspace.mkdir()
     (workspace / "setup.bash").write_text("export FROM_WORKSPACE=sourced\n")
@@ -181,32 +182,47 @@ rosModules:
     entrypoint: ["echo $FROM_WORKSPACE; printf '<%s>' "]
     sourceWs: {workspace}/
     launchParameters:
-      evil: {{args.evil}}
+      goals: {{args.goals}}
     rosParameters: [{{name: args, type: key-value, valueFrom: args}}]
 rosParamMap:
   - name: args
     type: key-value
-    data: {{evil: "$(touch {tmp_path}/pwned); x"}}
+    data: {{goals: "'2,-2,0;0,-3.5,0'"}}
 """
-    deps = reference(text)
-    _placement, objects, _ = rendered(deps, local_inventory)
+    _placement, objects, _ = rendered(reference(text), local_inventory)
     (container,) = by_name(objects, "Deployment")["hello-talker-fetch-1"]["spec"]["template"]["spec"]["containers"]
     out = subprocess.run(container["command"], capture_output=True, text=True, timeout=10, check=True)
-    assert out.stdout.splitlines() == ["sourced", f"<evil:=$(touch {tmp_path}/pwned); x>"]
+    assert out.stdout.splitlines() == ["sourced", "<goals:=2,-2,0;0,-3.5,0>"]
+
+    literal = f"""
+metadata: {{name: plain, targetFleet: test-fleet, robotSelector: {{robot: [fetch-1]}}}}
+parameterMaps: [{{name: args, type: key-value, data: {{evil: "$(touch {tmp_path}/pwned); x"}}}}]
+rosModules:
+  - name: talker
+    image: example/talker:1
+    launch: "printf '<%s>'"
+    workspace: {workspace}
+    launchArguments: {{evil: "{{args.evil}}"}}
+"""
+    _placement, objects, _ = rendered(load_rosdeployments(literal, "plain.yml"), local_inventory)
+    (container,) = by_name(objects, "Deployment")["plain-talker-fetch-1"]["spec"]["template"]["spec"]["containers"]
+    out = subprocess.run(container["command"], capture_output=True, text=True, timeout=10, check=True)
+    assert out.stdout == f"<evil:=$(touch {tmp_path}/pwned); x>"
     assert not (tmp_path / "pwned").exists()
 
 
-def test_device_references_in_flow_mapping_form_need_the_device(local_inventory):
-    """`robot_ip: {SIM_ARM.ROBOT_IP}` is a YAML flow mapping; it names the device sim-arm's parameter robot-ip, and the
-    module then needs a node carrying sim-arm (noted)."""
-    text = MINIMAL + "    launchParameters:\n      port: {GRIPPER.PORT}\n      model: {GRIPPER.MODEL}\n"
+def test_device_references_in_flow_mapping_form_take_the_robots_device(local_inventory):
+    """`robot_ip: {SIM_ARM.ROBOT_IP}` is a YAML flow mapping; it names the device sim-arm's parameter robot-ip, taken
+    from the module's node when it carries the device, else from its robot's computer (an edge module driving the
+    robot's gripper gets the robot's port); a node and robot without the parameter is reported before rendering."""
+    text = MINIMAL + "    preference: [edge]\n    launchParameters:\n      port: {GRIPPER.PORT}\n      model: {GRIPPER.MODEL}\n"
     (dep,) = reference(text)
     (module,) = dep.modules
-    assert module.requirements.devices == ("gripper",)
+    assert module.requirements.devices == ()
     assert [(a.device, a.parameter) for a in module.launch_arguments] == [("gripper", "port"), ("gripper", "model")]
-    assert any("takes parameter port of device gripper" in n for n in dep.notes)
+    assert any("takes parameter port of device gripper from the inventory" in n for n in dep.notes)
     placement, objects, options = rendered([dep], local_inventory)
-    assert {i.node for i in placement.instances} == {"fetch-1", "fetch-2"}  # both carry a gripper
+    assert {i.node for i in placement.instances} <= {"edge-1", "edge-2"}
     commands = {
         name: d["spec"]["template"]["spec"]["containers"][0]["command"][-1]
         for name, d in by_name(objects, "Deployment").items()
@@ -217,7 +233,9 @@ def test_device_references_in_flow_mapping_form_need_the_device(local_inventory)
         "hello-talker-fetch-2": "ros2 run demo talker port:=/dev/ttyUSB1 model:=robotiq-2f85",
     }
     missing = launch_argument_problems([dep], placement, replace(options, device_parameters=()))
-    assert sorted(m[2] for m in missing) == ["fetch-1", "fetch-1", "fetch-2", "fetch-2"]
+    assert sorted((m[1], m[4], m[5]) for m in missing) == sorted(
+        [("talker", "gripper", "model"), ("talker", "gripper", "port")] * 2
+    )
 
 
 @pytest.mark.parametrize(
@@ -363,7 +381,10 @@ rosModules: [{{name: a, image: example/a:1, launch: run}}]
         ("envFrom: [bad]", "rosModules[0].envFrom[0]: parameter map bad key 'not-a-name' is not an environment variable"),
         ("parameterFiles: [{map: vars, mountPath: /c}]", "parameter map vars is key-value; expected a yaml map"),
         ("launchArguments: {a: '{vars.missing}'}", "parameter map vars has no key 'missing'; its keys: WORLD"),
-        ("launchArguments: {a: '{device:lidar.ip}'}", "takes a parameter of device lidar, which requirements.devices"),
+        (
+            "launchArguments: {a: '{device:lidar.ip}'}\n  strategy: shared",
+            "takes a device parameter, but a shared instance serves several robots",
+        ),
         ("launchArguments: {a: 'x{vars.WORLD}'}", "is not valid; expected a value, '{map.key}'"),
         ("imageRegistry: other", "rosModules[0].imageRegistry: 'other' is not in imageRegistries; expected one of: default"),
         ("workspace: relative/dir", "rosModules[0].workspace"),
@@ -419,3 +440,42 @@ def test_device_parameters_must_belong_to_the_hosts_devices(local_raw):
     text = str(caught.value)
     assert "hosts.fetch-1.kuberos_device_parameters.lidar: names a device the host does not carry" in text
     assert "hosts.fetch-1.kuberos_device_parameters.gripper: [1] (list) is not valid" in text
+
+
+def test_reference_quirks_read_as_the_reference_reads_them(local_inventory):
+    """latency 0 is no requirement; a launch key missing from the named map is read from another map the module
+    attaches; no preference means onboard first. Each is noted."""
+    text = MINIMAL.replace(
+        'entrypoint: ["ros2 run demo talker"]', 'entrypoint: ["ros2 run demo talker"]\n    requirements: {latency: 0ms}'
+    )
+    text += """    launchParameters:
+      world: {launch-parameters.world}
+      headless: {launch-parameters.headless}
+    rosParameters:
+      - {name: launch-parameters, type: key-value, valueFrom: eval}
+      - {name: environment, type: key-value, valueFrom: env}
+rosParamMap:
+  - {name: eval, type: key-value, data: {world: maze}}
+  - {name: env, type: key-value, data: {headless: true}}
+"""
+    (dep,) = reference(text)
+    (module,) = dep.modules
+    assert module.requirements.max_latency_ms is None
+    assert [(a.name, a.value, a.map) for a in module.launch_arguments] == [("world", "maze", "eval"), ("headless", "true", "env")]
+    notes = "\n".join(dep.notes)
+    assert "requirements.latency: '0ms': no latency requirement" in notes
+    assert "key headless is not in eval but in env" in notes
+    assert "rosModules[0].preference: not given: onboard (the reference's default) first" in notes
+
+
+def test_reference_problems_say_what_is_missing_and_name_its_fields(local_inventory):
+    no_type = MINIMAL + "    rosParameters: [{name: p, valueFrom: params}]\n"
+    assert any(
+        "rosParameters[0].valueFrom: 'params' names no rosParamMap (and type is not given)" in p for p in problems_of(no_type)
+    )
+    no_modules = "apiVersion: v1\nkind: ApplicationDeployment\nmetadata: {name: x, targetFleet: test-fleet}\n"
+    assert any("rosModules" in p and "required" in p for p in problems_of(no_modules)), problems_of(no_modules)
+    (dep,) = reference(MINIMAL.replace("targetFleet: test-fleet", "targetFleet: test-fleet\n  targetRobots: [simbot-1]"))
+    with pytest.raises(SpecError) as caught:
+        place_modules([dep], local_inventory)
+    assert "ref.yml:7: metadata.targetRobots[0]: 'simbot-1' is not a robot of fleet test-fleet" in str(caught.value)

@@ -42,7 +42,7 @@ BATCH = "kuberos.io/batch"
 RUN = "kuberos.io/batch-run"
 WAVE_ANNOTATION = "kuberos.io/batch-wave"
 PARAMETERS_ANNOTATION = "kuberos.io/batch-parameters"
-MAX_RUNS = 1000
+MAX_RUNS = 10000  # combinations x repeats of one job
 DEFAULT_STARTUP_S = 300.0
 DEFAULT_RUNNING_S = 3600.0
 _DURATION = {"type": ["string", "number"], "x-expected": "a duration such as '120 s' or '20 min' (a number means seconds)"}
@@ -227,6 +227,18 @@ def _parse_ours(doc: Document, catalog, read_file) -> BatchJob:
 
 
 def _batch_job(job: dict, dep: RosDeployment, doc: Document, base: tuple, kind: str, notes: tuple) -> BatchJob:
+    """The job, or SpecError; ``base`` is where the job section is (``job``, or the reference's ``jobSpec``, whose
+    problems are renamed to the reference's fields)."""
+    try:
+        return _checked_job(job, dep, doc, base, kind, notes)
+    except SpecError as exc:
+        if kind != REFERENCE_KIND:
+            raise
+        renamed = [replace(p, path=_reference_path("job" + p.path[len("jobSpec") :])) for p in exc.problems]
+        raise SpecError(renamed, title=exc.title) from None
+
+
+def _checked_job(job: dict, dep: RosDeployment, doc: Document, base: tuple, kind: str, notes: tuple) -> BatchJob:
     problems = _job_problems(job, dep, doc, base)
     startup = _seconds(job.get("startupTimeout"), DEFAULT_STARTUP_S, doc, (*base, "startupTimeout"), problems)
     running = _seconds(job.get("runningTimeout"), DEFAULT_RUNNING_S, doc, (*base, "runningTimeout"), problems)
@@ -262,6 +274,10 @@ def _batch_job(job: dict, dep: RosDeployment, doc: Document, base: tuple, kind: 
 
 
 REFERENCE_JOB_NOTES = {
+    "volumes": (
+        "results are each run's termination message and logs, collected into the render directory; "
+        "mount a volume with the module instead"
+    ),
     "volume": (
         "results are each run's termination message and logs, collected into the render directory; "
         "mount a volume with the module instead"
@@ -308,7 +324,7 @@ def _parse_reference(doc: Document, catalog, read_file) -> BatchJob:
             note(
                 ("metadata", key),
                 {
-                    "execClusters": "runs go to this cluster's nodes, placed by the scheduler",
+                    "execClusters": "not used: the runs go to the fleet's nodes of the cluster this collection deploys to",
                     "useRobotResource": "the lifecycle module's preference decides where runs go",
                     "description": "informational",
                 }[key],
@@ -319,7 +335,7 @@ def _parse_reference(doc: Document, catalog, read_file) -> BatchJob:
         "metadata": {"name": dns or metadata.get("name"), "targetFleet": metadata.get("targetFleet", ANY_FLEET)},
         **{k: data[k] for k in ("rosModules", "rosParamMap", "containerRegistry") if k in data},
     }
-    for key in ("targetRobots", "edgeResourceGroup", "rmwImplementation"):
+    for key in ("targetRobots", "edgeResourceGroup", "rmwImplementation", "rosVersion", "appVersion"):
         if key in metadata:
             translated["metadata"][key] = metadata[key]
     dep = _parse_any(Document(translated, where, doc.index, doc.lines), catalog, read_file)
@@ -346,9 +362,11 @@ def _parse_reference(doc: Document, catalog, read_file) -> BatchJob:
         grid.append({"map": axis.get("toRosParamMap"), "key": axis.get("paramName"), "values": axis.get("valueList")})
     if grid:
         job["grid"] = grid
-    for key, why in REFERENCE_JOB_NOTES.items():
-        if key in spec:
-            note(("jobSpec", key), why)
+    for key in spec:
+        if key in REFERENCE_JOB_NOTES:
+            note(("jobSpec", key), REFERENCE_JOB_NOTES[key])
+        elif key not in ("startupTimeout", "runningTimeout", "maxParallelism", "varyingParameters", "lifecycleModule"):
+            note(("jobSpec", key), "is not a field of the reference jobSpec; ignored")
     found = schema_problems(_validator(), Document({"job": job}, where, doc.index, {}))
     problems.extend(replace(p, path=_reference_path(p.path), line=doc.line_of(("jobSpec",))) for p in found)
     if problems:
@@ -426,7 +444,6 @@ def run_unit(job: BatchJob) -> RosModule:
     devices = tuple(dict.fromkeys(d for m in modules for d in m.requirements.devices))
     return replace(
         lifecycle,
-        name="run",
         strategy="dedicated",
         scaling=None,
         requirements=replace(lifecycle.requirements, devices=devices),

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import shlex
 from dataclasses import dataclass
 
 from . import cyclonedds, naming, scaling
@@ -73,17 +72,24 @@ class RenderOptions:
     # The inventory's device parameters per node (inventory.device_parameters): ((node, ((device, ((name, value),
     # ...)), ...)), ...); launch arguments '{device:<device>.<parameter>}' take their value from the instance's node.
     device_parameters: tuple = ()
+    robot_nodes: tuple = ()  # ((robot, its onboard computer's node), ...)
 
-    def device_parameter(self, node: str, device: str, parameter: str) -> str | None:
-        for name, devices in self.device_parameters:
-            if name == node:
-                return dict(dict(devices).get(device, ())).get(parameter)
-        return None
+    def device_parameter(self, node: str, device: str, parameter: str, robot: str | None = None) -> str | None:
+        """The parameter of ``device`` of ``node`` when the node carries it, else of ``robot``'s computer."""
+        nodes = dict(self.device_parameters)
+        if device not in dict(nodes.get(node, ())) and robot is not None:
+            node = dict(self.robot_nodes).get(robot, node)
+        return dict(dict(nodes.get(node, ())).get(device, ())).get(parameter)
 
 
-def device_parameters_of(inventory) -> tuple:
-    """``RenderOptions.device_parameters`` of an inventory model (``inventory.Inventory``)."""
-    return tuple(sorted((name, node.device_parameters) for name, node in inventory.nodes.items() if node.device_parameters))
+def device_options(inventory) -> dict:
+    """The ``RenderOptions`` fields an inventory model (``inventory.Inventory``) gives: its device parameters."""
+    return {
+        "device_parameters": tuple(
+            sorted((name, node.device_parameters) for name, node in inventory.nodes.items() if node.device_parameters)
+        ),
+        "robot_nodes": tuple(sorted((name, robot.node) for name, robot in inventory.robots.items())),
+    }
 
 
 def launch_argument_problems(deployments: list[RosDeployment], placement: Placement, options: RenderOptions) -> list:
@@ -94,7 +100,8 @@ def launch_argument_problems(deployments: list[RosDeployment], placement: Placem
     for inst in placement.instances:
         module = modules.get((inst.deployment, inst.module))
         for argument in module.launch_arguments if module else ():
-            if argument.device and options.device_parameter(inst.node, argument.device, argument.parameter) is None:
+            robot = inst.robots[0] if len(inst.robots) == 1 else None
+            if argument.device and options.device_parameter(inst.node, argument.device, argument.parameter, robot) is None:
                 missing.append((inst.deployment, inst.module, inst.node, argument.name, argument.device, argument.parameter))
     return missing
 
@@ -322,7 +329,8 @@ def _launch_words(module: RosModule, inst: Instance, options: RenderOptions) -> 
     for argument in module.launch_arguments:
         value = argument.value
         if argument.device:
-            value = options.device_parameter(inst.node, argument.device, argument.parameter) or ""
+            robot = inst.robots[0] if len(inst.robots) == 1 else None
+            value = options.device_parameter(inst.node, argument.device, argument.parameter, robot) or ""
         words.append(f"{argument.name}:={value}")
     return words
 
@@ -340,7 +348,7 @@ def _command(module: RosModule, number: int, line: str, inst: Instance, options:
     or through bash when the module sources a workspace or runs its lines as shell command lines."""
     words = _launch_words(module, inst, options) if number == 0 else []
     if module.shell:
-        script = " ".join([line, *(shlex.quote(w) for w in words)])
+        script = " ".join([line, *words])  # bash words, as written (the reference format quotes its values itself)
         if module.workspace:
             return {"command": ["/bin/bash", "-c", _SOURCE + 'eval "$1"', module.workspace, script]}
         return {"command": ["/bin/bash", "-c", script]}

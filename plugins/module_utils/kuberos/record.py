@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from . import naming
 from .errors import Problem, SpecError
 from .inventory import Inventory, load_inventory
-from .manifests import COMPONENT, DEPLOYMENT, MANAGED_BY, RenderOptions, device_parameters_of
+from .manifests import COMPONENT, DEPLOYMENT, MANAGED_BY, RenderOptions, device_options
 from .placement import Placement
 from .spec import RosDeployment, file_reader, load_rosdeployments
 from .third_party import yaml
@@ -518,7 +518,7 @@ def parse_record(configmap: dict) -> Record:
             cluster_domain=options.get("cluster_domain", "cluster.local"),
             discovery_image=options.get("discovery_image", "ros:jazzy-ros-base"),
             image_pull_policy=options.get("image_pull_policy", "IfNotPresent"),
-            device_parameters=device_parameters_of(inventory),
+            **device_options(inventory),
         ),
         field_manager=options.get("field_manager", "kuberos"),
         resource_version=meta.get("resourceVersion", ""),

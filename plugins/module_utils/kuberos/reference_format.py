@@ -48,6 +48,7 @@ REQUIREMENT_NOTES = {
     "useBridge": "modules in a third-party cluster are given with `cluster:` (docs/bridge.md)",
 }
 MODULE_NOTES = {
+    "lifecycleTopic": "a batch run ends when its lifecycle module exits; no topic is watched",
     "staticFiles": "static files are not supported; put them in the image or in a parameter map",
     "requiredLaunchParamList": "placeholder of the reference; launch arguments come from launchParameters",
 }
@@ -162,12 +163,13 @@ def _metadata(b: _Builder, raw: dict, out: dict) -> None:
             b.note(("metadata", key), "is not a field of the reference format; ignored")
 
 
-def _param_maps(b: _Builder, raw: dict, out: dict) -> dict[str, str]:
-    """rosParamMap as parameterMaps; returns each map's type by name."""
+def _param_maps(b: _Builder, raw: dict, out: dict) -> tuple[dict[str, str], dict[str, set]]:
+    """rosParamMap as parameterMaps; returns each map's type by name, and the keys of those given inline."""
     maps = _list(b, raw.get("rosParamMap"), ("rosParamMap",), "a list of parameter maps")
     types: dict[str, str] = {}
+    keys: dict[str, set] = {}
     if not maps:
-        return types
+        return types, keys
     out["parameterMaps"] = []
     for index, entry in enumerate(maps):
         theirs = ("rosParamMap", index)
@@ -183,7 +185,9 @@ def _param_maps(b: _Builder, raw: dict, out: dict) -> dict[str, str]:
         b.alias(("parameterMaps", position), theirs)
         if isinstance(entry.get("name"), str):
             types[entry["name"]] = entry.get("type")
-    return types
+            if isinstance(entry.get("data"), dict):
+                keys[entry["name"]] = set(entry["data"])
+    return types, keys
 
 
 def _registries(b: _Builder, raw: dict, out: dict) -> None:
@@ -208,6 +212,14 @@ def _registries(b: _Builder, raw: dict, out: dict) -> None:
         out["imageRegistries"].append(ours)
 
 
+def _is_zero(value) -> bool:
+    text = str(value).strip().lower().removesuffix("ms").removesuffix("s").strip()
+    try:
+        return float(text) == 0
+    except ValueError:
+        return False
+
+
 def _norm(name: str) -> str:
     return name.replace("_", "-")
 
@@ -215,8 +227,8 @@ def _norm(name: str) -> str:
 class _Module:
     """One rosModules entry, translated into ``self.ours``."""
 
-    def __init__(self, b: _Builder, raw: dict, index: int, map_types: dict[str, str]):
-        self.b, self.raw, self.index, self.map_types = b, raw, index, map_types
+    def __init__(self, b: _Builder, raw: dict, index: int, map_types: dict[str, str], map_keys: dict[str, set]):
+        self.b, self.raw, self.index, self.map_types, self.map_keys = b, raw, index, map_types, map_keys
         self.theirs = ("rosModules", index)
         self.ours: dict = {}
         self.requirements: dict = {}
@@ -277,6 +289,7 @@ class _Module:
         pref = raw.get("preference")
         if pref is None or pref == []:
             self.put("preference", "onboard", ("preference",) if "preference" in raw else ("name",))
+            self.b.note((*self.theirs, "preference"), "not given: onboard (the reference's default) first, then edge and cloud")
             return
         listed = pref if isinstance(pref, list) else [pref]
         self.put("preference", list(dict.fromkeys(listed)), ("preference",))
@@ -290,6 +303,9 @@ class _Module:
         for key, value in req.items():
             where = (*theirs, key)
             if key == "latency":
+                if _is_zero(value):
+                    b.note(where, f"{describe(value)}: no latency requirement, as in the reference")
+                    continue
                 self.requirements["max_latency"] = value
                 b.alias(("rosModules", self.index, "requirements", "max_latency"), where)
             elif key in ("privileged", "privilege"):
@@ -321,7 +337,12 @@ class _Module:
             if isinstance(entry.get("name"), str):
                 self.by_parameter_name[_norm(entry["name"])] = source
             kind = entry.get("type") or self.map_types.get(source)
-            if kind not in ("key-value", "yaml"):
+            if "type" not in entry and source not in self.map_types:
+                known = ", ".join(sorted(self.map_types)) or "none"
+                b.problem(
+                    (*where, "valueFrom"), f"'{source}' names no rosParamMap (and type is not given); expected one of: {known}"
+                )
+            elif kind not in ("key-value", "yaml"):
                 b.problem((*where, "type"), f"{describe(entry.get('type'))} is not valid; expected key-value or yaml")
             elif kind == "yaml":
                 if not isinstance(entry.get("mountPath"), str):
@@ -374,10 +395,11 @@ class _Module:
             return None
         if namespace.isupper():
             device, parameter = namespace.lower().replace("_", "-"), key.lower().replace("_", "-")
-            devices = self.requirements.setdefault("devices", [])
-            if device not in devices:
-                devices.append(device)
-                self.b.note(where, f"takes parameter {parameter} of device {device}: the module needs a node carrying it")
+            self.b.note(
+                where,
+                f"takes parameter {parameter} of device {device} from the inventory (kuberos_device_parameters of the "
+                "module's node, else of its robot's computer)",
+            )
             return f"{{device:{device}.{parameter}}}"
         if not namespace.islower():
             self.b.problem(where, f"'{{{text}}}' is neither a device (UPPERCASE) nor a parameter map (lowercase) reference")
@@ -394,6 +416,13 @@ class _Module:
                 "expected the name of one",
             )
             return None
+        known = self.map_keys.get(source)
+        if known is not None and key not in known:
+            # The reference looks a launch parameter up in every key-value map the module attaches.
+            for other in dict.fromkeys(self.by_parameter_name.values()):
+                if key in self.map_keys.get(other, ()) and self.map_types.get(other) == "key-value":
+                    self.b.note(where, f"key {key} is not in {source} but in {other}, which the module attaches: read there")
+                    return f"{{{other}.{key}}}"
         return f"{{{source}.{key}}}"
 
 
@@ -427,10 +456,10 @@ def translate(doc: Document) -> Translation:
     if raw.get("apiVersion") != API_VERSION:
         b.note(("apiVersion",), f"{describe(raw.get('apiVersion'))}: read as the reference format's {API_VERSION}")
     _metadata(b, raw, out)
-    map_types = _param_maps(b, raw, out)
+    map_types, map_keys = _param_maps(b, raw, out)
     _registries(b, raw, out)
     modules = _list(b, raw.get("rosModules"), ("rosModules",), "a non-empty list of modules")
-    if modules is not None:
+    if modules is not None and "rosModules" in raw:  # absent: the RosDeployment's validation says it is required
         out["rosModules"] = []
         b.alias(("rosModules",), ("rosModules",))
         for index, module in enumerate(modules):
@@ -439,7 +468,7 @@ def translate(doc: Document) -> Translation:
                     ("rosModules", index), f"{describe(module)} is not valid; expected a mapping with name, image and entrypoint"
                 )
                 continue
-            out["rosModules"].append(_Module(b, module, index, map_types).translate())
+            out["rosModules"].append(_Module(b, module, index, map_types, map_keys).translate())
     _rmw_from_maps(b, out)
     for key in raw:
         if key in TOP_NOTES:

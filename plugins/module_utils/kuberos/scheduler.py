@@ -510,7 +510,9 @@ def check_against_inventory(deployments: list[RosDeployment], inventory: Invento
             else:
                 detail = f"robots of {dep.fleet}: {', '.join(members)}{did_you_mean(robot, members)}"
             problems.append(
-                Problem(dep.source, path, f"'{robot}' is not a robot of fleet {dep.fleet} ({detail})", dep.line_of(path))
+                Problem(
+                    dep.source, dep.field(path), f"'{robot}' is not a robot of fleet {dep.fleet} ({detail})", dep.line_of(path)
+                )
             )
         if dep.fleet in ports and ports[dep.fleet][0] != dep.discovery_port:
             problems.append(

@@ -193,12 +193,26 @@ class RosDeployment:
     kind: str = KIND  # RosDeployment, or ApplicationDeployment (the reference format, translated)
     notes: tuple[str, ...] = field(default=(), compare=False)  # what the translation ignored or changed, and why
     files: tuple[tuple[str, str], ...] = field(default=(), compare=False, repr=False)  # (path, text) read for maps
+    field_names: tuple[tuple[str, str], ...] = field(default=(), compare=False, repr=False)  # our path -> the spec's
 
     def parameter_map(self, name: str) -> ParameterMap | None:
         return next((m for m in self.parameter_maps if m.name == name), None)
 
+    def field(self, path: str) -> str:
+        """``path`` as the spec's own format names it (a reference-format spec's ``metadata.targetRobots[0]`` for
+        ``metadata.robotSelector.robot[0]``)."""
+        for ours, theirs in self.field_names:
+            if path == ours or path.startswith((ours + ".", ours + "[")):
+                return theirs + path[len(ours) :]
+        return path
+
     def line_of(self, path: str) -> int | None:
-        return self.lines.get(path)
+        """The line of ``path``, else of the nearest field holding it (a translated spec knows its fields' lines)."""
+        while path:
+            if path in self.lines:
+                return self.lines[path]
+            path = re.sub(r"(\.[^.\[]*|\[\d+\])$", "", path) if re.search(r"(\.[^.\[]*|\[\d+\])$", path) else ""
+        return None
 
 
 def _problem(doc: Document, parts: tuple, message: str) -> Problem:
@@ -268,8 +282,9 @@ _REFERENCE = re.compile(r"\{([^{}]*)\}")
 DEVICE_PREFIX = "device:"
 
 
-def _launch_argument(name: str, raw, ctx: _Context, devices: tuple, problem) -> LaunchArgument | None:
-    """One launch argument: a literal, '{map.key}' (resolved now) or '{device:<device>.<parameter>}' (at render)."""
+def _launch_argument(name: str, raw, ctx: _Context, shared: bool, problem) -> LaunchArgument | None:
+    """One launch argument: a literal, '{map.key}' (resolved now) or '{device:<device>.<parameter>}' (at render: the
+    device of the instance's node, else of its robot's computer)."""
     text = _env_value(raw)
     found = _REFERENCE.fullmatch(text.strip())
     if found is None:
@@ -286,11 +301,10 @@ def _launch_argument(name: str, raw, ctx: _Context, devices: tuple, problem) -> 
         if not device or not parameter:
             problem(("launchArguments", name), f"{describe(text)} is not valid; expected '{{device:<device>.<parameter>}}'")
             return None
-        if device not in devices:
+        if shared:
             problem(
                 ("launchArguments", name),
-                f"takes a parameter of device {device}, which requirements.devices does not list; expected the device "
-                "in requirements.devices (so that the module runs on a node that carries it)",
+                "takes a device parameter, but a shared instance serves several robots; expected strategy dedicated",
             )
             return None
         return LaunchArgument(name, device=device, parameter=parameter)
@@ -331,8 +345,7 @@ def _map_of(name: str, kind: str, ctx: _Context, problem, parts: tuple) -> Param
 def _module_extras(module: dict, ctx: _Context, problem) -> dict:
     """The fields of a module that refer to the deployment: environment and files from parameter maps, launch
     arguments, the image registry; and privileged, workspace and shell."""
-    requirements = module.get("requirements") or {}
-    devices = tuple(requirements.get("devices") or ())
+    shared = module.get("strategy") == "shared"
     env_from = []
     for position, name in enumerate(module.get("envFrom") or ()):
         pmap = _map_of(name, "key-value", ctx, problem, ("envFrom", position))
@@ -354,7 +367,7 @@ def _module_extras(module: dict, ctx: _Context, problem) -> dict:
             files.append((entry["map"], entry["mountPath"].rstrip("/") or "/"))
     arguments = []
     for name, raw in (module.get("launchArguments") or {}).items():
-        argument = _launch_argument(name, raw, ctx, devices, problem)
+        argument = _launch_argument(name, raw, ctx, shared, problem)
         if argument is not None:
             arguments.append(argument)
     registry = None
@@ -839,7 +852,10 @@ def _parse_any(doc: Document, catalog: Catalog | None, read_file) -> RosDeployme
         raise SpecError(translation.problems, title=f"{doc.source} is not a valid {reference_format.KIND}")
     ctx = _Context(reference=True, notes=translation.notes)
     try:
-        return replace(_parse_document(translation.doc, catalog, read_file, ctx), kind=reference_format.KIND)
+        names = tuple(
+            sorted(((format_path(a), format_path(b)) for a, b in translation.aliases.items()), key=lambda p: -len(p[0]))
+        )
+        return replace(_parse_document(translation.doc, catalog, read_file, ctx), kind=reference_format.KIND, field_names=names)
     except SpecError as exc:
         raise SpecError([translation.rename(p) for p in exc.problems], title=exc.title) from None
 
