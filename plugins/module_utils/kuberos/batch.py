@@ -340,7 +340,7 @@ def _parse_reference(doc: Document, catalog, read_file) -> BatchJob:
             translated["metadata"][key] = metadata[key]
     dep = _parse_any(Document(translated, where, doc.index, doc.lines), catalog, read_file)
     lifecycle = spec.get("lifecycleModule") if isinstance(spec.get("lifecycleModule"), dict) else {}
-    job = {"module": lifecycle.get("rosModuleName"), "repeat": lifecycle.get("repeatNum", 1)}
+    job = {"module": reference_format.module_name(lifecycle.get("rosModuleName")), "repeat": lifecycle.get("repeatNum", 1)}
     if "startupTimeout" in spec:
         job["startupTimeout"] = spec["startupTimeout"]
     if "runningTimeout" in spec:

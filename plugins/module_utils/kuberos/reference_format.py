@@ -212,6 +212,12 @@ def _registries(b: _Builder, raw: dict, out: dict) -> None:
         out["imageRegistries"].append(ours)
 
 
+def module_name(name):
+    """A reference module's name as a RosDeployment's: lowercase, '_' as '-' (other characters stay, and are refused
+    with the reason if they are still not a Kubernetes name)."""
+    return name.lower().replace("_", "-") if isinstance(name, str) else name
+
+
 def _is_zero(value) -> bool:
     text = str(value).strip().lower().removesuffix("ms").removesuffix("s").strip()
     try:
@@ -240,9 +246,13 @@ class _Module:
 
     def translate(self) -> dict:
         raw, b = self.raw, self.b
-        for key in ("name", "image"):
-            if key in raw:
-                self.put(key, raw[key], (key,))
+        if "image" in raw:
+            self.put("image", raw["image"], ("image",))
+        if "name" in raw:
+            name = module_name(raw["name"])
+            if name != raw["name"]:
+                b.note((*self.theirs, "name"), f"the module is named {name!r} (a Kubernetes name: lowercase, '-' for '_')")
+            self.put("name", name, ("name",))
         self.entrypoint()
         if "containerRegistryName" in raw:
             self.put("imageRegistry", raw["containerRegistryName"], ("containerRegistryName",))
@@ -405,6 +415,14 @@ class _Module:
             self.b.problem(where, f"'{{{text}}}' is neither a device (UPPERCASE) nor a parameter map (lowercase) reference")
             return None
         source = self.by_parameter_name.get(_norm(namespace))
+        if source is not None and source not in self.map_types:
+            known = ", ".join(sorted(self.map_types)) or "none"
+            self.b.problem(
+                where,
+                f"'{{{text}}}': the module's rosParameters entry {namespace} takes valueFrom '{source}', which names no "
+                f"rosParamMap; expected one of: {known}",
+            )
+            return None
         if source is None:
             source = (
                 namespace if namespace in self.map_types else _norm(namespace) if _norm(namespace) in self.map_types else None
