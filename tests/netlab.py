@@ -152,6 +152,16 @@ class Process:
             self.popen.wait(STOP_TIMEOUT)
 
 
+def spawn(name: str, command: list[str], env: dict[str, str], directory: str) -> Process:
+    """``command`` in a session of its own (so that killing its group kills nothing else), output to <name>.log."""
+    log = os.path.join(directory, f"{name}.log")
+    with open(log, "wb") as out:
+        popen = subprocess.Popen(
+            command, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
+        )
+    return Process(name, popen, log)
+
+
 class Processes:
     def __init__(self, lab: Lab, directory: str):
         self.lab, self.directory, self.started = lab, directory, []
@@ -159,17 +169,8 @@ class Processes:
 
     def start(self, name: str, role: str, command: list[str], env: dict[str, str] | None = None) -> Process:
         """Run command in the role's namespace with a private /dev/shm and the venv's environment plus env."""
-        log = os.path.join(self.directory, f"{name}.log")
-        with open(log, "wb") as out:
-            popen = subprocess.Popen(
-                [shutil.which("ip"), "netns", "exec", self.lab.namespaces[role], "sh", "-c", PRIVATE_SHM, "sh", *command],
-                env={**self.base_env, **(env or {})},
-                stdin=subprocess.DEVNULL,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-        process = Process(name, popen, log)
+        wrapped = [shutil.which("ip"), "netns", "exec", self.lab.namespaces[role], "sh", "-c", PRIVATE_SHM, "sh", *command]
+        process = spawn(name, wrapped, {**self.base_env, **(env or {})}, self.directory)
         self.started.append(process)
         return process
 

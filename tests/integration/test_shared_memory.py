@@ -23,14 +23,13 @@ import os
 import re
 import secrets
 import shutil
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
 
 import pytest
 from helpers import ROOT
-from netlab import Process
+from netlab import Process, spawn
 from sshlab import run
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, manifests, scheduler, spec
@@ -156,17 +155,7 @@ class Pods:
         self.env = ros_environment(log_dir=os.path.join(directory, "ros-log"))
 
     def _popen(self, name: str, command: list[str], env: dict[str, str]) -> Process:
-        log = os.path.join(self.directory, f"{name}.log")
-        with open(log, "wb") as out:
-            popen = subprocess.Popen(
-                command,
-                env={**self.env, **env},
-                stdin=subprocess.DEVNULL,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                start_new_session=True,
-            )
-        process = Process(name, popen, log)
+        process = spawn(name, command, {**self.env, **env}, self.directory)
         self.started.append(process)
         return process
 
