@@ -344,10 +344,15 @@ def test_a_changed_parameter_map_restarts_only_the_modules_that_read_it(local_in
     assert old["talker-listener-listener-fetch-1"] == new["talker-listener-listener-fetch-1"]
 
 
-def test_the_record_keeps_the_files_and_renders_the_same_without_them(local_raw, local_inventory):
-    """The controller re-renders from the record alone: the parameter file and the device parameters travel in it."""
+@pytest.mark.parametrize("rmw", ["fastdds", "cyclonedds"])
+def test_the_record_keeps_the_files_and_renders_the_same_without_them(local_raw, local_inventory, rmw):
+    """The controller re-renders from the record alone: the parameter file and the device parameters travel in it
+    (and, with Cyclone DDS, the peer lists and Services come out the same)."""
     text = open(EXAMPLE, encoding="utf-8").read()
-    deps = load_rosdeployment_file(EXAMPLE)
+    if rmw == "cyclonedds":
+        text = text.replace("  edgeResourceGroup: ['public']", "  edgeResourceGroup: ['public']\n  rmwImplementation: cyclonedds")
+    deps = load_rosdeployments(text, EXAMPLE, read_file=file_reader(EXAMPLE))
+    assert deps[0].rmw == rmw
     placement, objects, options = rendered(deps, local_inventory)
     _revision, record = build_records(text, EXAMPLE, deps, placement, local_raw, options, "kuberos")
     back = parse_record(copy.deepcopy(record))
