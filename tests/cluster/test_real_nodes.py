@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
 import time
 
 import pytest
+import yaml
 from helpers import ROOT, Cluster, playbook
 
 sys.path.insert(0, os.path.join(ROOT, ".collections"))
@@ -332,6 +334,56 @@ def test_the_robots_hardware_completes_a_pick_cycle_with_the_real_pods(real, dep
     assert done.returncode == 0, done.stdout[-6000:] + done.stderr[-3000:]
     summary = json.loads(done.stdout[done.stdout.rindex("\n{") :])
     assert summary["cycles"]["robot-1"]["succeeded"] >= 1
+
+
+TRIAL = (  # a run's program: says its mode, leaves a termination message, then exits 0, exits 3 or hangs
+    "import sys, time; mode = sys.argv[1].split(':=')[1]; print('trial', mode, flush=True); "
+    "open('/dev/termination-log', 'w').write('result ' + mode); "
+    "time.sleep(120) if mode == 'hang' else sys.exit(3 if mode == 'fail' else 0)"
+)
+BATCH = {
+    "kind": "RosBatchJob",
+    "metadata": {"name": "real-batch", "targetFleet": "test-fleet"},
+    "job": {"module": "trial", "runningTimeout": "20 s", "grid": [{"map": "p", "key": "mode", "values": ["ok", "fail", "hang"]}]},
+    "parameterMaps": [{"name": "p", "type": "key-value", "data": {"mode": "ok"}}],
+    "rosModules": [
+        {
+            "name": "trial",
+            "image": ROS_IMAGE,
+            "launch": shlex.join(["python3", "-c", TRIAL]),
+            "launchArguments": {"mode": "{p.mode}"},
+            "preference": ["edge", "cloud"],
+        }
+    ],
+}
+
+
+def test_a_batch_job_runs_its_programs_on_real_nodes_and_collects_what_they_said(real, tmp_path):
+    """Three runs of a real program, as Jobs on the real kubelets: one exits 0, one exits 3, one hangs past its
+    running timeout (activeDeadlineSeconds); each run's log and termination message come back in the results."""
+    spec = tmp_path / "real-batch.yml"
+    spec.write_text(yaml.safe_dump(BATCH), encoding="utf-8")
+    out = tmp_path / "batch"
+    result = real.play("batch.yml", "-e", f"rosdeployment_file={spec}", "-e", f"kuberos_render_dir={out}")
+    assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-2000:]
+    runs = {r["parameters"]["p.mode"]: r for r in json.loads((out / "results.json").read_text())}
+    print({mode: (r["state"], r["why"], r["node"]) for mode, r in runs.items()})
+    assert runs["ok"]["state"] == "succeeded" and runs["ok"]["message"] == "result ok"
+    assert runs["fail"]["state"] == "failed" and runs["fail"]["why"] == "trial exited 3 (Error)"
+    assert runs["fail"]["message"] == "result fail"
+    assert runs["hang"]["state"] == "failed" and runs["hang"]["why"] == "running timeout"
+    for number, mode in enumerate(("ok", "fail", "hang")):
+        assert (out / "runs" / f"{number}-0" / "trial.log").read_text().startswith(f"trial {mode}")
+        assert runs[mode]["node"] in ("edge-1", "edge-2", "cloud-1")
+    real.play(
+        "batch.yml",
+        "-e",
+        f"rosdeployment_file={spec}",
+        "-e",
+        f"kuberos_render_dir={out}",
+        "-e",
+        "rosdeployment_batch_state=absent",
+    )
 
 
 def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_again(real, deployed, tmp_path_factory):
