@@ -25,16 +25,16 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
     SpecError,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, device_options
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import file_reader
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
+from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import apply_plan, plan_files
 
 APPLY_TYPE = "application/apply-patch+yaml"
 PROGRESS_EVERY_S = 30.0
 INDEX_LABEL = "batch.kubernetes.io/job-completion-index"
-MARKER = "batch.json"  # what marks a directory as a batch job's render directory (its manifests are rewritten)
+PLAN_JSON = "batch.json"
 
 
 def place(job: batch.BatchJob, inventory, allocated=None, unavailable=None) -> list:
@@ -90,37 +90,12 @@ def plan_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def write_render(dest: str, job: batch.BatchJob, objects: list[dict], rows: list[dict]) -> bool:
-    """The job's manifests (one file per object) and plan into ``dest``; True when anything changed."""
-    before = _snapshot(dest)
-    manifests = os.path.join(dest, "manifests")
-    if os.path.exists(os.path.join(dest, MARKER)) and os.path.isdir(manifests):
-        shutil.rmtree(manifests)
-    elif os.path.isdir(manifests) and os.listdir(manifests):
-        raise KuberosError(f"{dest} holds manifests that are not a batch job's; choose another render directory")
-    for obj in objects:
-        meta = obj["metadata"]
-        folder = os.path.join(manifests, meta.get("namespace", ""))
-        os.makedirs(folder, exist_ok=True)
-        with open(os.path.join(folder, f"{obj['kind'].lower()}-{meta['name']}.yaml"), "w", encoding="utf-8") as handle:
-            handle.write(dump_object(obj))
+def plan_render(dest: str, job: batch.BatchJob, objects: list[dict], rows: list[dict]):
+    """The render directory's plan (``render_dir``): the job's manifests (one file per object), ``batch.json`` and
+    ``plan.txt``; files no longer rendered go."""
     summary = {"name": job.name, "fleet": job.fleet, "kind": job.kind, "source": job.source, "runs": rows}
-    with open(os.path.join(dest, MARKER), "w", encoding="utf-8") as handle:
-        json.dump(summary, handle, indent=2, sort_keys=True)
-    with open(os.path.join(dest, "plan.txt"), "w", encoding="utf-8") as handle:
-        handle.write(plan_table(rows) + "\n")
-    return _snapshot(dest) != before
-
-
-def _snapshot(dest: str) -> dict:
-    found = {}
-    for name in ("manifests", MARKER, "plan.txt"):
-        path = os.path.join(dest, name)
-        for root, _dirs, files in os.walk(path) if os.path.isdir(path) else [(dest, [], [name] if os.path.exists(path) else [])]:
-            for file in files:
-                with open(os.path.join(root, file), "rb") as handle:
-                    found[os.path.join(root, file)] = handle.read()
-    return found
+    files = {PLAN_JSON: json.dumps(summary, indent=2, sort_keys=True) + "\n", "plan.txt": plan_table(rows) + "\n"}
+    return plan_files(dest, objects, files)
 
 
 class Cluster:
@@ -357,12 +332,11 @@ def run_batch(clients_factory, params: dict, check_mode: bool, progress) -> dict
     slots = place(job, inventory, allocated, unavailable)
     objects = batch.render_batch(job, slots, options)
     rows = plan_rows(job, slots)
-    changed = False
-    if not check_mode:
-        os.makedirs(params["dest"], exist_ok=True)
-        changed = write_render(params["dest"], job, objects, rows)
+    plan = plan_render(params["dest"], job, objects, rows)
+    if plan.changed and not check_mode:
+        apply_plan(plan)
     result = {
-        "changed": changed,
+        "changed": plan.changed,
         "name": job.name,
         "fleet": job.fleet,
         "notes": list(job.notes),

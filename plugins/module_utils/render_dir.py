@@ -70,6 +70,15 @@ def plan_render_dir(
 ) -> RenderPlan:
     """What to write under ``root``: one file per object in manifests/, one per object of each third-party cluster
     in clusters/<cluster>/, the placement in three forms; files no longer rendered in those folders go."""
+    files = {"placement.json": json.dumps(placement, indent=2, sort_keys=True) + "\n", "placement.txt": table + "\n"}
+    if picture:
+        files["placement.svg"] = picture
+    return plan_files(root, objects, files, remote)
+
+
+def plan_files(root: str, objects: list[dict], files: dict[str, str], remote: dict[str, list[dict]] | None = None) -> RenderPlan:
+    """``plan_render_dir`` with other files beside the manifests (``files``: relative path -> text): a batch job's
+    plan, for one."""
     root = os.path.abspath(root)
     if os.path.isdir(root) and os.listdir(root) and not os.path.exists(os.path.join(root, MARKER)):
         raise RenderDirError(
@@ -85,10 +94,7 @@ def plan_render_dir(
     for cluster, cluster_objects in sorted((remote or {}).items()):
         for obj in cluster_objects:
             plan.files[os.path.join(CLUSTERS_DIR, cluster, object_path(obj))] = dump_object(obj)
-    plan.files["placement.json"] = json.dumps(placement, indent=2, sort_keys=True) + "\n"
-    plan.files["placement.txt"] = table + "\n"
-    if picture:
-        plan.files["placement.svg"] = picture
+    plan.files.update(files)
     plan.files[MARKER] = "Rendered by the kuberos.platform collection; files here are replaced on every render.\n"
     for rel, text in sorted(plan.files.items()):
         current = read_text(os.path.join(root, rel))

@@ -129,6 +129,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.batch_runner impo
 from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import api_clients, explain
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),
@@ -171,6 +172,8 @@ def main():
         module.fail_json(
             msg=headline.rstrip(":"), progress=progress, **({"problems": textwrap.dedent(rest) + "\n"} if rest else {})
         )
+    except RenderDirError as exc:
+        module.fail_json(msg=str(exc), progress=progress)
     except OSError as exc:
         module.fail_json(msg=f"cannot write {params['dest']}: {exc}", progress=progress)
     except Exception as exc:  # connection and API problems: one clear line, no traceback
