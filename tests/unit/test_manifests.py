@@ -15,12 +15,11 @@ import yaml
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     RenderOptions,
-    container_argvs,
     render_deployment,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file, parse_rosdeployment
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table
 from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import apply_plan, plan_render_dir
 
@@ -161,8 +160,16 @@ def test_gpu_parameters_and_multi_command_launch(local_inventory, root):
         (("a '#' \\$x *",), [["a", "#", "$x", "*"]]),
     ],
 )
-def test_container_argvs(launch, argvs):
-    assert container_argvs(launch) == argvs
+def test_container_argvs(local_inventory, launch, argvs):
+    """Each launch line is one container of the rendered pod, started with its literal argv."""
+    spec = {
+        "metadata": {"name": "argv", "targetFleet": "test-fleet", "robotSelector": {"robot": ["fetch-1"]}},
+        "rosModules": [{"name": "m", "image": "example/m:1", "launch": list(launch)}],
+    }
+    deployments = [parse_rosdeployment(spec)]
+    objects = render_deployment(deployments, place_modules(deployments, local_inventory), RenderOptions())
+    (deployment,) = [o for o in objects if o["kind"] == "Deployment" and o["metadata"]["name"] == "argv-m-fetch-1"]
+    assert [c["args"] for c in deployment["spec"]["template"]["spec"]["containers"]] == argvs
 
 
 @pytest.mark.parametrize("name", EXAMPLES)

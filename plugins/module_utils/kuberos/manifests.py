@@ -100,10 +100,18 @@ def launch_argument_problems(deployments: list[RosDeployment], placement: Placem
     for inst in placement.instances:
         module = modules.get((inst.deployment, inst.module))
         for argument in module.launch_arguments if module else ():
-            robot = inst.robots[0] if len(inst.robots) == 1 else None
-            if argument.device and options.device_parameter(inst.node, argument.device, argument.parameter, robot) is None:
+            if _argument_value(argument, inst, options) is None:
                 missing.append((inst.deployment, inst.module, inst.node, argument.name, argument.device, argument.parameter))
     return missing
+
+
+def _argument_value(argument, inst: Instance, options: RenderOptions) -> str | None:
+    """A launch argument's value for one instance: its own, or its device's parameter (of the instance's node, else
+    of its robot's computer); None when the inventory gives neither."""
+    if not argument.device:
+        return argument.value
+    robot = inst.robots[0] if len(inst.robots) == 1 else None
+    return options.device_parameter(inst.node, argument.device, argument.parameter, robot)
 
 
 def discovery_server_list(servers: list[DiscoveryServer], cluster_domain: str) -> str:
@@ -324,15 +332,8 @@ def cyclonedds_objects(dep: RosDeployment, placement: Placement, base_labels: di
 
 
 def _launch_words(module: RosModule, inst: Instance, options: RenderOptions) -> list[str]:
-    """``name:=value`` of each launch argument, a device's parameter taken from the instance's node."""
-    words = []
-    for argument in module.launch_arguments:
-        value = argument.value
-        if argument.device:
-            robot = inst.robots[0] if len(inst.robots) == 1 else None
-            value = options.device_parameter(inst.node, argument.device, argument.parameter, robot) or ""
-        words.append(f"{argument.name}:={value}")
-    return words
+    """``name:=value`` of each launch argument (``_argument_value``)."""
+    return [f"{argument.name}:={_argument_value(argument, inst, options) or ''}" for argument in module.launch_arguments]
 
 
 # Sources ROS (the image's distribution) and the module's workspace, then runs the launch line: "$@" as given (a
@@ -359,13 +360,8 @@ def _command(module: RosModule, number: int, line: str, inst: Instance, options:
     return {"args": argv}
 
 
-def container_argvs(launch: tuple[str, ...]) -> list[list[str]]:
-    """Each launch line's argv, literal and without a shell (``launch.launch_argv``): one container each."""
-    return [launch_argv(line) for line in launch]
-
-
 def _module_containers(
-    module: RosModule, inst: Instance, env: list[dict], options: RenderOptions, dep_name: str = "", rmw: str = "fastdds"
+    module: RosModule, inst: Instance, env: list[dict], options: RenderOptions, dep_name: str, peer_list: bool
 ) -> list[dict]:
     """One container per launch line, all of the module's image, environment and volumes. The placement counted
     the instance's cpu and memory once: the containers' requests add up to exactly that (divided evenly, the
@@ -404,7 +400,7 @@ def _module_containers(
             mounts.append({"name": "robots", "mountPath": ROBOTS_DIR, "readOnly": True})
         for position, (_map, directory) in enumerate(module.parameter_files):
             mounts.append({"name": f"parameter-file-{position}", "mountPath": directory, "readOnly": True})
-        if rmw == "cyclonedds":
+        if peer_list:
             mounts.append({"name": CYCLONEDDS_VOLUME, "mountPath": cyclonedds.CONFIG_DIR, "readOnly": True})
         if mounts:
             container["volumeMounts"] = mounts
@@ -478,10 +474,10 @@ def module_pod(
     if module.ros_parameters:
         env.append({"name": "KUBEROS_PARAMS_FILE", "value": f"{PARAMS_DIR}/{PARAMS_FILE}"})
     env.extend({"name": name, "value": value} for name, value in sorted(module.env))
-    rmw = dep.rmw if discovery is not None else "isolated"
+    peer_list = dep.rmw == "cyclonedds" and discovery is not None  # a batch run's pod finds its peers on localhost
     pod_spec = {
         **_selector_and_tolerations(inst.node, inst.tier, inst.robots[0] if inst.robots else None),
-        "containers": _module_containers(module, inst, env, options, dep.name, rmw),
+        "containers": _module_containers(module, inst, env, options, dep.name, peer_list),
     }
     volumes = []
     if module.ros_parameters:
@@ -490,7 +486,7 @@ def module_pod(
         volumes.append({"name": "robots", "configMap": {"name": naming.robots_configmap_name(dep.name, module.name)}})
     for position, (name, _directory) in enumerate(module.parameter_files):
         volumes.append({"name": f"parameter-file-{position}", "configMap": {"name": naming.parameter_map_name(dep.name, name)}})
-    if rmw == "cyclonedds":
+    if peer_list:
         volumes.append({"name": CYCLONEDDS_VOLUME, "configMap": {"name": naming.cyclonedds_configmap_name(dep.name)}})
     if volumes:
         pod_spec["volumes"] = volumes
