@@ -34,7 +34,7 @@ from .placement import Instance
 from .schema import DNS_LABEL, MAP_NAME
 from .spec import BATCH_KINDS, LaunchArgument, Resources, RosDeployment, RosModule, _env_value, _parse_any, _parse_document
 from .validation import schema_problems, strict_validator
-from .yaml_source import Document, format_path, load_documents
+from .yaml_source import Document, format_path, load_documents, path_prefix
 
 KIND, REFERENCE_KIND = BATCH_KINDS
 ANY_FLEET = "kuberos-any-fleet"  # a batch job that names no fleet runs in the inventory's first fleet
@@ -374,18 +374,21 @@ def _parse_reference(doc: Document, catalog, read_file) -> BatchJob:
     return _batch_job(job, dep, doc, ("jobSpec",), REFERENCE_KIND, tuple(notes))
 
 
+REFERENCE_FIELDS = {
+    "job.module": "jobSpec.lifecycleModule.rosModuleName",
+    "job.repeat": "jobSpec.lifecycleModule.repeatNum",
+    "job.parallelism": "jobSpec.maxParallelism",
+    "job.grid": "jobSpec.varyingParameters",
+    "job": "jobSpec",
+}
+
+
 def _reference_path(path: str) -> str:
-    for ours, theirs in (
-        ("job.module", "jobSpec.lifecycleModule.rosModuleName"),
-        ("job.repeat", "jobSpec.lifecycleModule.repeatNum"),
-        ("job.parallelism", "jobSpec.maxParallelism"),
-        ("job.grid", "jobSpec.varyingParameters"),
-        ("job", "jobSpec"),
-    ):
-        if path == ours or path.startswith(ours + ".") or path.startswith(ours + "["):
-            path = theirs + path[len(ours) :]
-            return path.replace(".map", ".toRosParamMap").replace(".key", ".paramName").replace(".values", ".valueList")
-    return path
+    prefix = path_prefix(path, REFERENCE_FIELDS)
+    if prefix is None:
+        return path
+    path = REFERENCE_FIELDS[prefix] + path[len(prefix) :]
+    return path.replace(".map", ".toRosParamMap").replace(".key", ".paramName").replace(".values", ".valueList")
 
 
 def is_batch_document(data) -> bool:

@@ -29,7 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 from .errors import Problem, describe
-from .yaml_source import Document, format_path
+from .yaml_source import Document, format_path, path_prefix
 
 KIND = "ApplicationDeployment"
 API_VERSION = "v1"
@@ -72,14 +72,20 @@ class Translation:
     problems: list[Problem] = field(default_factory=list)
     aliases: dict[tuple, tuple] = field(default_factory=dict)  # our path -> the reference's path
 
+    @property
+    def field_names(self) -> tuple[tuple[str, str], ...]:
+        """Each of our fields and the reference's field it came from, as formatted paths."""
+        return tuple(sorted((format_path(ours), format_path(theirs)) for ours, theirs in self.aliases.items()))
+
     def rename(self, problem: Problem) -> Problem:
         """``problem`` (found on the translated document) naming the reference's field and its line."""
-        for ours, theirs in sorted(self.aliases.items(), key=lambda item: len(item[0]), reverse=True):
-            text = format_path(ours)
-            if problem.path == text or problem.path.startswith((text + ".", text + "[")):
-                path = format_path(theirs) + problem.path[len(text) :]
-                return replace(problem, path=path, line=problem.line or self.source.line_of(theirs))
-        return problem
+        by_path = {format_path(ours): theirs for ours, theirs in self.aliases.items()}
+        prefix = path_prefix(problem.path, by_path)
+        if prefix is None:
+            return problem
+        theirs = by_path[prefix]
+        path = format_path(theirs) + problem.path[len(prefix) :]
+        return replace(problem, path=path, line=problem.line or self.source.line_of(theirs))
 
     source: Document | None = None
 

@@ -31,7 +31,7 @@ from .validation import (
     schema_problems,
     strict_validator,
 )
-from .yaml_source import Document, format_path, load_documents, read_text
+from .yaml_source import Document, format_path, load_documents, path_prefix, read_text
 
 # A single preferred tier falls back to the others in this order.
 FALLBACK_ORDER = {
@@ -201,18 +201,16 @@ class RosDeployment:
     def field(self, path: str) -> str:
         """``path`` as the spec's own format names it (a reference-format spec's ``metadata.targetRobots[0]`` for
         ``metadata.robotSelector.robot[0]``)."""
-        for ours, theirs in self.field_names:
-            if path == ours or path.startswith((ours + ".", ours + "[")):
-                return theirs + path[len(ours) :]
-        return path
+        names = dict(self.field_names)
+        prefix = path_prefix(path, names)
+        return path if prefix is None else names[prefix] + path[len(prefix) :]
 
     def line_of(self, path: str) -> int | None:
         """The line of ``path``, else of the nearest field holding it (a translated spec knows its fields' lines)."""
-        while path:
-            if path in self.lines:
-                return self.lines[path]
-            path = re.sub(r"(\.[^.\[]*|\[\d+\])$", "", path) if re.search(r"(\.[^.\[]*|\[\d+\])$", path) else ""
-        return None
+        while path and path not in self.lines:
+            path, cut = _LAST_FIELD.subn("", path)
+            path = path if cut else ""
+        return self.lines[path] if path else None
 
 
 def _problem(doc: Document, parts: tuple, message: str) -> Problem:
@@ -278,6 +276,7 @@ class _Context:
 
 
 ENV_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_LAST_FIELD = re.compile(r"(\.[^.\[]*|\[\d+\])$")  # metadata.robotSelector.robot[0] -> metadata.robotSelector.robot
 _REFERENCE = re.compile(r"\{([^{}]*)\}")
 DEVICE_PREFIX = "device:"
 
@@ -852,10 +851,8 @@ def _parse_any(doc: Document, catalog: Catalog | None, read_file) -> RosDeployme
         raise SpecError(translation.problems, title=f"{doc.source} is not a valid {reference_format.KIND}")
     ctx = _Context(reference=True, notes=translation.notes)
     try:
-        names = tuple(
-            sorted(((format_path(a), format_path(b)) for a, b in translation.aliases.items()), key=lambda p: -len(p[0]))
-        )
-        return replace(_parse_document(translation.doc, catalog, read_file, ctx), kind=reference_format.KIND, field_names=names)
+        parsed = _parse_document(translation.doc, catalog, read_file, ctx)
+        return replace(parsed, kind=reference_format.KIND, field_names=translation.field_names)
     except SpecError as exc:
         raise SpecError([translation.rename(p) for p in exc.problems], title=exc.title) from None
 

@@ -52,6 +52,13 @@ def format_path(parts) -> str:
     return text
 
 
+def path_prefix(path: str, prefixes) -> str | None:
+    """The longest of ``prefixes`` (formatted paths) that is ``path`` or holds it (a field or item of it), or None:
+    what renames a path from one format's field names to another's."""
+    matches = [prefix for prefix in prefixes if path == prefix or path.startswith((prefix + ".", prefix + "["))]
+    return max(matches, key=len, default=None)
+
+
 @dataclass
 class Document:
     """One YAML document: its data and the line of each path in it."""
