@@ -46,8 +46,10 @@ command -v wg >/dev/null 2>&1 || missing+=(wireguard-tools)
 command -v wireguard-go >/dev/null 2>&1 || missing+=(wireguard-go)
 command -v shellcheck >/dev/null 2>&1 || missing+=(shellcheck)  # ansible-test sanity's shellcheck test
 # node_prereqs' packages: the role's test hosts have no route to package mirrors, so they are installed here.
-# The local cluster's real nodes: CNI plugins, and umoci and debootstrap to build the images they run.
-for package in containerd runc conntrack socat iptables ethtool gpg containernetworking-plugins umoci debootstrap gcc libc6-dev; do
+# The local cluster's real nodes: CNI plugins, umoci and debootstrap to build the images they run, and the CNCF
+# distribution registry (docker-registry) that serves them to the nodes.
+for package in containerd runc conntrack socat iptables ethtool gpg containernetworking-plugins umoci debootstrap gcc libc6-dev \
+  docker-registry; do
   dpkg-query -W -f '${Status}' "$package" 2>/dev/null | grep -q 'install ok installed' || missing+=("$package")
 done
 if [ ${#missing[@]} -gt 0 ]; then

@@ -140,9 +140,36 @@ def _ready(pod: dict) -> bool:
     return any(c.get("type") == "Ready" and c.get("status") == "True" for c in (pod.get("status") or {}).get("conditions") or [])
 
 
+def _image_problem(clients, pod: dict) -> str:
+    """Why a container of the pod cannot start because of its image ("" when none is stuck on its image). While
+    the kubelet backs off, the container says only "Back-off pulling image": the cause is the pod's last
+    Failed event."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import IMAGE_PULL_REASONS, image_pull_problem
+
+    status = pod.get("status") or {}
+    for container in (status.get("initContainerStatuses") or []) + (status.get("containerStatuses") or []):
+        waiting = (container.get("state") or {}).get("waiting") or {}
+        if waiting.get("reason") not in IMAGE_PULL_REASONS:
+            continue
+        message = waiting.get("message", "")
+        if waiting["reason"] == "ImagePullBackOff":
+            meta = pod["metadata"]
+            events = _items(
+                clients["core"].list_namespaced_event(
+                    meta["namespace"], field_selector=f"involvedObject.uid={meta['uid']},reason=Failed", _preload_content=False
+                )
+            )
+            failed = [e for e in events if "pull" in (e.get("message") or "").lower()]
+            if failed:
+                latest = max(failed, key=lambda e: e.get("lastTimestamp") or e.get("eventTime") or "")
+                message = latest["message"]
+        return image_pull_problem(container.get("image", ""), waiting["reason"], message)
+    return ""
+
+
 def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[dict]:
     """Pods of the deployments' modules and of the fleets' discovery servers as the cluster reports
-    them: instance, node, phase, ready."""
+    them: instance, node, phase, ready, and the problem of a container stuck on its image ("" if none)."""
     rows = []
     for fleet in sorted(set(fleets)):
         response = clients["core"].list_namespaced_pod(
@@ -164,6 +191,7 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
                     "node": (pod.get("spec") or {}).get("nodeName"),
                     "phase": (pod.get("status") or {}).get("phase"),
                     "ready": _ready(pod),
+                    "problem": _image_problem(clients, pod),
                 }
             )
     return rows

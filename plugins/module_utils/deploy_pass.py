@@ -476,7 +476,8 @@ class DeployPass:
         return text, diffs, counts
 
     def wait(self) -> dict:
-        """Until every module runs on its placed node (or ``wait_timeout``): the table read back from the cluster."""
+        """Until every module runs on its placed node (or ``wait_timeout``): the table read back from the cluster.
+        A pod whose image cannot be pulled ends the wait at once (``problems``): waiting longer does not help."""
         placement = self.placement.to_dict()
         fleets = [d["fleet"] for d in placement["deployments"]]
         names = [d["name"] for d in placement["deployments"]]
@@ -484,11 +485,12 @@ class DeployPass:
         while True:
             rows = compare(placement, running_modules(self.clients, fleets, names))
             ready = all(r["ready"] for r in rows)
-            if ready or time.monotonic() >= deadline:
+            problems = sorted({r["problem"] for r in rows if r["problem"] and not r["ready"]})
+            if ready or problems or time.monotonic() >= deadline:
                 break
             time.sleep(0.5)
         self._lap("wait")
-        return {"rows": rows, "ready": ready, "table": deploy_table(rows)}
+        return {"rows": rows, "ready": ready, "table": deploy_table(rows), "problems": problems}
 
     # --- undeploy ----------------------------------------------------------------------------------------------------
 

@@ -1,29 +1,30 @@
 """The collection's container images, built on this machine as OCI image archives, and imported into containerd.
 
 The real-node tier of the local cluster (kubelets and containerd in network namespaces) cannot pull images:
-everything its pods run is built here from the repository and imported into each node's containerd. Two images:
+everything its pods run is built here from the repository and imported into each node's containerd (or pushed
+to the lab's registry, `kuberos_lab.registry`, and pulled from it). Three images:
 
 ``kuberos.local/pause:3.10``
     The pod sandbox: ``roles/local_cluster/files/pause.c`` compiled with ``gcc -static -Os`` is the only file,
     the entrypoint is ``["/pause"]``.
 
 ``kuberos.local/ros:<key>``
-    One image for everything the rendered manifests start: the pick-and-place modules (``python3 -m
+    One image for the collection's own programs: the pick-and-place modules (``python3 -m
     kuberos_pnp.<module>``), the gRPC bridge and the controller (``python -m ansible_collections.kuberos.
-    platform.plugins.module_utils.<...>``) and the Fast DDS discovery server (``command:
-    [fast-discovery-server, ...]``). `image_aliases` lists the names the specs and render options use for it.
+    platform.plugins.module_utils.<...>``). ROS is on its PATH (no entrypoint). `image_aliases` lists the names
+    the specs and render options use for it.
     Two layers:
 
     base (cached, minutes to build)
         ``debootstrap --variant=minbase --include=python3,python3-venv,ca-certificates bookworm`` (Debian's
-        python3 is 3.11, as the cp311 manylinux wheels need), a venv ``/opt/venv`` made inside the rootfs with
+        python3 is 3.11, as the cp311 manylinux wheels need), a venv ``/opt/ros/jazzy`` made inside the rootfs with
         the rootfs's own python3 (``chroot <rootfs> python3 -m venv --without-pip``), and the wheels installed
-        into it from the host: the project venv's pip with ``--prefix <rootfs>/opt/venv --no-deps
+        into it from the host: the project venv's pip with ``--prefix <rootfs>/opt/ros/jazzy --no-deps
         --ignore-installed`` (downloads go through the host's pip cache). Which distributions: all of requirements-ros.txt,
         the ones the modules, the bridge and the controller import (`IMAGE_DISTRIBUTIONS`), and everything
         those depend on, as the project venv's installed metadata says; the versions are the pins of
         requirements-ros.txt, requirements-sim.txt and requirements.txt. toppra imports matplotlib at import
-        time, so matplotlib and its dependencies are in. Scripts get ``#!/opt/venv/bin/python3``; headers,
+        time, so matplotlib and its dependencies are in. Scripts get ``#!/opt/ros/jazzy/bin/python3``; headers,
         the packages' ``tests`` directories, docs (not the copyright files), man pages, locales and apt lists
         go; the site-packages are byte-compiled by the venv's Python (the same 3.11 bytecode), as
         unchecked-hash pycs: layer tars round mtimes to the second, which would make timestamp pycs stale, and
@@ -31,7 +32,7 @@ everything its pods run is built here from the repository and imported into each
         and a chroot smoke test imports the main modules before the base is cached.
         The rootfs becomes one layer with ``umoci unpack`` / ``umoci repack``, and ``umoci config`` sets the
         environment of `plugins/module_utils/ros_wheels.ros_environment` with the image's paths (PATH starts
-        with /opt/venv/bin, so ``python``, ``python3`` and ``fast-discovery-server`` are the venv's;
+        with /opt/ros/jazzy/bin, so ``python``, ``python3`` and ``fast-discovery-server`` are the venv's;
         LD_LIBRARY_PATH, _ROS_WHEELS_BOOTSTRAP_COMPLETE=1) plus ROS_LOG_DIR=/tmp/ros, HOME=/tmp,
         PYTHONPATH=/opt/kuberos, RMW_IMPLEMENTATION=rmw_fastrtps_cpp, and working directory /opt/kuberos; no
         entrypoint, no command. Keyed by `RECIPE_VERSION`, the Debian suite and the pinned lines installed.
@@ -45,6 +46,15 @@ everything its pods run is built here from the repository and imported into each
         rejects; ``raw add-layer`` and ``repack`` write complete ones.)
 
     The tag is the first 12 hex digits of sha256(base key, application key).
+
+``kuberos.local/ros-base:<key>``
+    The published ROS image's contract (``docker.io/library/ros:jazzy-ros-base``, the discovery servers'
+    default image, is an alias of it): the same base (ROS 2 under ``/opt/ros/jazzy``), a layer with
+    ``/ros_entrypoint.sh`` (sources ``/opt/ros/$ROS_DISTRO/setup.bash``, then ``exec "$@"``, as the published
+    one) and ``/opt/ros/jazzy/setup.bash`` (and ``setup.sh``, ``local_setup.bash``: PATH, LD_LIBRARY_PATH,
+    ROS_DISTRO...), and the published configuration: only the system directories on PATH, ``ROS_DISTRO=jazzy``,
+    entrypoint ``/ros_entrypoint.sh``, command ``bash``. Nothing of ROS runs unless the entrypoint runs first,
+    so a rendered pod that overrode the entrypoint (``command:``) would fail here as it would on a real site.
 
 Cache, under ``<cache_dir>/images/`` (``cache_dir`` is ``~/.cache/kuberos`` or ``$KUBEROS_CACHE_DIR``):
 ``base-<key>/`` (the base as an OCI layout, kept for the current and one previous key), ``ros-<key>.tar``,
@@ -92,16 +102,21 @@ import time
 from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_environment
 
 ROS_IMAGE = "kuberos.local/ros"
+# The published ROS image's contract (docker.io/library/ros:jazzy-ros-base): ROS under /opt/ros/<distro>, the
+# entrypoint /ros_entrypoint.sh sources its setup.bash and execs the command, nothing of ROS on PATH before it.
+ROS_BASE_IMAGE = "kuberos.local/ros-base"
+ROS_DISTRO = "jazzy"
+ROS_ENTRYPOINT = "/ros_entrypoint.sh"
 PAUSE_IMAGE = "kuberos.local/pause:3.10"
 
 # Part of every cache key: change it when the recipe changes what the images contain.
-RECIPE_VERSION = "3"
+RECIPE_VERSION = "4"
 
 DEBIAN_SUITE = "bookworm"
 DEBIAN_PACKAGES = ("python3", "python3-venv", "ca-certificates")
 DEBIAN_MIRROR = os.environ.get("KUBEROS_DEBIAN_MIRROR", "http://deb.debian.org/debian")
 
-VENV = "/opt/venv"
+VENV = f"/opt/ros/{ROS_DISTRO}"  # the wheels' ROS where the published images keep theirs
 APP_DIR = "/opt/kuberos"
 REQUIREMENTS = ("requirements-ros.txt", "requirements-sim.txt", "requirements.txt")
 INSTALL_ALL_OF = "requirements-ros.txt"
@@ -148,8 +163,9 @@ ALIASES = (
     "ghcr.io/kuberos/pnp-robot-sim:0.1",
     "ghcr.io/kuberos/bridge:0.2.0",
     "ghcr.io/kuberos/controller:0.2.0",
-    "ros:jazzy-ros-base",
 )
+# The names under which the published-layout image is known: the discovery servers' default image.
+ROS_BASE_ALIASES = (f"ros:{ROS_DISTRO}-ros-base",)
 
 NAME_ANNOTATION = "io.containerd.image.name"
 REF_ANNOTATION = "org.opencontainers.image.ref.name"
@@ -651,6 +667,77 @@ def _build_ros(images: str, base: str, key: str, files: list[tuple[str, bytes | 
         _remove(work)
 
 
+def _setup_script(environment: dict[str, str]) -> str:
+    """``/opt/ros/<distro>/setup.bash`` of the published-layout image: what a ROS installation's setup exports
+    (the wheels' bin and library directories, the distribution), for bash and sh alike."""
+    lines = [
+        f"# ROS 2 {ROS_DISTRO} from PyPI wheels under {VENV} (kuberos local_images: the published ROS image's layout)",
+        f'export PATH="{VENV}/bin${{PATH:+:$PATH}}"',
+        f'export LD_LIBRARY_PATH="{environment["LD_LIBRARY_PATH"]}${{LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}}"',
+        f"export AMENT_PREFIX_PATH={VENV}",
+        f"export ROS_DISTRO={ROS_DISTRO}",
+        "export ROS_VERSION=2",
+        "export ROS_PYTHON_VERSION=3",
+        "export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+ENTRYPOINT_SCRIPT = """#!/bin/bash
+set -e
+
+# setup ros2 environment
+source "/opt/ros/$ROS_DISTRO/setup.bash" --
+exec "$@"
+"""
+
+# The published image's configuration: no ROS on PATH, the distribution named, bash by default.
+ROS_BASE_ENV = (
+    "PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
+    "LANG=C.UTF-8",
+    "LC_ALL=C.UTF-8",
+    f"ROS_DISTRO={ROS_DISTRO}",
+)
+
+
+def _ros_base_files(base: str) -> list[tuple[str, bytes | None, bool]]:
+    """The published-layout image's own layer: the entrypoint and the setup scripts (as _app_files returns)."""
+    with open(os.path.join(base, "info.json"), encoding="utf-8") as handle:
+        setup = _setup_script(json.load(handle)["environment"]).encode()
+    prefix = VENV.strip("/")
+    return [
+        (ROS_ENTRYPOINT.strip("/"), ENTRYPOINT_SCRIPT.encode(), True),
+        (f"{prefix}/local_setup.bash", setup, False),
+        (f"{prefix}/setup.bash", setup, False),
+        (f"{prefix}/setup.sh", setup, False),
+    ]
+
+
+def _build_ros_base(images: str, base: str, key: str, archive: str) -> None:
+    """The base with the published ROS image's entrypoint, setup scripts and configuration (no ROS on PATH)."""
+    work = os.path.join(images, "tmp", f"ros-base-{key}-{os.getpid()}")
+    _remove(work)
+    os.makedirs(work)
+    try:
+        layout = os.path.join(work, "layout")
+        _copy_layout(os.path.join(base, "layout"), layout)
+        layer = os.path.join(work, "entrypoint.tar")
+        _write_app_layer(_ros_base_files(base), layer)
+        _run(
+            ["umoci", "raw", "add-layer", "--image", f"{layout}:base", "--tag", key,
+             "--history.created_by", f"kuberos local_images {ROS_ENTRYPOINT} and setup scripts", layer],
+        )  # fmt: skip
+        config = ["umoci", "config", "--image", f"{layout}:{key}", "--clear=config.env", "--config.workingdir", "/"]
+        for item in ROS_BASE_ENV:
+            config += ["--config.env", item]
+        config += ["--config.entrypoint", ROS_ENTRYPOINT, "--config.cmd", "bash"]
+        _run([*config, "--history.created_by", f"kuberos local_images ENTRYPOINT {ROS_ENTRYPOINT}"])
+        _write_archive(layout, key, f"{ROS_BASE_IMAGE}:{key}", archive)
+    finally:
+        _remove(work)
+
+
 def _build_pause(repo_root: str, images: str, key: str, archive: str) -> None:
     _require_programs("gcc", "umoci")
     work = os.path.join(images, "tmp", f"pause-{key}-{os.getpid()}")
@@ -739,13 +826,30 @@ def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
         if cached:
             os.utime(archive)
         else:
-            if not os.path.exists(os.path.join(base, "info.json")):
-                base = _build_base(images, base_key, lines, python, python_version, log)
-            _prune(images, r"base-[0-9a-f]{12}", KEEP_BASES, base, log)
+            base = _ensure_base(images, base, base_key, lines, python, python_version, log)
             _build_ros(images, base, key, files, archive)
             _prune(images, r"ros-[0-9a-f]{12}\.tar", KEEP_ARCHIVES, archive, log)
         results.append(_result(f"{ROS_IMAGE}:{key}", archive, started, cached))
+
+        started = time.monotonic()
+        key = _sha256(RECIPE_VERSION, base_key, ENTRYPOINT_SCRIPT, *ROS_BASE_ENV, _setup_script({"LD_LIBRARY_PATH": ""}))[:12]
+        archive = os.path.join(images, f"ros-base-{key}.tar")
+        cached = os.path.exists(archive)
+        if cached:
+            os.utime(archive)
+        else:
+            base = _ensure_base(images, base, base_key, lines, python, python_version, log)
+            _build_ros_base(images, base, key, archive)
+            _prune(images, r"ros-base-[0-9a-f]{12}\.tar", KEEP_ARCHIVES, archive, log)
+        results.append(_result(f"{ROS_BASE_IMAGE}:{key}", archive, started, cached))
     return results
+
+
+def _ensure_base(images: str, base: str, base_key: str, lines: list[str], python: str, python_version: str, log) -> str:
+    if not os.path.exists(os.path.join(base, "info.json")):
+        base = _build_base(images, base_key, lines, python, python_version, log)
+    _prune(images, r"base-[0-9a-f]{12}", KEEP_BASES, base, log)
+    return base
 
 
 def _result(reference: str, archive: str, started: float, cached: bool) -> dict:
@@ -759,7 +863,8 @@ def _result(reference: str, archive: str, started: float, cached: bool) -> dict:
 
 
 def build_images(repo_root: str, cache_dir: str, log=print) -> dict[str, str]:
-    """Build (or reuse from `<cache_dir>/images/`) the pause and ROS images: {image reference: OCI archive path}."""
+    """Build (or reuse from `<cache_dir>/images/`) the pause, ROS and published-layout ROS images:
+    {image reference: OCI archive path}."""
     results = _build(repo_root, cache_dir, log)
     for result in results:
         how = "cached" if result["cached"] else f"built in {result['seconds']:.1f}s"
@@ -779,9 +884,17 @@ def _qualified(reference: str) -> str:
     return f"{name}@{digest}" if digest else name
 
 
-def image_aliases(ros_image: str) -> dict[str, str]:
-    """The names under which containerd must also know the ROS image: {alias: ros_image}, fully qualified."""
-    return {_qualified(alias): _qualified(ros_image) for alias in ALIASES}
+def image_aliases(images) -> dict[str, str]:
+    """The names under which containerd must also know the built images (`images`: their references, as
+    build_images returns them): {alias: reference}, fully qualified. The project's ROS image serves the modules,
+    the bridge and the controller; the published-layout image serves the discovery servers' default image."""
+    aliases = {}
+    for reference in images:
+        if reference.startswith(f"{ROS_IMAGE}:"):
+            aliases.update({_qualified(alias): _qualified(reference) for alias in ALIASES})
+        elif reference.startswith(f"{ROS_BASE_IMAGE}:"):
+            aliases.update({_qualified(alias): _qualified(reference) for alias in ROS_BASE_ALIASES})
+    return aliases
 
 
 # --- importing -------------------------------------------------------------------------------------------------
@@ -902,8 +1015,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         results = _build(args.repo_root, args.cache_dir, log=progress)
         archives = {result["reference"]: result["archive"] for result in results}
-        ros = next(reference for reference in archives if reference.startswith(f"{ROS_IMAGE}:"))
-        aliases = image_aliases(ros)
+        aliases = image_aliases(archives)
         done = None
         if args.command == "import":
             done = import_images(args.ctr, args.address, archives, aliases, args.namespace, log=progress)

@@ -8,7 +8,8 @@ round-trip times between the nodes. No Ansible imports; the ``local_cluster`` mo
 The network, for base ``B`` (default 231; one tier per base on a machine)::
 
     root namespace: bridge <tag>mgmt 10.B.0.1/24 -- API server relay (socat, 10.B.0.1:<apiserver port>),
-                    CoreDNS (10.B.0.1:53), routes to every node's address and pod network via its veth
+                    CoreDNS (10.B.0.1:53), the registry (10.B.0.1:<registry port>, TLS and htpasswd; optional),
+                    routes to every node's address and pod network via its veth
          |  veth <tag>m<i> / mgmt0 10.B.0.(10+i): control traffic, not delayed
     node namespace <tag>n-<node>: kubelet, containerd, kube-proxy (iptables), CNI bridge cni0 for pods
          |  TUN eth0 10.(B+1).0.(10+i) = the node's InternalIP; the other nodes' pod networks routed to it
@@ -20,6 +21,11 @@ the host's mount namespace, so the volumes the kubelet mounts are the ones the c
 has a cgroup root of its own (``/<tag>-<node>``, cgroupfs, cgroup v1) and containerd state under the cluster's
 state directory. The kubelet changes host sysctls (kernel.panic, kernel.panic_on_oops, vm.overcommit_memory):
 their values are saved before the first start and put back when the tier stops.
+
+With a registry port, the lab's registry (`kuberos_lab.registry`, the CNCF distribution registry) runs on the
+management bridge; every built image is pushed to it by digest (``kuberos/<name>@sha256:...``) and each node's
+containerd trusts its CA (``config_path``: a ``hosts.toml`` per registry), so pods pull from it with a pull
+secret as from a site's registry. The images are imported as well, under the names the specs use.
 
 Stopping removes everything the tier made: containers (through containerd), processes, mounts under the
 state directory, pod network namespaces, CNI state, cgroups, namespaces, links and routes, and restores the
@@ -44,6 +50,7 @@ from ansible.module_utils.urls import open_url
 
 from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
 from ansible_collections.kuberos.platform.plugins.module_utils import delay_fabric
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import LocalRegistry, RegistryError
 
 HOST_SYSCTLS = ("kernel/panic", "kernel/panic_on_oops", "vm/overcommit_memory", "net/ipv4/ip_forward")
 CGROUP_ROOT = "/sys/fs/cgroup"
@@ -118,6 +125,7 @@ class RealNodes:
     aliases: dict = field(default_factory=dict)  # alias -> reference
     base: int = 231
     tag: str = "kr"
+    registry_port: int = 0  # the lab registry on the management bridge (0: none)
     log: list = field(default_factory=list)
     _children: dict = field(default_factory=dict, repr=False)  # (component, node) -> Popen, started by this object
 
@@ -130,6 +138,7 @@ class RealNodes:
             n["name"]: NodeNet(n["name"], i, self.tag, self.base)
             for i, n in enumerate(sorted(self.nodes, key=lambda n: n["name"]))
         }
+        self.registry = LocalRegistry(self.path("registry"), self.host_ip, self.registry_port) if self.registry_port else None
 
     @classmethod
     def from_state(cls, plane, binaries: dict) -> RealNodes | None:
@@ -140,7 +149,10 @@ class RealNodes:
         except (OSError, ValueError):
             return None
         nodes = [{"name": name, "labels": {}, "taints": []} for name in state.get("nodes", [])]
-        return cls(plane, nodes, {}, binaries, base=state.get("base", 231), tag=state.get("tag", "kr"))
+        return cls(
+            plane, nodes, {}, binaries, base=state.get("base", 231), tag=state.get("tag", "kr"),
+            registry_port=state.get("registry_port", 0),
+        )  # fmt: skip
 
     # -- paths and names ---------------------------------------------------------------------------
     def path(self, *parts: str) -> str:
@@ -198,6 +210,8 @@ class RealNodes:
             found.append("/dev/net/tun is missing (the delay fabric needs TUN devices)")
         if not os.path.isdir(os.path.join(CGROUP_ROOT, "cpu")):
             found.append("cgroup v1 controllers are not mounted under /sys/fs/cgroup (the kubelets use cgroupfs v1)")
+        if self.registry is not None:
+            found += self.registry.problems()
         return found
 
     @staticmethod
@@ -209,6 +223,8 @@ class RealNodes:
 
     def running(self) -> dict[str, int | None]:
         status = {c: self.pid(c) for c in SHARED_COMPONENTS}
+        if self.registry is not None:
+            status["registry"] = self.registry.pid()
         for node in self.nets:
             status.update({f"{node}/{c}": self.pid(c, node) for c in NODE_COMPONENTS})
         return status
@@ -231,6 +247,7 @@ class RealNodes:
         changed = self._network()
         self._certificates()
         changed = self._start_shared() or changed
+        changed = self._start_registry() or changed
         for net in self.nets.values():
             changed = self._start_runtime(net) or changed
         changed = self._import_images() or changed
@@ -244,6 +261,11 @@ class RealNodes:
         changed = False
         for net in self.nets.values():
             changed = self._stop_node(net) or changed
+        if self.registry is not None:
+            pid = self.registry.pid()
+            if self.registry.stop():
+                self.log.append(f"stopped registry (pid {pid})")
+                changed = True
         for component in reversed(SHARED_COMPONENTS):
             changed = self._stop(component) or changed
         if os.path.exists(f"/sys/class/net/{self.bridge}"):
@@ -271,7 +293,8 @@ class RealNodes:
             return {}
 
     def _write_state(self) -> None:
-        _write(self.path("state.json"), json.dumps({"nodes": sorted(self.nets), "base": self.base, "tag": self.tag}))
+        state = {"nodes": sorted(self.nets), "base": self.base, "tag": self.tag, "registry_port": self.registry_port}
+        _write(self.path("state.json"), json.dumps(state))
 
     def _save_sysctls(self) -> None:
         saved = self.path("sysctls.json")
@@ -406,6 +429,8 @@ class RealNodes:
                 "  enable_selinux = false",
                 '  stream_server_address = "127.0.0.1"',
                 "  netns_mounts_under_state_dir = true  # pod network namespaces under the node's state, not /run/netns",
+                '[plugins."io.containerd.grpc.v1.cri".registry]',
+                f'  config_path = "{directory}/certs.d"  # hosts.toml per registry: the lab registry\'s CA',
                 '[plugins."io.containerd.grpc.v1.cri".cni]',
                 f'  bin_dir = "{self.cni_bin_dir()}"',
                 f'  conf_dir = "{self.path(net.name, "cni", "net.d")}"',
@@ -571,6 +596,9 @@ class RealNodes:
         for sub in ("containerd", "cni/net.d", "cni/ipam", "kubelet", "pod-logs"):
             os.makedirs(os.path.join(directory, sub), exist_ok=True)
         _write(os.path.join(directory, "containerd", "config.toml"), self._containerd_config(net))
+        if self.registry is not None:
+            _write(os.path.join(directory, "containerd", "certs.d", self.registry.address, "hosts.toml"),
+                   self.registry.containerd_hosts())  # fmt: skip
         _write(os.path.join(directory, "cni", "net.d", "10-kuberos.conflist"), self._cni_config(net))
         _write(os.path.join(directory, "resolv.conf"), f"nameserver {self.host_ip}\n")
         _write(os.path.join(directory, "kubelet.json"), json.dumps(self._kubelet_config(net, node), indent=1))
@@ -581,6 +609,44 @@ class RealNodes:
         )
         self._wait_for(lambda: os.path.exists(self.socket(net.name)), 30, f"containerd of {net.name}", "containerd", net.name)
         return changed
+
+    def _start_registry(self) -> bool:
+        """The lab registry on the management bridge, every built image pushed to it by digest; what it serves is
+        written to ``<state>/nodes/registry/images.json`` ({built reference: pull reference by digest})."""
+        if self.registry is None:
+            return False
+        try:
+            changed = self.registry.start()
+            if changed:
+                self.log.append(f"started registry on {self.registry.address} ({self.registry.path('registry.log')})")
+            served = {}
+            client = self.registry.client()
+            for reference, archive in sorted(self.images.items()):
+                repository = "kuberos/" + reference.split("/", 1)[-1].rsplit(":", 1)[0]
+                started = time.monotonic()
+                digest, done = client.push_archive(archive, repository, reference.rsplit(":", 1)[-1])
+                served[reference] = f"{self.registry.address}/{repository}@{digest}"
+                if done["uploaded"]:
+                    changed = True
+                    self.log.append(
+                        f"pushed {served[reference]}: {done['uploaded']} blobs, {done['bytes'] / 2**20:.1f} MiB "
+                        f"({time.monotonic() - started:.1f} s)"
+                    )
+        except RegistryError as error:
+            raise RealNodeError(str(error)) from None
+        _write(self.registry.path("images.json"), json.dumps(served, indent=1, sort_keys=True))
+        return changed
+
+    def registry_info(self) -> dict:
+        """The registry as the module returns it: address, user, CA file, and what it serves (no password)."""
+        with open(self.registry.path("images.json"), encoding="utf-8") as handle:
+            images = json.load(handle)
+        return {
+            "address": self.registry.address,
+            "username": self.registry.username,
+            "ca_file": self.registry.ca_file,
+            "images": images,
+        }
 
     def _import_images(self) -> bool:
         """The images into every node's containerd, the nodes side by side (each import unpacks every layer)."""

@@ -50,8 +50,17 @@ options:
     description: Prefix of the real nodes' network namespaces, links and cgroups (1 to 4 letters or digits).
     type: str
     default: kr
+  registry_port:
+    description:
+      - With real nodes, run the lab's container registry (the CNCF distribution registry, Debian's C(docker-registry))
+        on this port of the management bridge, with TLS and htpasswd authentication; every image of O(images) is
+        pushed to it by digest and every node's containerd trusts its CA. C(0) runs none.
+      - Its user is C(kuberos); the password is in C(<state_dir>/nodes/registry/password) (mode 0600), the CA
+        certificate in C(<state_dir>/nodes/registry/ca.crt).
+    type: int
+    default: 0
   images:
-    description: Image reference to OCI archive, imported into every real node's containerd.
+    description: Image reference to OCI archive, imported into every real node's containerd (and pushed to the registry).
     type: dict
     default: {}
   image_aliases:
@@ -98,6 +107,13 @@ server:
   description: URL of the API server.
   returned: always
   type: str
+registry:
+  description:
+    - The lab registry, when real nodes run with O(registry_port); C(address), C(username), C(ca_file), and C(images)
+      (each built image reference to the reference that pulls it from the registry by digest). The password is not
+      returned.
+  returned: when real nodes run with a registry
+  type: dict
 components:
   description: Pid of each running component (null when not running), real nodes' as C(<node>/<component>).
   returned: always
@@ -132,6 +148,7 @@ def main():
             real_nodes_tag=dict(type="str", default="kr"),
             images=dict(type="dict", default={}),
             image_aliases=dict(type="dict", default={}),
+            registry_port=dict(type="int", default=0),
         ),
         supports_check_mode=True,
     )
@@ -149,7 +166,7 @@ def main():
             real = RealNodes(
                 plane, params["real_nodes"]["nodes"], params["real_nodes"].get("delay_ms", {}), params["binaries"],
                 images=params["images"], aliases=params["image_aliases"], base=params["real_nodes_base"],
-                tag=params["real_nodes_tag"],
+                tag=params["real_nodes_tag"], registry_port=params["registry_port"],
             )  # fmt: skip
         elif params["state"] != "started":
             real = RealNodes.from_state(plane, params["binaries"])
@@ -180,6 +197,8 @@ def main():
         module.fail_json(msg=str(exc), actions=log, **{k: v for k, v in result.items() if k != "actions"})
     result["actions"] = result["actions"] or plane.log + (real.log if real is not None else [])
     result["components"] = {**plane.running(), **(real.running() if real is not None else {})}
+    if real is not None and real.registry is not None and params["state"] == "started" and not module.check_mode:
+        result["registry"] = real.registry_info()
     module.exit_json(**result)
 
 

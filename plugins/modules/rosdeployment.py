@@ -153,7 +153,9 @@ removed:
   type: list
   elements: str
 rows:
-  description: One entry per robot and module with C(placed_node), C(node), C(phase) and C(ready).
+  description:
+    - One entry per robot and module with C(placed_node), C(node), C(phase), C(ready), and C(problem) (why its pod
+      cannot start because of its image, empty if not).
   returned: when applying, not in check mode
   type: list
   elements: dict
@@ -161,6 +163,13 @@ ready:
   description: Every module runs, Ready, on the node it was placed on.
   returned: when applying, not in check mode
   type: bool
+problems:
+  description:
+    - Images that cannot be pulled, one sentence each naming the image, its registry and why (refused credentials,
+      no such image, an untrusted certificate, no route). The wait ends at the first, since waiting does not help.
+  returned: when waiting
+  type: list
+  elements: str
 dest:
   description: The render directory.
   returned: when state is present
@@ -274,11 +283,11 @@ def run(module: AnsibleModule) -> dict:
                 waiting = [
                     f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" for r in waited["rows"] if not r["ready"]
                 ]
-                module.fail_json(
-                    msg=f"not every module is Ready on its placed node after {module.params['wait_timeout']} s: "
-                    + "; ".join(waiting[:10]),
-                    **{**result, "timings": work.timings},
-                )
+                msg = f"not every module is Ready on its placed node after {module.params['wait_timeout']} s: "
+                if waited["problems"]:
+                    stuck = [f"{r['robot']}/{r['module']}" for r in waited["rows"] if r["problem"] and not r["ready"]]
+                    msg = f"{', '.join(stuck[:10])} cannot start: {'; '.join(waited['problems'][:5])}. Not Ready: "
+                module.fail_json(msg=msg + "; ".join(waiting[:10]), **{**result, "timings": work.timings})
     return {
         **result,
         "notes": [note for dep in work.deployments for note in dep.notes],

@@ -84,7 +84,7 @@ def rendered(local_inventory) -> Rendered:
         if obj["kind"] == "Deployment":
             by_component.setdefault(obj["metadata"]["labels"][manifests.COMPONENT], []).append(obj)
     servers = {
-        d["metadata"]["name"]: d["spec"]["template"]["spec"]["containers"][0]["command"] for d in by_component["discovery-server"]
+        d["metadata"]["name"]: d["spec"]["template"]["spec"]["containers"][0]["args"] for d in by_component["discovery-server"]
     }
     dns_names = {
         f"{d['metadata']['name']}.{d['metadata']['namespace']}.svc.{options.cluster_domain}": d["metadata"]["name"]

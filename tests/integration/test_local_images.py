@@ -109,6 +109,12 @@ def ros_image(built) -> str:
     return reference
 
 
+@pytest.fixture(scope="module")
+def ros_base_image(built) -> str:
+    (reference,) = [reference for reference in built if reference.startswith(f"{local_images.ROS_BASE_IMAGE}:")]
+    return reference
+
+
 class Containerd:
     """A containerd of the test's own: everything under `directory`, socket `address`."""
 
@@ -218,7 +224,7 @@ def containerd(built, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def imported(built, ros_image, containerd) -> list[str]:
-    return local_images.import_images("ctr", containerd.address, built, local_images.image_aliases(ros_image))
+    return local_images.import_images("ctr", containerd.address, built, local_images.image_aliases(built))
 
 
 def archive_layers(archive: str) -> tuple[dict, dict, list[list[str]]]:
@@ -245,7 +251,9 @@ def archive_layers(archive: str) -> tuple[dict, dict, list[list[str]]]:
 
 
 def test_image_aliases_are_fully_qualified():
-    aliases = local_images.image_aliases("kuberos.local/ros:0123456789ab")
+    aliases = local_images.image_aliases(
+        ["kuberos.local/pause:3.10", "kuberos.local/ros:0123456789ab", "kuberos.local/ros-base:ba5e0123abcd"]
+    )
     assert aliases == {
         "ghcr.io/kuberos/pnp-perception:0.1": "kuberos.local/ros:0123456789ab",
         "ghcr.io/kuberos/pnp-planner:0.1": "kuberos.local/ros:0123456789ab",
@@ -254,13 +262,14 @@ def test_image_aliases_are_fully_qualified():
         "ghcr.io/kuberos/pnp-robot-sim:0.1": "kuberos.local/ros:0123456789ab",
         "ghcr.io/kuberos/bridge:0.2.0": "kuberos.local/ros:0123456789ab",
         "ghcr.io/kuberos/controller:0.2.0": "kuberos.local/ros:0123456789ab",
-        "docker.io/library/ros:jazzy-ros-base": "kuberos.local/ros:0123456789ab",
+        "docker.io/library/ros:jazzy-ros-base": "kuberos.local/ros-base:ba5e0123abcd",
     }
 
 
-def test_build_is_cached_and_named(built, ros_image):
-    assert set(built) == {local_images.PAUSE_IMAGE, ros_image}
+def test_build_is_cached_and_named(built, ros_image, ros_base_image):
+    assert set(built) == {local_images.PAUSE_IMAGE, ros_image, ros_base_image}
     assert re.fullmatch(r"kuberos\.local/ros:[0-9a-f]{12}", ros_image)
+    assert re.fullmatch(r"kuberos\.local/ros-base:[0-9a-f]{12}", ros_base_image)
     started = time.monotonic()
     again = local_images.build_images(ROOT, CACHE_DIR, log=lambda message: None)
     assert again == built
@@ -280,10 +289,10 @@ def test_pause_image_holds_only_the_program(built):
 def test_ros_image_configuration(built, ros_image):
     _, config, layers = archive_layers(built[ros_image])
     env = dict(item.split("=", 1) for item in config["config"]["Env"])
-    assert env["PATH"].split(":")[0] == "/opt/venv/bin"
+    assert env["PATH"].split(":")[0] == "/opt/ros/jazzy/bin"
     assert env["PYTHONPATH"] == "/opt/kuberos" and env["_ROS_WHEELS_BOOTSTRAP_COMPLETE"] == "1"
     assert env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp" and env["ROS_LOG_DIR"] == "/tmp/ros"
-    assert "/opt/venv/lib" in env["LD_LIBRARY_PATH"].split(":")
+    assert "/opt/ros/jazzy/lib" in env["LD_LIBRARY_PATH"].split(":")
     assert config["config"]["WorkingDir"] == "/opt/kuberos"
     assert not config["config"].get("Entrypoint") and not config["config"].get("Cmd")
     top = layers[-1]
@@ -345,17 +354,18 @@ def _link_or_copy(source: str, destination: str) -> None:
 
 def test_import_is_idempotent_and_aliases_share_the_digest(built, ros_image, containerd, imported):
     assert [line for line in imported if line.startswith("imported")], imported
-    assert local_images.import_images("ctr", containerd.address, built, local_images.image_aliases(ros_image)) == []
+    assert local_images.import_images("ctr", containerd.address, built, local_images.image_aliases(built)) == []
     images = containerd.images()
     ros_digest = local_images.archive_image(built[ros_image])[1]
     assert images[ros_image][0] == ros_digest
     assert images[local_images.PAUSE_IMAGE][0] == local_images.archive_image(built[local_images.PAUSE_IMAGE])[1]
-    for alias in local_images.image_aliases(ros_image):
-        assert images[alias][0] == ros_digest, alias
+    for alias, target in local_images.image_aliases(built).items():
+        assert images[alias][0] == local_images.archive_image(built[target])[1], alias
+        assert target != ros_image or images[alias][0] == ros_digest
     # The CRI plugin (the kubelet's view of the k8s.io namespace) takes up every name: it labels them managed.
     plugins = containerd.run("plugins", "ls").stdout
     if re.search(r"io\.containerd\.grpc\.v1\s+cri\s+\S+\s+ok", plugins):
-        names = [ros_image, local_images.PAUSE_IMAGE, *local_images.image_aliases(ros_image)]
+        names = [*built, *local_images.image_aliases(built)]
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline:
             images = containerd.images()
@@ -368,19 +378,41 @@ def test_import_is_idempotent_and_aliases_share_the_digest(built, ros_image, con
 
 def test_ros_image_runs_the_modules(containerd, imported):
     """The modules' imports and rclpy with Fast DDS; and the venv's pycs are current (none is written anew)."""
-    script = 'touch /tmp/before && python3 -c "$0" && find /opt/venv /usr -name "*.pyc" -newer /tmp/before | sed "s/^/stale /"'
+    script = 'touch /tmp/before && python3 -c "$0" && find /opt/ros /usr -name "*.pyc" -newer /tmp/before | sed "s/^/stale /"'
     _, command = containerd.container("ghcr.io/kuberos/pnp-planner:0.1", "sh", "-c", script, MODULE_IMPORTS)
     done = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    assert "executable /opt/venv/bin/python3" in done.stdout
+    assert "executable /opt/ros/jazzy/bin/python3" in done.stdout
     assert "stale " not in done.stdout, done.stdout[-3000:]
 
 
-def test_ros_image_runs_the_discovery_server(containerd, imported):
-    _, command = containerd.container("docker.io/library/ros:jazzy-ros-base", "fast-discovery-server", "-h")
+def test_ros_base_image_has_the_published_layout(built, ros_base_image):
+    """As docker.io/library/ros:jazzy-ros-base: the entrypoint sources ROS, nothing of it is on PATH."""
+    _, config, layers = archive_layers(built[ros_base_image])
+    assert config["config"]["Entrypoint"] == ["/ros_entrypoint.sh"] and config["config"]["Cmd"] == ["bash"]
+    env = dict(item.split("=", 1) for item in config["config"]["Env"])
+    assert env["ROS_DISTRO"] == "jazzy"
+    assert "ros" not in env["PATH"] and "LD_LIBRARY_PATH" not in env, env
+    assert {"ros_entrypoint.sh", "opt/ros/jazzy/setup.bash"} <= set(layers[-1])
+
+
+def test_published_layout_runs_the_discovery_server_only_through_its_entrypoint(containerd, imported):
+    """`ctr run` replaces the whole argv: the entrypoint is given by hand here, as the kubelet prepends it to a
+    pod's args. Without it, the program is not found: a pod whose `command` overrode the entrypoint fails so."""
+    image = "docker.io/library/ros:jazzy-ros-base"
+    _, command = containerd.container(image, "/ros_entrypoint.sh", "fast-discovery-server", "-h")
     done = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert "Usage" in done.stdout
+    _, command = containerd.container(image, "fast-discovery-server", "-h")
+    done = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT)
+    assert done.returncode != 0 and "Usage" not in done.stdout
+    assert "executable file not found" in done.stdout + done.stderr, done.stdout[-2000:] + done.stderr[-2000:]
+    # rclpy through the entrypoint: the image's python3 is ROS's once the setup is sourced.
+    check = "import rclpy, std_msgs.msg; print('rclpy ok')"
+    _, command = containerd.container(image, "/ros_entrypoint.sh", "python3", "-c", check)
+    done = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT)
+    assert done.returncode == 0 and "rclpy ok" in done.stdout, done.stdout[-3000:] + done.stderr[-3000:]
 
 
 def test_ros_image_runs_the_controller_and_bridge_as_their_pods_do(containerd, imported):
@@ -391,7 +423,7 @@ def test_ros_image_runs_the_controller_and_bridge_as_their_pods_do(containerd, i
     )
     done = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
-    assert "prefix /opt/venv" in done.stdout
+    assert "prefix /opt/ros/jazzy" in done.stdout
     for image, entry in (
         ("ghcr.io/kuberos/controller:0.2.0", "kuberos_controller"),
         ("ghcr.io/kuberos/bridge:0.2.0", "kuberos_bridge"),

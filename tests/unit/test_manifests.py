@@ -116,7 +116,8 @@ def test_discovery_server_objects(local_inventory, root):
         assert len(deploys) == len(servers), fleet
         for obj, server in zip(sorted(deploys, key=lambda o: o["metadata"]["name"]), servers, strict=True):
             container = obj["spec"]["template"]["spec"]["containers"][0]
-            assert container["command"] == ["fast-discovery-server", "-i", str(server.server_id), "-l", "0.0.0.0", "-p", "11811"]
+            assert "command" not in container  # the image's entrypoint stays (published ROS images source ROS there)
+            assert container["args"] == ["fast-discovery-server", "-i", str(server.server_id), "-l", "0.0.0.0", "-p", "11811"]
             assert obj["spec"]["template"]["spec"]["nodeSelector"] == {labels.HOSTNAME: server.node}
         svcs = [o for o in objects if o["kind"] == "Service" and o["metadata"]["namespace"] == namespace]
         assert all(

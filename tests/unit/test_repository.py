@@ -60,8 +60,9 @@ CORE = "kuberos"  # the pure deploy core
 CLUSTER = "kuberos_cluster"  # the pure cluster-setup models
 CONTROLLER = "kuberos_controller"  # the controller program
 BRIDGE = "kuberos_bridge"  # the bridge program
+LAB = "kuberos_lab"  # the local lab (the registry); nothing outside the lab's own I/O may import it
 # Which packages of module_utils each may import (besides itself); I/O helpers are module_utils' loose files.
-MAY_IMPORT = {CORE: set(), CLUSTER: {CORE}, CONTROLLER: {CORE, "io"}, BRIDGE: {"io"}}  # the bridge: pki.py for its certificates
+MAY_IMPORT = {CORE: set(), CLUSTER: {CORE}, CONTROLLER: {CORE, "io"}, BRIDGE: {"io"}, LAB: {"io"}}  # the bridge: pki.py
 PURE = (CORE, CLUSTER)
 IMPORT = re.compile(r"^\s*(?:from\s+(\S+)\s+import\s+(\([^)]*\)|[^\n]+)|import\s+(\S+))", re.M)
 

@@ -160,7 +160,9 @@ def _discovery_objects(server: DiscoveryServer, options: RenderOptions) -> list[
                 "name": "discovery-server",
                 "image": options.discovery_image,
                 "imagePullPolicy": options.image_pull_policy,
-                "command": [
+                # args, not command: the image's entrypoint runs first (the published ROS images source their
+                # setup there; nothing of ROS is on their PATH before it)
+                "args": [
                     "fast-discovery-server",
                     "-i",
                     str(server.server_id),

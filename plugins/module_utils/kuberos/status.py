@@ -32,6 +32,38 @@ def placement_table(placement: Placement) -> str:
     return format_table(header, rows)
 
 
+# Waiting reasons of a container whose image the kubelet cannot get: they do not resolve by waiting.
+IMAGE_PULL_REASONS = ("ErrImagePull", "ImagePullBackOff", "InvalidImageName", "ErrImageNeverPull")
+_PULL_CAUSES = (
+    (("401 unauthorized", "failed to authorize", "authentication required", "unauthorized"),
+     "the registry refused the credentials (check the pull secret named in imageRegistries)"),
+    (("403 forbidden", "denied"), "the registry denied access to it"),
+    (("not found", "manifest unknown", "name unknown"), "the registry has no such image (check its name and digest)"),
+    (("x509", "certificate"), "the node does not trust the registry's certificate (its container runtime needs the CA)"),
+    (("connection refused", "no such host", "i/o timeout", "no route to host", "network is unreachable"),
+     "the node cannot reach the registry"),
+    (("errimageneverpull", "never pull"), "imagePullPolicy is Never and the node does not have it"),
+    (("invalid reference", "invalidimagename", "couldn't parse image"), "the image name is not valid"),
+)  # fmt: skip
+
+
+def image_registry(image: str) -> str:
+    """The registry an image reference names (Docker Hub when its first part is not a host)."""
+    first, sep, _rest = image.partition("/")
+    return first if sep and ("." in first or ":" in first or first == "localhost") else "docker.io"
+
+
+def image_pull_problem(image: str, reason: str, message: str) -> str:
+    """One sentence for a container the kubelet cannot start because of its image: which image, which registry,
+    and why in words a developer acts on (the kubelet's own message follows, shortened)."""
+    text = f"{reason} {message}".lower()
+    why = next((cause for needles, cause in _PULL_CAUSES if any(n in text for n in needles)), "the pull failed")
+    detail = " ".join(message.split())
+    if len(detail) > 300:
+        detail = detail[:297] + "..."
+    return f"image {image} from registry {image_registry(image)}: {why} ({reason}{': ' + detail if detail else ''})"
+
+
 def _server_row(fleet: str, name: str, tier: str, node: str) -> dict:
     """A fleet's discovery or bridge server as a placed row."""
     return {"deployment": f"(fleet {fleet})", "fleet": fleet, "robot": "-", "module": name, "tier": tier, "node": node,
@@ -74,6 +106,7 @@ def compare(placement: dict, pods: list[dict]) -> list[dict]:
                 "phase": pod["phase"] if pod else "Missing",
                 "ready": bool(pod and pod["ready"] and pod["node"] == row["node"]),
                 "pod": pod["pod"] if pod else None,
+                "problem": (pod or {}).get("problem", ""),
             }
         )
     return rows

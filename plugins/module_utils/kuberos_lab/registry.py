@@ -1,0 +1,334 @@
+"""A real container registry for the lab, and a client of the registry API (an I/O module of the local lab).
+
+`LocalRegistry` runs the CNCF distribution registry (Debian's ``docker-registry``, distribution 2.8) as a
+background process: TLS with a certificate of the registry's own CA (``ca.crt``: what containerd and clients
+trust), htpasswd authentication (bcrypt, one user, a password generated once and kept 0600 in the state
+directory), storage on the filesystem. Everything is under its ``directory``; `stop` ends the process and,
+with ``remove``, deletes the directory.
+
+`RegistryClient` speaks the registry HTTP API v2 over TLS with basic authentication: it pushes an OCI image
+archive (as ``local_images`` writes them) blob by blob and then its manifest, byte for byte, so the digest
+the registry serves is the archive's own, and checks that an image exists. Every failure is a `RegistryError`
+whose message names the registry and the image and says why (refused credentials, unknown image, no
+connection, an untrusted certificate).
+
+No Ansible imports, no Kubernetes client: the standard library, ``cryptography`` (the one PKI) and ``bcrypt``.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import hashlib
+import json
+import os
+import secrets
+import shutil
+import ssl
+import tarfile
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from dataclasses import dataclass
+
+from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
+from ansible_collections.kuberos.platform.plugins.module_utils import pki
+
+PROGRAM = "docker-registry"
+MANIFEST_TYPES = (
+    "application/vnd.oci.image.manifest.v1+json",
+    "application/vnd.oci.image.index.v1+json",
+    "application/vnd.docker.distribution.manifest.v2+json",
+    "application/vnd.docker.distribution.manifest.list.v2+json",
+)
+CERT_DAYS = 365
+START_TIMEOUT = 30.0
+REQUEST_TIMEOUT = 60.0
+CHUNK = 1 << 20
+
+
+class RegistryError(RuntimeError):
+    """A registry refused or failed a request; the message names the registry, the image and why."""
+
+
+def image_reference(address: str, repository: str, digest: str) -> str:
+    """``<address>/<repository>@<digest>``: how pods name an image pulled by digest."""
+    return f"{address}/{repository}@{digest}"
+
+
+def split_reference(reference: str) -> tuple[str, str, str]:
+    """(registry address, repository, tag or digest) of ``host[:port]/repo[:tag|@digest]``; the registry part
+    is required (a name without one is Docker Hub's, which the lab never serves)."""
+    first, sep, rest = reference.partition("/")
+    if not sep or not ("." in first or ":" in first or first == "localhost"):
+        raise RegistryError(f"{reference}: expected <registry host[:port]>/<repository>[:tag|@digest]")
+    if "@" in rest:
+        repository, _sep, ref = rest.partition("@")
+    elif ":" in rest.rsplit("/", 1)[-1]:
+        repository, _sep, ref = rest.rpartition(":")
+    else:
+        repository, ref = rest, "latest"
+    return first, repository, ref
+
+
+def docker_config_json(address: str, username: str, password: str) -> str:
+    """The content of a ``kubernetes.io/dockerconfigjson`` Secret's ``.dockerconfigjson`` for one registry."""
+    auth = base64.b64encode(f"{username}:{password}".encode()).decode()
+    return json.dumps({"auths": {address: {"username": username, "password": password, "auth": auth}}}, sort_keys=True)
+
+
+class RegistryClient:
+    """The registry API v2 at ``https://<address>``, trusting ``ca_file`` (None: the system's CAs)."""
+
+    def __init__(self, address: str, username: str = "", password: str = "", ca_file: str | None = None):
+        self.address = address
+        self._authorization = (
+            "Basic " + base64.b64encode(f"{username}:{password}".encode()).decode() if username or password else None
+        )
+        self._username = username
+        self._context = ssl.create_default_context(cafile=ca_file)
+
+    def _request(self, method: str, url: str, image: str, *, body=None, headers: dict | None = None, ok=(200,)):
+        """One request; (status, headers, body bytes). Raises RegistryError naming the registry and the image."""
+        if not url.startswith("https://"):
+            url = f"https://{self.address}{url}"
+        request = urllib.request.Request(url, data=body, method=method, headers=dict(headers or {}))
+        if self._authorization:
+            request.add_header("Authorization", self._authorization)
+        try:
+            with urllib.request.urlopen(request, timeout=REQUEST_TIMEOUT, context=self._context) as response:
+                return response.status, response.headers, response.read()
+        except urllib.error.HTTPError as error:
+            if error.code in ok:
+                return error.code, error.headers, error.read()
+            raise RegistryError(self._explain(error.code, error.read(), image, method)) from None
+        except urllib.error.URLError as error:
+            reason = error.reason
+            if isinstance(reason, ssl.SSLCertVerificationError):
+                raise RegistryError(
+                    f"registry {self.address}: its certificate is not trusted ({reason.verify_message}); "
+                    f"give the registry's CA certificate (image {image})"
+                ) from None
+            raise RegistryError(f"registry {self.address}: cannot connect ({reason}) (image {image})") from None
+        except (OSError, TimeoutError) as error:
+            raise RegistryError(f"registry {self.address}: {error} (image {image})") from None
+
+    def _explain(self, status: int, body: bytes, image: str, method: str) -> str:
+        codes = []
+        with contextlib.suppress(ValueError, AttributeError, TypeError):
+            codes = [e.get("code", "") for e in json.loads(body or b"{}").get("errors", [])]
+        if status == 401:
+            who = f"user '{self._username}'" if self._username else "anonymous access"
+            return f"registry {self.address}: refused the credentials ({who}: HTTP 401 Unauthorized) for image {image}"
+        if status == 403:
+            return f"registry {self.address}: access denied (HTTP 403) to image {image}"
+        if status == 404 or "MANIFEST_UNKNOWN" in codes or "NAME_UNKNOWN" in codes:
+            return f"registry {self.address}: image {image} not found ({', '.join(codes) or 'HTTP 404'})"
+        text = body[:300].decode(errors="replace").strip()
+        return f"registry {self.address}: {method} for image {image} failed: HTTP {status} {text}"
+
+    def check(self) -> None:
+        """The API answers and accepts the credentials (GET /v2/)."""
+        self._request("GET", "/v2/", f"{self.address}/v2/")
+
+    def manifest_digest(self, repository: str, reference: str) -> str:
+        """The digest the registry serves for ``repository`` at a tag or digest (HEAD of the manifest)."""
+        image = f"{self.address}/{repository}{'@' if ':' in reference else ':'}{reference}"
+        _status, headers, _body = self._request(
+            "HEAD", f"/v2/{repository}/manifests/{reference}", image, headers={"Accept": ", ".join(MANIFEST_TYPES)}
+        )
+        digest = headers.get("Docker-Content-Digest", "")
+        if not digest:
+            raise RegistryError(f"registry {self.address}: no digest for image {image}")
+        return digest
+
+    def _has_blob(self, repository: str, digest: str, image: str) -> bool:
+        status, _headers, _body = self._request("HEAD", f"/v2/{repository}/blobs/{digest}", image, ok=(200, 404))
+        return status == 200
+
+    def _upload_blob(self, repository: str, digest: str, size: int, stream, image: str) -> None:
+        _status, headers, _body = self._request("POST", f"/v2/{repository}/blobs/uploads/", image, body=b"", ok=(202,))
+        location = headers.get("Location", "")
+        if not location:
+            raise RegistryError(f"registry {self.address}: no upload location for image {image}")
+        url = urllib.parse.urljoin(f"https://{self.address}/", location)
+        url += ("&" if "?" in url else "?") + urllib.parse.urlencode({"digest": digest})
+        self._request(
+            "PUT", url, image, body=stream, ok=(201,),
+            headers={"Content-Type": "application/octet-stream", "Content-Length": str(size)},
+        )  # fmt: skip
+
+    def push_archive(self, archive: str, repository: str, tag: str | None = None) -> tuple[str, dict]:
+        """Push the one image of an OCI archive to ``repository`` (its blobs, then its manifest under ``tag``, or
+        under its digest). Returns the manifest digest and what was done: blobs uploaded and skipped, bytes."""
+        with tarfile.open(archive, "r:") as tar:
+            members = {m.name.lstrip("./"): m for m in tar.getmembers()}
+
+            def read(name: str) -> bytes:
+                member = members.get(name)
+                if member is None:
+                    raise RegistryError(f"{archive}: no {name} (not an OCI archive written by local_images)")
+                return tar.extractfile(member).read()
+
+            (descriptor,) = json.loads(read("index.json"))["manifests"]
+            digest = descriptor["digest"]
+            image = f"{self.address}/{repository}@{digest}"
+            manifest_bytes = read(f"blobs/{digest.replace(':', '/')}")
+            if "sha256:" + hashlib.sha256(manifest_bytes).hexdigest() != digest:
+                raise RegistryError(f"{archive}: the manifest does not match its digest {digest}")
+            manifest = json.loads(manifest_bytes)
+            done = {"uploaded": 0, "skipped": 0, "bytes": 0}
+            for blob in [manifest["config"], *manifest["layers"]]:
+                if self._has_blob(repository, blob["digest"], image):
+                    done["skipped"] += 1
+                    continue
+                member = members[f"blobs/{blob['digest'].replace(':', '/')}"]
+                self._upload_blob(repository, blob["digest"], member.size, tar.extractfile(member), image)
+                done["uploaded"] += 1
+                done["bytes"] += member.size
+            media_type = manifest.get("mediaType") or descriptor.get("mediaType") or MANIFEST_TYPES[0]
+            _status, headers, _body = self._request(
+                "PUT", f"/v2/{repository}/manifests/{tag or digest}", image, body=manifest_bytes, ok=(201,),
+                headers={"Content-Type": media_type},
+            )  # fmt: skip
+        served = headers.get("Docker-Content-Digest", digest)
+        if served != digest:
+            raise RegistryError(f"registry {self.address}: stored {image} as {served}, not as its own digest")
+        return digest, done
+
+
+@dataclass
+class LocalRegistry:
+    """The lab's registry: state under ``directory``, listening on ``host:port`` (TLS, htpasswd)."""
+
+    directory: str
+    host: str
+    port: int = 5443
+    username: str = "kuberos"
+
+    @property
+    def address(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def path(self, *parts: str) -> str:
+        return os.path.join(self.directory, *parts)
+
+    @property
+    def ca_file(self) -> str:
+        return self.path("ca.crt")
+
+    @property
+    def password(self) -> str:
+        with open(self.path("password"), encoding="utf-8") as handle:
+            return handle.read().strip()
+
+    def client(self, username: str | None = None, password: str | None = None) -> RegistryClient:
+        """A client of this registry (its own credentials unless others are given)."""
+        return RegistryClient(
+            self.address,
+            self.username if username is None else username,
+            self.password if password is None else password,
+            self.ca_file,
+        )
+
+    def _marker(self, argv: list[str]) -> bool:
+        return any(self.path("config.yml") == part for part in argv)
+
+    def pid(self) -> int | None:
+        return bg.running_pid(self.path("registry.pid"), self._marker)
+
+    @staticmethod
+    def problems() -> list[str]:
+        return [] if shutil.which(PROGRAM) else [f"`{PROGRAM}` is not installed (Debian package docker-registry)"]
+
+    def _files(self) -> None:
+        """CA, serving certificate, htpasswd and configuration; made once, kept across restarts."""
+        os.makedirs(self.path("storage"), exist_ok=True)
+        os.chmod(self.directory, 0o700)
+        if not os.path.exists(self.path("ca.key")):
+            ca_cert, ca_key = pki.new_ca("kuberos lab registry CA", days=CERT_DAYS)
+            pki.write_pem(self.path("ca.key"), ca_key)
+            pki.write_pem(self.ca_file, ca_cert)
+        if not os.path.exists(self.path("registry.key")):
+            ca_cert, ca_key = pki.load_ca(self.ca_file, self.path("ca.key"))
+            cert, key = pki.issue(ca_cert, ca_key, self.host, usage=pki.SERVER, days=CERT_DAYS, alt_names=[self.host])
+            pki.write_pem(self.path("registry.key"), key)
+            pki.write_pem(self.path("registry.crt"), cert)
+        if not os.path.exists(self.path("password")):
+            _write_secret(self.path("password"), secrets.token_urlsafe(18) + "\n")
+        if not os.path.exists(self.path("htpasswd")):
+            import bcrypt
+
+            hashed = bcrypt.hashpw(self.password.encode(), bcrypt.gensalt(rounds=10)).decode()
+            _write_secret(self.path("htpasswd"), f"{self.username}:{hashed}\n")
+        if not os.path.exists(self.path("http-secret")):
+            _write_secret(self.path("http-secret"), secrets.token_hex(16) + "\n")
+        with open(self.path("http-secret"), encoding="utf-8") as handle:
+            http_secret = handle.read().strip()
+        config = {
+            "version": 0.1,
+            "log": {"level": "info", "formatter": "text"},
+            "storage": {
+                "filesystem": {"rootdirectory": self.path("storage")},
+                "delete": {"enabled": True},
+                "maintenance": {"uploadpurging": {"enabled": False}},
+            },
+            "http": {
+                "addr": self.address,
+                "secret": http_secret,
+                "tls": {"certificate": self.path("registry.crt"), "key": self.path("registry.key")},
+                "headers": {"X-Content-Type-Options": ["nosniff"]},
+            },
+            "auth": {"htpasswd": {"realm": "kuberos-lab", "path": self.path("htpasswd")}},
+        }
+        _write_secret(self.path("config.yml"), json.dumps(config, indent=1) + "\n")  # JSON is YAML
+
+    def start(self) -> bool:
+        """Run the registry (True when it was started); it answers with the credentials before this returns."""
+        problems = self.problems()
+        if problems:
+            raise RegistryError("the lab registry cannot run here: " + "; ".join(problems))
+        self._files()
+        if self.pid() is not None:
+            return False
+        bg.start([PROGRAM, "serve", self.path("config.yml")], self.path("registry.pid"), self.path("registry.log"))
+        deadline = time.monotonic() + START_TIMEOUT
+        while True:
+            try:
+                self.client().check()
+                return True
+            except RegistryError as error:
+                if self.pid() is None or time.monotonic() > deadline:
+                    raise RegistryError(
+                        f"the lab registry did not answer on {self.address} ({error}); {self.path('registry.log')}:\n"
+                        + bg.tail(self.path("registry.log"))
+                    ) from None
+            time.sleep(0.2)
+
+    def stop(self, remove: bool = False) -> bool:
+        """Stop the registry; ``remove``: also its state (images, credentials, certificates)."""
+        changed = bg.stop(self.path("registry.pid"), self._marker) is not None
+        if remove and os.path.isdir(self.directory):
+            shutil.rmtree(self.directory)
+            changed = True
+        return changed
+
+    def containerd_hosts(self) -> str:
+        """containerd's ``hosts.toml`` for this registry (under ``<config_path>/<address>/``): trust its CA."""
+        return "\n".join(
+            [
+                f'server = "https://{self.address}"',
+                "",
+                f'[host."https://{self.address}"]',
+                '  capabilities = ["pull", "resolve"]',
+                f'  ca = "{self.ca_file}"',
+                "",
+            ]
+        )
+
+
+def _write_secret(path: str, text: str) -> None:
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as handle:
+        handle.write(text)

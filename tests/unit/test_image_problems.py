@@ -1,0 +1,48 @@
+"""Why a pod cannot start because of its image, in one sentence (kuberos/status.py image_pull_problem): the image,
+its registry and a cause a developer acts on, from the kubelet's own messages (as containerd 1.6 words them)."""
+
+from __future__ import annotations
+
+import pytest
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import image_pull_problem, image_registry
+
+IMAGE = "10.241.0.1:5443/kuberos/ros@sha256:5d41402abc4b2a76b9719d911017c592"
+PREFIX = f'failed to pull and unpack image "{IMAGE}": failed to resolve reference "{IMAGE}": '
+
+
+@pytest.mark.parametrize(
+    "reason, message, cause",
+    [
+        ("ErrImagePull", PREFIX + "unexpected status from HEAD request to https://10.241.0.1:5443/v2/kuberos/ros/"
+         "manifests/sha256:5d41: 401 Unauthorized", "the registry refused the credentials"),
+        ("ErrImagePull", PREFIX + f"{IMAGE}: not found", "the registry has no such image"),
+        ("ErrImagePull", PREFIX + "failed to do request: Head \"https://10.241.0.1:5443/v2/\": tls: failed to verify "
+         "certificate: x509: certificate signed by unknown authority", "the node does not trust the registry's certificate"),
+        ("ErrImagePull", PREFIX + "failed to do request: dial tcp 10.241.0.1:5443: connect: connection refused",
+         "the node cannot reach the registry"),
+        ("ImagePullBackOff", f'Back-off pulling image "{IMAGE}"', "the pull failed"),
+        ("ErrImageNeverPull", f'Container image "{IMAGE}" is not present with pull policy of Never',
+         "imagePullPolicy is Never"),
+        ("InvalidImageName", 'Failed to apply default image tag "Bad Name": couldn\'t parse image name',
+         "the image name is not valid"),
+    ],
+)  # fmt: skip
+def test_the_cause_is_named_with_the_image_and_its_registry(reason, message, cause):
+    text = image_pull_problem(IMAGE, reason, message)
+    assert text.startswith(f"image {IMAGE} from registry 10.241.0.1:5443: {cause}"), text
+    assert f"({reason}: " in text and len(text) < 600 and "\n" not in text
+
+
+@pytest.mark.parametrize(
+    "image, registry",
+    [
+        ("ros:jazzy-ros-base", "docker.io"),
+        ("osrf/ros:jazzy-desktop", "docker.io"),
+        ("ghcr.io/kuberos/pnp-planner:0.1", "ghcr.io"),
+        ("localhost/app", "localhost"),
+        ("10.0.0.1:5000/team/app@sha256:00", "10.0.0.1:5000"),
+    ],
+)
+def test_the_registry_of_an_image(image, registry):
+    assert image_registry(image) == registry
