@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -107,6 +107,11 @@ bench-rollout: binaries
 bench-real-pods:
 	$(MAKE) binaries WITH_NODES=1
 	cd bench && ../$(VENV)/python bench_real_pods.py --cold-images --json results/real-pods.json
+
+## Images benchmark (as root): every image built cold and warm, rebuilt for the same digests, pushed to the lab
+## registry and pulled cold by digest into fresh containerds (docs/real-nodes.md).
+bench-images: setup
+	cd bench && ../$(VENV)/python bench_images.py --json results/images.json
 
 ## Dashboard and /metrics benchmark: 1,000 robots; first paint in Chromium, view builds, scrape cost (docs/dashboard.md).
 bench-dashboard: binaries

@@ -41,6 +41,9 @@ class LocalControlPlane:
     binaries: dict  # component -> path
     ports: Ports = field(default_factory=Ports)
     kwok_stages: list = field(default_factory=list)  # stage configuration files for kwok
+    # The address of the `kubernetes` Service's endpoint: pods of real nodes reach the API server there (the real
+    # nodes' relay on their management bridge); 127.0.0.1 when every node is kwok's.
+    advertise_address: str = "127.0.0.1"
     log: list = field(default_factory=list)  # what was done, for the caller to report
     _children: dict = field(default_factory=dict, repr=False)  # processes started by this object
 
@@ -142,7 +145,7 @@ class LocalControlPlane:
         if component == "kube-apiserver":
             return [
                 binary, f"--etcd-servers=http://127.0.0.1:{p.etcd_client}", "--bind-address=127.0.0.1",
-                "--advertise-address=127.0.0.1", f"--secure-port={p.apiserver}",
+                f"--advertise-address={self.advertise_address}", f"--secure-port={p.apiserver}",
                 f"--tls-cert-file={pki}/apiserver.crt", f"--tls-private-key-file={pki}/apiserver.key",
                 f"--client-ca-file={pki}/ca.crt", f"--service-account-key-file={pki}/sa.pub",
                 f"--service-account-signing-key-file={pki}/sa.key",

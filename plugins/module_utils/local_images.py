@@ -110,7 +110,7 @@ ROS_ENTRYPOINT = "/ros_entrypoint.sh"
 PAUSE_IMAGE = "kuberos.local/pause:3.10"
 
 # Part of every cache key: change it when the recipe changes what the images contain.
-RECIPE_VERSION = "4"
+RECIPE_VERSION = "6"
 
 DEBIAN_SUITE = "bookworm"
 DEBIAN_PACKAGES = ("python3", "python3-venv", "ca-certificates")
@@ -151,6 +151,10 @@ APP_TREES = (
     ("plugins", f"{APP_DIR}/ansible_collections/kuberos/platform/plugins"),
 )
 APP_MTIME = 946684800  # 2000-01-01: the same files make the same layer, whenever they were checked out
+# Every time an image records (file times in the layers, the config's and history's created): the same sources
+# give the same digests, whenever and wherever they are built.
+SOURCE_DATE = "2000-01-01T00:00:00Z"
+CREATED = ("--history.created", SOURCE_DATE)
 
 PAUSE_SOURCE = "roles/local_cluster/files/pause.c"
 
@@ -420,6 +424,36 @@ def _strip(rootfs: str) -> None:
                     _remove(os.path.join(directory, name))
 
 
+def _normalise(rootfs: str, since: float) -> None:
+    """What makes two builds of the same sources differ, made the same: files written with the build's date or
+    host (ldconfig's cache of file times, backups of dpkg's databases, the host's name and resolver, which the
+    runtime mounts anyway), the password-change day in the shadow files, and the times of every file written or
+    changed by the build (at or after ``since``) set to SOURCE_DATE, as reproducible builds clamp to
+    SOURCE_DATE_EPOCH. Files unpacked from Debian's packages keep their packages' times: Debian's
+    byte-compiled standard library records them, and would be recompiled at run time otherwise."""
+    for relative in ("var/cache/ldconfig/aux-cache", "etc/hostname", "etc/resolv.conf", "etc/machine-id"):
+        _remove(os.path.join(rootfs, relative))
+    for path in glob.glob(os.path.join(rootfs, "var/lib/dpkg/*-old")) + glob.glob(os.path.join(rootfs, "etc/*-")):
+        _remove(path)
+    day = str(APP_MTIME // 86400)
+    for relative in ("etc/shadow",):
+        path = os.path.join(rootfs, relative)
+        if os.path.isfile(path):
+            with open(path, encoding="utf-8") as handle:
+                lines = handle.read().splitlines()
+            fields = [line.split(":") for line in lines]
+            text = "\n".join(":".join([*f[:2], day if f[2:3] and f[2] else "", *f[3:]]) if len(f) > 2 else ":".join(f) for f in fields)
+            mode = os.stat(path).st_mode
+            with open(path, "w", encoding="utf-8") as handle:
+                handle.write(text + "\n")
+            os.chmod(path, mode & 0o7777)
+    for directory, subdirectories, files in os.walk(rootfs, topdown=False):
+        for name in [*files, *subdirectories, *([""] if directory == rootfs else [])]:
+            path = os.path.join(directory, name) if name else directory
+            if os.lstat(path).st_mtime >= since:
+                os.utime(path, (APP_MTIME, APP_MTIME), follow_symlinks=False)
+
+
 def _image_environment(rootfs: str) -> dict[str, str]:
     """ros_environment() for the venv in the rootfs, with the paths as the container sees them."""
     env = ros_environment(prefix=os.path.join(rootfs, VENV.lstrip("/")))
@@ -448,7 +482,7 @@ def _build_base(images: str, key: str, lines: list[str], python: str, python_ver
     _require_programs("debootstrap", "chroot", "umoci")
     if os.geteuid() != 0:
         raise ImageBuildError("building the ROS image's base needs root (debootstrap, chroot, root-owned files)")
-    started = time.monotonic()
+    started, since = time.monotonic(), time.time()
     work = os.path.join(images, "tmp", f"base-{key}-{os.getpid()}")
     _remove(work)
     os.makedirs(work)
@@ -506,8 +540,10 @@ def _build_base(images: str, key: str, lines: list[str], python: str, python_ver
 
     step = time.monotonic()
     with _progress(log, "packing the rootfs"):
-        _run(["umoci", "repack", "--image", f"{layout}:base", "--history.created_by", f"kuberos local_images base {key}", bundle])
-    config = ["umoci", "config", "--image", f"{layout}:base", "--config.workingdir", APP_DIR]
+        _normalise(rootfs, since - 1)
+        _run(["umoci", "repack", "--image", f"{layout}:base", *CREATED, "--history.created_by", f"kuberos local_images base {key}",
+              bundle])  # fmt: skip
+    config = ["umoci", "config", "--image", f"{layout}:base", "--created", SOURCE_DATE, *CREATED, "--config.workingdir", APP_DIR]
     for name, value in env.items():
         config += ["--config.env", f"{name}={value}"]
     _run([*config, "--history.created_by", "kuberos local_images environment"])
@@ -659,7 +695,7 @@ def _build_ros(images: str, base: str, key: str, files: list[tuple[str, bytes | 
         layer = os.path.join(work, "app.tar")
         _write_app_layer(files, layer)
         _run(
-            ["umoci", "raw", "add-layer", "--image", f"{layout}:base", "--tag", key,
+            ["umoci", "raw", "add-layer", "--image", f"{layout}:base", "--tag", key, *CREATED,
              "--history.created_by", f"kuberos local_images application {key}", layer],
         )  # fmt: skip
         _write_archive(layout, key, f"{ROS_IMAGE}:{key}", archive)
@@ -725,14 +761,14 @@ def _build_ros_base(images: str, base: str, key: str, archive: str) -> None:
         layer = os.path.join(work, "entrypoint.tar")
         _write_app_layer(_ros_base_files(base), layer)
         _run(
-            ["umoci", "raw", "add-layer", "--image", f"{layout}:base", "--tag", key,
+            ["umoci", "raw", "add-layer", "--image", f"{layout}:base", "--tag", key, *CREATED,
              "--history.created_by", f"kuberos local_images {ROS_ENTRYPOINT} and setup scripts", layer],
         )  # fmt: skip
         config = ["umoci", "config", "--image", f"{layout}:{key}", "--clear=config.env", "--config.workingdir", "/"]
         for item in ROS_BASE_ENV:
             config += ["--config.env", item]
         config += ["--config.entrypoint", ROS_ENTRYPOINT, "--config.cmd", "bash"]
-        _run([*config, "--history.created_by", f"kuberos local_images ENTRYPOINT {ROS_ENTRYPOINT}"])
+        _run([*config, *CREATED, "--history.created_by", f"kuberos local_images ENTRYPOINT {ROS_ENTRYPOINT}"])
         _write_archive(layout, key, f"{ROS_BASE_IMAGE}:{key}", archive)
     finally:
         _remove(work)
@@ -751,8 +787,11 @@ def _build_pause(repo_root: str, images: str, key: str, archive: str) -> None:
         program = os.path.join(bundle, "rootfs", "pause")
         _run(["gcc", "-static", "-Os", "-s", "-Wall", "-o", program, os.path.join(repo_root, PAUSE_SOURCE)], what="gcc")
         os.chmod(program, 0o755)
-        _run(["umoci", "repack", "--image", f"{layout}:pause", "--history.created_by", f"gcc -static -Os {PAUSE_SOURCE}", bundle])
-        _run(["umoci", "config", "--image", f"{layout}:pause", "--config.entrypoint", "/pause", "--no-history"])
+        _normalise(os.path.join(bundle, "rootfs"), 0)
+        _run(["umoci", "repack", "--image", f"{layout}:pause", *CREATED, "--history.created_by", f"gcc -static -Os {PAUSE_SOURCE}",
+              bundle])  # fmt: skip
+        _run(["umoci", "config", "--image", f"{layout}:pause", "--created", SOURCE_DATE, "--config.entrypoint", "/pause",
+              "--no-history"])  # fmt: skip
         _write_archive(layout, "pause", PAUSE_IMAGE, archive)
     finally:
         _remove(work)

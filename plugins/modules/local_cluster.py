@@ -157,7 +157,9 @@ def main():
         ports = Ports(**{k: int(v) for k, v in params["ports"].items()})
     except TypeError as exc:
         module.fail_json(msg=f"ports: {exc}")
-    plane = LocalControlPlane(params["state_dir"], params["binaries"], ports, params["kwok_stages"])
+    # Pods on real nodes reach the API server through the `kubernetes` Service: its endpoint is the nodes' relay.
+    advertise = f"10.{params['real_nodes_base']}.0.1" if params["real_nodes"].get("nodes") else "127.0.0.1"
+    plane = LocalControlPlane(params["state_dir"], params["binaries"], ports, params["kwok_stages"], advertise_address=advertise)
     running = plane.running()
     result = {"kubeconfig": plane.kubeconfig, "server": plane.server, "actions": []}
     real = None

@@ -336,6 +336,259 @@ def test_the_robots_hardware_completes_a_pick_cycle_with_the_real_pods(real, dep
     assert summary["cycles"]["robot-1"]["succeeded"] >= 1
 
 
+def test_the_discovery_servers_run_the_published_ros_layout_through_its_entrypoint(real, deployed):
+    """ros:jazzy-ros-base is the published layout here (nothing of ROS on PATH, /ros_entrypoint.sh sources it):
+    the servers start only because the rendered pods keep the image's entrypoint (args, not command)."""
+    namespace = fleet_namespace(deployed)
+    pods = real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/component=discovery-server").items
+    assert len(pods) == len(deployed["discovery"][0]["servers"]) == 2
+    for pod in pods:
+        (container,) = pod.spec.containers
+        assert container.image == "ros:jazzy-ros-base" and not container.command, container
+        assert container.args[0] == "fast-discovery-server"
+        (status,) = pod.status.container_statuses
+        assert status.ready and status.restart_count == 0, status
+        assert "/ros-base:" in status.image or status.image.endswith("ros:jazzy-ros-base"), status.image
+        assert "### Server is running ###" in logs(real, namespace, pod.metadata.name)
+
+
+# -- the lab registry: pulls by digest with pull secrets ---------------------------------------------------------
+
+
+def registry_state(real):
+    """(address, {built image: pull reference by digest}, password) of the tier's registry."""
+    directory = os.path.join(real.state_dir, "nodes", "registry")
+    with open(os.path.join(directory, "images.json"), encoding="utf-8") as handle:
+        served = json.load(handle)
+    with open(os.path.join(directory, "password"), encoding="utf-8") as handle:
+        password = handle.read().strip()
+    return f"10.{BASE}.0.1:5443", served, password
+
+
+def pull_secret(real, namespace, name, address, password):
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import docker_config_json
+
+    secret = {
+        "metadata": {"name": name},
+        "type": "kubernetes.io/dockerconfigjson",
+        "stringData": {".dockerconfigjson": docker_config_json(address, "kuberos", password)},
+    }
+    real.core.create_namespaced_secret(namespace, secret)
+
+
+def registry_spec(name, image, secret):
+    hello = "import rclpy, time; print('hello from the registry', flush=True); time.sleep(3600)"
+    return {
+        "apiVersion": "kuberos.io/v1alpha1",
+        "kind": "RosDeployment",
+        "metadata": {"name": name, "targetFleet": "test-fleet"},
+        "imageRegistries": [{"name": "default", "pullSecret": secret, "pullPolicy": "Always"}],
+        "rosModules": [
+            {
+                "name": "hello",
+                "image": image,
+                "launch": [shlex.join(["python3", "-c", hello])],
+                "preference": ["cloud", "edge"],
+                "resources": {"cpu": "100m", "memory": "128Mi"},
+            }
+        ],
+    }
+
+
+def test_pods_pull_by_digest_from_the_registry_with_a_pull_secret_on_every_node(real, lab):
+    """The published-layout image by digest, imagePullPolicy Always (the kubelet asks the registry each time), the
+    credentials from a kubernetes.io/dockerconfigjson Secret; each node's containerd trusts the registry's CA."""
+    address, served, password = registry_state(real)
+    (image,) = [ref for built, ref in served.items() if "/ros-base:" in built]
+    assert image.startswith(f"{address}/kuberos/ros-base@sha256:")
+    pull_secret(real, lab, "lab-registry", address, password)
+    names = []
+    for node in NODES:
+        name = f"pull-{node}"
+        pod = program_pod(name, node, lab, [], {}, robot=node.startswith("robot"))
+        container = pod["spec"]["containers"][0]
+        container.update(image=image, imagePullPolicy="Always", command=None, volumeMounts=[],
+                         args=["python3", "-c", "import rclpy; print('pulled and sourced', rclpy.__name__)"])  # fmt: skip
+        pod["spec"].update(volumes=[], restartPolicy="Never", imagePullSecrets=[{"name": "lab-registry"}])
+        real.core.create_namespaced_pod(lab, pod)
+        names.append(name)
+    for name in names:
+        wait_for(lambda name=name: (phase(real, lab, name) or ("",))[0] == "Succeeded", 180, f"{name} Succeeded")
+        assert "pulled and sourced rclpy" in logs(real, lab, name)
+    pulled = {}
+    for event in real.core.list_namespaced_event(lab, field_selector="reason=Pulled").items:
+        if event.involved_object.name in names and "Successfully pulled" in event.message:
+            pulled[event.involved_object.name] = event.message.split(" in ", 1)[1]
+    print("pulled:", pulled)
+    assert sorted(pulled) == sorted(names)
+    for name in names:
+        real.core.delete_namespaced_pod(name, lab, grace_period_seconds=0)
+
+
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        ("wrong password", "the registry refused the credentials"),
+        ("unknown image", "the registry has no such image"),
+    ],
+)
+def test_a_deploy_whose_image_cannot_be_pulled_fails_in_one_sentence_naming_the_image_and_registry(
+    real, deployed, tmp_path, case, expected
+):
+    address, served, password = registry_state(real)
+    (image,) = [ref for built, ref in served.items() if "/ros-base:" in built]
+    namespace = fleet_namespace(deployed)
+    name = "registry-" + case.replace(" ", "-")
+    if case == "wrong password":
+        pull_secret(real, namespace, name, address, password + "-wrong")
+    else:
+        pull_secret(real, namespace, name, address, password)
+        image = image.rpartition("@")[0] + "@sha256:" + "0" * 64
+    spec = tmp_path / f"{name}.yml"
+    spec.write_text(yaml.safe_dump(registry_spec(name, image, name)), encoding="utf-8")
+    started = time.monotonic()
+    try:
+        result = real.deploy(str(spec), tmp_path / "render")
+        elapsed = time.monotonic() - started
+        assert result.returncode != 0
+        text = result.stdout + result.stderr
+        assert f"robot-1/hello cannot start: image {image} from registry {address}: {expected}" in text, text[-5000:]
+        assert elapsed < 150, f"the deploy waited {elapsed:.0f} s for a pull that cannot succeed"
+    finally:
+        undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec}")
+        assert undo.returncode == 0, undo.stdout[-3000:]
+        real.core.delete_namespaced_secret(name, namespace)
+
+
+def test_a_deploy_pulls_its_modules_by_digest_with_the_pull_secret_named_in_image_registries(real, deployed, tmp_path):
+    address, served, password = registry_state(real)
+    (image,) = [ref for built, ref in served.items() if "/ros-base:" in built]
+    namespace = fleet_namespace(deployed)
+    pull_secret(real, namespace, "registry-good", address, password)
+    spec = tmp_path / "registry-good.yml"
+    spec.write_text(yaml.safe_dump(registry_spec("registry-good", image, "registry-good")), encoding="utf-8")
+    try:
+        result = real.deploy(str(spec), tmp_path / "render")
+        assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-2000:]
+        pods = real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/deployment=registry-good").items
+        assert len(pods) == 1 and pods[0].spec.image_pull_secrets[0].name == "registry-good"
+        assert pods[0].spec.containers[0].image == image and not pods[0].spec.containers[0].command
+        wait_for(lambda: "hello from the registry" in logs(real, namespace, pods[0].metadata.name), 60, "the module's output")
+    finally:
+        undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec}")
+        assert undo.returncode == 0, undo.stdout[-3000:]
+        real.core.delete_namespaced_secret("registry-good", namespace)
+
+
+# -- the controller as pods ----------------------------------------------------------------------------------------
+
+IN_NODE = """
+import json, ssl, sys, urllib.error, urllib.request
+address, name, ca, token = sys.argv[1:5]
+context = ssl.create_default_context(cafile=ca)
+answers = {}
+for path, bearer in (("/metrics", token), ("/metrics", ""), ("/healthz", "")):
+    request = urllib.request.Request(f"https://{address}:8611{path}", headers={"Host": name})
+    if bearer:
+        request.add_header("Authorization", "Bearer " + bearer)
+    try:
+        with urllib.request.urlopen(request, timeout=10, context=context) as response:
+            answers[f"{path} {bool(bearer)}"] = [response.status, response.read().decode()[:20000]]
+    except urllib.error.HTTPError as error:
+        answers[f"{path} {bool(bearer)}"] = [error.code, ""]
+print(json.dumps(answers))
+"""
+
+
+def lease_holder(real):
+    from kubernetes import client
+
+    coordination = client.CoordinationV1Api(real.core.api_client)
+    try:
+        return coordination.read_namespaced_lease("kuberos-controller", "kuberos-system").spec.holder_identity
+    except Exception:
+        return None
+
+
+def controller_pods(real):
+    pods = real.core.list_namespaced_pod("kuberos-system", label_selector="app.kubernetes.io/name=kuberos-controller").items
+    return {
+        p.metadata.name: p.spec.node_name
+        for p in pods
+        if p.status.phase == "Running"
+        and p.metadata.deletion_timestamp is None
+        and all(s.ready for s in p.status.container_statuses or [])
+    }
+
+
+def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_and_a_killed_leader_hands_over(
+    real, deployed, tmp_path
+):
+    """controller.yml in-cluster: two replicas from the collection's image on edge-1 and edge-2 (reaching the API
+    server through the `kubernetes` Service), one holding the Lease; the dashboard's /metrics through the Service
+    over TLS answers a token the API server vouches for and refuses none; the leader's pod killed, the other takes
+    the Lease within the lease duration and a bit."""
+    from ansible_collections.kuberos.platform.plugins.module_utils import pki
+
+    name = "kuberos-controller.kuberos-system.svc"
+    ca_cert, ca_key = pki.new_ca("dashboard test CA", days=1)
+    cert, key = pki.issue(ca_cert, ca_key, name, usage=pki.SERVER, days=1, alt_names=[name, f"{name}.cluster.local"])
+    for path, obj in (("ca.crt", ca_cert), ("tls.crt", cert), ("tls.key", key)):
+        pki.write_pem(str(tmp_path / path), obj)
+    try:
+        real.core.create_namespace({"metadata": {"name": "kuberos-system"}})
+    except Exception:
+        pass
+    real.core.create_namespaced_secret(
+        "kuberos-system",
+        {
+            "metadata": {"name": "kuberos-dashboard-tls"},
+            "type": "kubernetes.io/tls",
+            "stringData": {f: (tmp_path / f).read_text() for f in ("tls.crt", "tls.key", "ca.crt")},
+        },
+    )
+    extra = {
+        "controller_mode": "in_cluster", "controller_kubeconfig": real.kubeconfig, "controller_fleets": ["test-fleet"],
+        "controller_dashboard_tls_secret": "kuberos-dashboard-tls", "controller_grace": GRACE,
+    }  # fmt: skip
+    result = real.play("controller.yml", "-e", json.dumps(extra))
+    assert result.returncode == 0, result.stdout[-6000:]
+    try:
+        pods = wait_for(lambda: (lambda found: found if len(found) == 2 else None)(controller_pods(real)), 180, "two pods Ready")
+        assert sorted(pods.values()) == ["edge-1", "edge-2"], pods
+        leader = wait_for(lambda: lease_holder(real) if lease_holder(real) in pods else None, 60, "a replica holding the Lease")
+
+        from kubernetes import client
+
+        token = real.core.create_namespaced_service_account_token(
+            "kuberos-dashboard-viewer", "kuberos-system", client.AuthenticationV1TokenRequest(spec={"expirationSeconds": 600})
+        ).status.token
+        address = real.core.read_namespaced_service("kuberos-controller", "kuberos-system").spec.cluster_ip
+        netns = RealNodes.from_state(_plane(real), {}).nets["edge-1"].netns
+        done = subprocess.run(
+            ["ip", "netns", "exec", netns, sys.executable, "-c", IN_NODE, address, name, str(tmp_path / "ca.crt"), token],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr[-3000:]
+        answers = json.loads(done.stdout)
+        assert answers["/metrics True"][0] == 200 and "kuberos_" in answers["/metrics True"][1], answers["/metrics True"][1][:500]
+        assert answers["/metrics False"][0] == 401, "no token, no metrics"
+        assert answers["/healthz False"][0] == 200
+
+        other = next(p for p in pods if p != leader)
+        killed = time.monotonic()
+        real.core.delete_namespaced_pod(leader, "kuberos-system", grace_period_seconds=0)
+        wait_for(lambda: lease_holder(real) == other, 30, f"{other} to take the Lease from {leader}", interval=0.1)
+        takeover = time.monotonic() - killed
+        print(f"in-cluster controller: leader {leader} killed, {other} took the Lease in {takeover:.1f} s")
+        assert takeover < 10
+        wait_for(lambda: len(controller_pods(real)) == 2, 180, "the Deployment's replacement replica Ready")
+    finally:
+        extra["controller_state"] = "stopped"
+        real.play("controller.yml", "-e", json.dumps(extra))
+        real.core.delete_namespaced_secret("kuberos-dashboard-tls", "kuberos-system")
+
+
 TRIAL = (  # a run's program: says its mode, leaves a termination message, then exits 0, exits 3 or hangs
     "import sys, time; mode = sys.argv[1].split(':=')[1]; print('trial', mode, flush=True); "
     "open('/dev/termination-log', 'w').write('result ' + mode); "

@@ -103,6 +103,8 @@ def test_the_in_cluster_rights_are_narrow():
     assert service["spec"]["selector"].items() <= pod_labels(deployment).items()
     assert {e["name"] for e in container["env"]} == {"POD_NAME", "KUBEROS_NODE_NAME"}
     assert pod["affinity"]["podAntiAffinity"], "replicas spread over nodes where they can"
+    (term,) = pod["affinity"]["nodeAffinity"]["requiredDuringSchedulingIgnoredDuringExecution"]["nodeSelectorTerms"]
+    assert term == {"matchExpressions": [{"key": "kuberos.io/role", "operator": "In", "values": ["edge"]}]}, "edge servers only"
     assert "PodDisruptionBudget" in kinds
     single = controller_objects("kuberos-system", "img", ["a"], [], replicas=1)
     assert "PodDisruptionBudget" not in [o["kind"] for o in single], "a budget of one replica would block every drain"

@@ -14,13 +14,16 @@ server (TokenReview, SubjectAccessReview) whether it may ``get`` ``/kuberos/dash
 ClusterRole ``kuberos-dashboard-viewer`` grants both; it is bound to the ServiceAccount of the same name, whose
 token a person gets with ``kubectl create token kuberos-dashboard-viewer -n kuberos-system``.
 
-Several replicas run (two by default), spread over nodes where possible, each knowing its pod's name (its
-identity in the Lease) and its node (a replica whose node is NotReady does not lead). A
+Several replicas run (two by default) on edge servers (nodes labelled ``kuberos.io/role=edge``: on site, beside
+the robots and the control plane, never on a robot or a cloud VM behind a long link), spread over them where
+possible, each knowing its pod's name (its identity in the Lease) and its node (a replica whose node is NotReady
+does not lead). A
 PodDisruptionBudget keeps one replica through voluntary evictions such as a node drain.
 """
 
 from __future__ import annotations
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
 
@@ -157,6 +160,13 @@ def controller_objects(
                         "serviceAccountName": NAME,
                         **({"volumes": [{"name": "dashboard-tls", "secret": {"secretName": tls_secret}}]} if tls_secret else {}),
                         "affinity": {
+                            "nodeAffinity": {
+                                "requiredDuringSchedulingIgnoredDuringExecution": {
+                                    "nodeSelectorTerms": [
+                                        {"matchExpressions": [{"key": node_labels.ROLE, "operator": "In", "values": ["edge"]}]}
+                                    ]
+                                }
+                            },
                             "podAntiAffinity": {
                                 "preferredDuringSchedulingIgnoredDuringExecution": [
                                     {
