@@ -70,7 +70,9 @@ def cold_pull(directory: str, registry: LocalRegistry, references: list[str]) ->
         handle.write(registry.containerd_hosts())
     address = os.path.join(directory, "containerd.sock")
     with open(os.path.join(directory, "log"), "wb") as output:
-        daemon = subprocess.Popen(["containerd", "--config", config], stdout=output, stderr=subprocess.STDOUT, start_new_session=True)
+        daemon = subprocess.Popen(
+            ["containerd", "--config", config], stdout=output, stderr=subprocess.STDOUT, start_new_session=True
+        )
     seconds = {}
     try:
         deadline = time.monotonic() + 30
@@ -144,7 +146,7 @@ def main() -> int:
                 digest, done = client.push_archive(image["archive"], repository, image["name"].rsplit(":", 1)[1])
                 image["push_s"] = round(time.monotonic() - started, 1)
                 assert digest == image["digest"], (digest, image)
-                again_digest, again_done = client.push_archive(image["archive"], repository)
+                _digest, again_done = client.push_archive(image["archive"], repository)
                 image["second_push_uploaded"] = again_done["uploaded"]
                 image["reference"] = f"{registry.address}/{repository}@{digest}"
                 log(f"pushed {image['reference']} in {image['push_s']} s ({done['uploaded']} blobs)")

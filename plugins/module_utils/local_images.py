@@ -441,8 +441,8 @@ def _normalise(rootfs: str, since: float) -> None:
         if os.path.isfile(path):
             with open(path, encoding="utf-8") as handle:
                 lines = handle.read().splitlines()
-            fields = [line.split(":") for line in lines]
-            text = "\n".join(":".join([*f[:2], day if f[2:3] and f[2] else "", *f[3:]]) if len(f) > 2 else ":".join(f) for f in fields)
+            fields = [line.split(":") for line in lines]  # name:password:last change (days):...
+            text = "\n".join(":".join([*f[:2], day if f[2] else "", *f[3:]] if len(f) > 2 else f) for f in fields)
             mode = os.stat(path).st_mode
             with open(path, "w", encoding="utf-8") as handle:
                 handle.write(text + "\n")
@@ -541,9 +541,10 @@ def _build_base(images: str, key: str, lines: list[str], python: str, python_ver
     step = time.monotonic()
     with _progress(log, "packing the rootfs"):
         _normalise(rootfs, since - 1)
-        _run(["umoci", "repack", "--image", f"{layout}:base", *CREATED, "--history.created_by", f"kuberos local_images base {key}",
-              bundle])  # fmt: skip
-    config = ["umoci", "config", "--image", f"{layout}:base", "--created", SOURCE_DATE, *CREATED, "--config.workingdir", APP_DIR]
+        history = ("--history.created_by", f"kuberos local_images base {key}")
+        _run(["umoci", "repack", "--image", f"{layout}:base", *CREATED, *history, bundle])
+    config = ["umoci", "config", "--image", f"{layout}:base", "--created", SOURCE_DATE, *CREATED, "--config.workingdir"]
+    config.append(APP_DIR)
     for name, value in env.items():
         config += ["--config.env", f"{name}={value}"]
     _run([*config, "--history.created_by", "kuberos local_images environment"])
@@ -788,8 +789,8 @@ def _build_pause(repo_root: str, images: str, key: str, archive: str) -> None:
         _run(["gcc", "-static", "-Os", "-s", "-Wall", "-o", program, os.path.join(repo_root, PAUSE_SOURCE)], what="gcc")
         os.chmod(program, 0o755)
         _normalise(os.path.join(bundle, "rootfs"), 0)
-        _run(["umoci", "repack", "--image", f"{layout}:pause", *CREATED, "--history.created_by", f"gcc -static -Os {PAUSE_SOURCE}",
-              bundle])  # fmt: skip
+        history = ("--history.created_by", f"gcc -static -Os {PAUSE_SOURCE}")
+        _run(["umoci", "repack", "--image", f"{layout}:pause", *CREATED, *history, bundle])
         _run(["umoci", "config", "--image", f"{layout}:pause", "--created", SOURCE_DATE, "--config.entrypoint", "/pause",
               "--no-history"])  # fmt: skip
         _write_archive(layout, "pause", PAUSE_IMAGE, archive)

@@ -177,7 +177,7 @@ def controller_objects(
                                         },
                                     }
                                 ]
-                            }
+                            },
                         },
                         "containers": [
                             {
