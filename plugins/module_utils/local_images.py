@@ -110,7 +110,7 @@ ROS_ENTRYPOINT = "/ros_entrypoint.sh"
 PAUSE_IMAGE = "kuberos.local/pause:3.10"
 
 # Part of every cache key: change it when the recipe changes what the images contain.
-RECIPE_VERSION = "6"
+RECIPE_VERSION = "7"
 
 DEBIAN_SUITE = "bookworm"
 DEBIAN_PACKAGES = ("python3", "python3-venv", "ca-certificates")
@@ -427,12 +427,15 @@ def _strip(rootfs: str) -> None:
 def _normalise(rootfs: str, since: float) -> None:
     """What makes two builds of the same sources differ, made the same: files written with the build's date or
     host (ldconfig's cache of file times, backups of dpkg's databases, the host's name and resolver, which the
-    runtime mounts anyway), the password-change day in the shadow files, and the times of every file written or
+    runtime mounts anyway, what the smoke test left in /tmp), the password-change day in the shadow files, and the times of every file written or
     changed by the build (at or after ``since``) set to SOURCE_DATE, as reproducible builds clamp to
     SOURCE_DATE_EPOCH. Files unpacked from Debian's packages keep their packages' times: Debian's
     byte-compiled standard library records them, and would be recompiled at run time otherwise."""
     for relative in ("var/cache/ldconfig/aux-cache", "etc/hostname", "etc/resolv.conf", "etc/machine-id"):
         _remove(os.path.join(rootfs, relative))
+    for relative in ("tmp", "var/tmp"):  # what the smoke test's imports wrote (matplotlib's font cache under HOME=/tmp)
+        for name in os.listdir(os.path.join(rootfs, relative)) if os.path.isdir(os.path.join(rootfs, relative)) else ():
+            _remove(os.path.join(rootfs, relative, name))
     for path in glob.glob(os.path.join(rootfs, "var/lib/dpkg/*-old")) + glob.glob(os.path.join(rootfs, "etc/*-")):
         _remove(path)
     day = str(APP_MTIME // 86400)

@@ -480,6 +480,72 @@ def test_a_deploy_pulls_its_modules_by_digest_with_the_pull_secret_named_in_imag
         real.core.delete_namespaced_secret("registry-good", namespace)
 
 
+# -- resource defaults: rclpy modules without `resources` under a 1 kHz load -----------------------------------------
+
+LOAD = (  # a publisher at RATE Hz of 64-byte strings, or a subscriber that says how many it got every 5 s
+    "import sys, rclpy; from std_msgs.msg import String; role, rate = sys.argv[1], float(sys.argv[2]); rclpy.init(); "
+    "node = rclpy.create_node('load_' + role); got = [0]\n"
+    "if role == 'pub':\n    pub = node.create_publisher(String, 'load', 10); msg = String(data='x' * 64); "
+    "node.create_timer(1.0 / rate, lambda: pub.publish(msg))\n"
+    "else:\n    node.create_subscription(String, 'load', lambda m: got.__setitem__(0, got[0] + 1), 10); "
+    "node.create_timer(5.0, lambda: print('received', got[0], flush=True))\n"
+    "rclpy.spin(node)"
+)
+
+
+def memory_peak(real, pod) -> int:
+    """The pod's memory cgroup high-water mark (cgroup v1 cgroupfs: <kubelet root>/kubepods/<qos>/pod<uid>)."""
+    node = pod.spec.node_name
+    net = RealNodes.from_state(_plane(real), {}).nets[node]
+    pattern = f"/sys/fs/cgroup/memory/{net.cgroup}/kubepods*/**/pod{pod.metadata.uid}/memory.max_usage_in_bytes"
+    import glob
+
+    (path,) = glob.glob(pattern, recursive=True) or [None]
+    assert path, pattern
+    with open(path, encoding="utf-8") as handle:
+        return int(handle.read())
+
+
+def test_rclpy_modules_without_resources_run_a_1khz_load_under_the_defaults_without_oom(real, deployed, tmp_path):
+    """Two modules with the default requests and memory limit (spec.DEFAULT_CPU, DEFAULT_MEMORY): a publisher at
+    1 kHz and a subscriber, one minute; neither restarts nor is OOM-killed, and their memory peaks are printed."""
+    spec = {
+        "apiVersion": "kuberos.io/v1alpha1",
+        "kind": "RosDeployment",
+        "metadata": {"name": "load", "targetFleet": "test-fleet"},
+        "rosModules": [
+            {"name": name, "image": ROS_IMAGE, "launch": [shlex.join(["python3", "-c", LOAD, role, "1000"])],
+             "preference": ["cloud", "edge"]}
+            for name, role in (("load-pub", "pub"), ("load-sub", "sub"))
+        ],
+    }  # fmt: skip
+    path = tmp_path / "load.yml"
+    path.write_text(yaml.safe_dump(spec), encoding="utf-8")
+    namespace = fleet_namespace(deployed)
+    try:
+        result = real.deploy(str(path), tmp_path / "render")
+        assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-2000:]
+        pods = {p.metadata.labels["kuberos.io/module"]: p for p in real.core.list_namespaced_pod(
+            namespace, label_selector="kuberos.io/deployment=load").items}  # fmt: skip
+        limits = {m: p.spec.containers[0].resources.limits["memory"] for m, p in pods.items()}
+        assert limits == {"load-pub": "128Mi", "load-sub": "128Mi"}, limits
+        time.sleep(60)
+        counts = [int(line.split()[1]) for line in logs(real, namespace, pods["load-sub"].metadata.name).splitlines()
+                  if line.startswith("received")]  # fmt: skip
+        assert len(counts) >= 2 and counts[-1] > counts[-2], counts
+        rate = (counts[-1] - counts[-2]) / 5.0
+        for module, pod in pods.items():
+            live = real.core.read_namespaced_pod(pod.metadata.name, namespace)
+            (status,) = live.status.container_statuses
+            assert status.restart_count == 0 and status.state.running, (module, status)
+            assert not (status.last_state.terminated and status.last_state.terminated.reason == "OOMKilled"), module
+            print(f"{module} on {live.spec.node_name}: memory peak {memory_peak(real, live) / 2**20:.1f} MiB (limit 128Mi)")
+        print(f"load-sub received {rate:.0f} messages/s of the 1 kHz publisher")
+    finally:
+        undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={path}")
+        assert undo.returncode == 0, undo.stdout[-3000:]
+
+
 # -- the controller as pods ----------------------------------------------------------------------------------------
 
 IN_NODE = """

@@ -315,16 +315,11 @@ class LocalRegistry:
         return changed
 
     def containerd_hosts(self) -> str:
-        """containerd's ``hosts.toml`` for this registry (under ``<config_path>/<address>/``): trust its CA."""
+        """containerd's ``hosts.toml`` for this registry (under ``<config_path>/<address>/``): trust its CA. The CA
+        is the default server's own (top level), not a ``[host]`` section's: containerd asks the default server
+        again when a host answers 404, and without the CA there a missing image would read as a TLS failure."""
         return "\n".join(
-            [
-                f'server = "https://{self.address}"',
-                "",
-                f'[host."https://{self.address}"]',
-                '  capabilities = ["pull", "resolve"]',
-                f'  ca = "{self.ca_file}"',
-                "",
-            ]
+            [f'server = "https://{self.address}"', f'ca = "{self.ca_file}"', 'capabilities = ["pull", "resolve"]', ""]
         )
 
 
