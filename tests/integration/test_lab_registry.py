@@ -149,3 +149,50 @@ def test_stop_ends_the_process_and_remove_leaves_nothing(tmp_path):
     assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"
     assert not os.path.exists(running.directory)
     assert running.stop() is False
+
+
+@pytest.mark.skipif(not shutil.which("containerd") and not os.environ.get("CI"), reason="containerd is not installed")
+def test_containerd_pulls_by_digest_trusting_the_ca_of_hosts_toml_and_a_missing_digest_reads_not_found(registry, tmp_path):
+    """A containerd of the test's own with the registry's hosts.toml (as every real node has it): the image by
+    digest with the password; a digest the registry lacks is 'not found', not a certificate error (containerd
+    asks the default server again after a 404, which must trust the CA too)."""
+    import signal
+    import subprocess
+    import time
+
+    archive = str(tmp_path / "pulled.tar")
+    digest = write_archive(archive, b"pulled by containerd\n")
+    registry.client().push_archive(archive, "kuberos/pulled", "1")
+    root = tmp_path / "ctd"
+    hosts = root / "certs.d" / registry.address
+    hosts.mkdir(parents=True)
+    (hosts / "hosts.toml").write_text(registry.containerd_hosts(), encoding="utf-8")
+    socket_path = f"/tmp/kuberos-ctd-{os.getpid()}.sock"  # sun_path is short
+    (root / "config.toml").write_text(
+        f'version = 2\nroot = "{root}/root"\nstate = "{root}/state"\n[grpc]\n  address = "{socket_path}"\n', encoding="utf-8"
+    )
+    with open(root / "log", "wb") as log:
+        daemon = subprocess.Popen(["containerd", "--config", str(root / "config.toml")], stdout=log, stderr=subprocess.STDOUT,
+                                  start_new_session=True)  # fmt: skip
+    try:
+        deadline = time.monotonic() + 30
+        while subprocess.run(["ctr", "-a", socket_path, "version"], capture_output=True).returncode != 0:
+            assert time.monotonic() < deadline and daemon.poll() is None, (root / "log").read_text()[-2000:]
+            time.sleep(0.2)
+
+        def pull(reference: str) -> subprocess.CompletedProcess:
+            return subprocess.run(
+                ["ctr", "-a", socket_path, "-n", "test", "images", "pull", "--hosts-dir", str(root / "certs.d"),
+                 "--user", f"{registry.username}:{registry.password}", reference],
+                capture_output=True, text=True, timeout=120,
+            )  # fmt: skip
+
+        good = pull(f"{registry.address}/kuberos/pulled@{digest}")
+        assert good.returncode == 0, good.stderr[-2000:]
+        missing = pull(f"{registry.address}/kuberos/pulled@sha256:{'0' * 64}")
+        assert missing.returncode != 0 and missing.stderr.rstrip().endswith("not found"), missing.stderr[-2000:]
+        assert "x509" not in missing.stderr and "certificate" not in missing.stderr
+    finally:
+        os.killpg(daemon.pid, signal.SIGTERM)
+        daemon.wait(timeout=30)
+        subprocess.run(["umount", "-R", str(root)], capture_output=True, check=False)

@@ -315,11 +315,20 @@ class LocalRegistry:
         return changed
 
     def containerd_hosts(self) -> str:
-        """containerd's ``hosts.toml`` for this registry (under ``<config_path>/<address>/``): trust its CA. The CA
-        is the default server's own (top level), not a ``[host]`` section's: containerd asks the default server
-        again when a host answers 404, and without the CA there a missing image would read as a TLS failure."""
+        """containerd's ``hosts.toml`` for this registry (under ``<config_path>/<address>/``): trust its CA, in the
+        ``[host]`` section and for the default server at the top level: containerd asks the default server again
+        when a host answers 404, and without the CA there a missing image would read as a TLS failure
+        (containerd 1.6 refuses a file without a ``[host]`` section)."""
         return "\n".join(
-            [f'server = "https://{self.address}"', f'ca = "{self.ca_file}"', 'capabilities = ["pull", "resolve"]', ""]
+            [
+                f'server = "https://{self.address}"',
+                f'ca = "{self.ca_file}"',
+                "",
+                f'[host."https://{self.address}"]',
+                '  capabilities = ["pull", "resolve"]',
+                f'  ca = "{self.ca_file}"',
+                "",
+            ]
         )
 
 
