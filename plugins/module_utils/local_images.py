@@ -427,9 +427,9 @@ def _strip(rootfs: str) -> None:
 def _normalise(rootfs: str, since: float) -> None:
     """What makes two builds of the same sources differ, made the same: files written with the build's date or
     host (ldconfig's cache of file times, backups of dpkg's databases, the host's name and resolver, which the
-    runtime mounts anyway, what the smoke test left in /tmp), the password-change day in the shadow files, and the times of every file written or
-    changed by the build (at or after ``since``) set to SOURCE_DATE, as reproducible builds clamp to
-    SOURCE_DATE_EPOCH. Files unpacked from Debian's packages keep their packages' times: Debian's
+    runtime mounts anyway, what the smoke test left in /tmp), the password-change day in the shadow files, and
+    the times of every file written or changed by the build (at or after ``since``) set to SOURCE_DATE, as
+    reproducible builds clamp to SOURCE_DATE_EPOCH. Files unpacked from Debian's packages keep their packages' times: Debian's
     byte-compiled standard library records them, and would be recompiled at run time otherwise."""
     for relative in ("var/cache/ldconfig/aux-cache", "etc/hostname", "etc/resolv.conf", "etc/machine-id"):
         _remove(os.path.join(rootfs, relative))
@@ -689,20 +689,24 @@ def _copy_layout(source: str, destination: str) -> None:
             shutil.copyfile(os.path.join(blobs, name), target)
 
 
-def _build_ros(images: str, base: str, key: str, files: list[tuple[str, bytes | None, bool]], archive: str) -> None:
-    work = os.path.join(images, "tmp", f"ros-{key}-{os.getpid()}")
+def _build_on_base(images: str, base: str, key: str, files, reference: str, archive: str, what: str, config=()) -> None:
+    """The base plus one layer of ``files`` (as _app_files returns them) and ``umoci config`` options, as the OCI
+    archive of ``reference``: built in tmp/, renamed into place when complete."""
+    work = os.path.join(images, "tmp", f"{reference.split('/')[-1].replace(':', '-')}-{os.getpid()}")
     _remove(work)
     os.makedirs(work)
     try:
         layout = os.path.join(work, "layout")
         _copy_layout(os.path.join(base, "layout"), layout)
-        layer = os.path.join(work, "app.tar")
+        layer = os.path.join(work, "layer.tar")
         _write_app_layer(files, layer)
         _run(
             ["umoci", "raw", "add-layer", "--image", f"{layout}:base", "--tag", key, *CREATED,
-             "--history.created_by", f"kuberos local_images application {key}", layer],
+             "--history.created_by", f"kuberos local_images {what}", layer],
         )  # fmt: skip
-        _write_archive(layout, key, f"{ROS_IMAGE}:{key}", archive)
+        if config:
+            _run(["umoci", "config", "--image", f"{layout}:{key}", *config, *CREATED, "--history.created_by", f"kuberos {what}"])
+        _write_archive(layout, key, reference, archive)
     finally:
         _remove(work)
 
@@ -752,30 +756,6 @@ def _ros_base_files(base: str) -> list[tuple[str, bytes | None, bool]]:
         (f"{prefix}/setup.bash", setup, False),
         (f"{prefix}/setup.sh", setup, False),
     ]
-
-
-def _build_ros_base(images: str, base: str, key: str, archive: str) -> None:
-    """The base with the published ROS image's entrypoint, setup scripts and configuration (no ROS on PATH)."""
-    work = os.path.join(images, "tmp", f"ros-base-{key}-{os.getpid()}")
-    _remove(work)
-    os.makedirs(work)
-    try:
-        layout = os.path.join(work, "layout")
-        _copy_layout(os.path.join(base, "layout"), layout)
-        layer = os.path.join(work, "entrypoint.tar")
-        _write_app_layer(_ros_base_files(base), layer)
-        _run(
-            ["umoci", "raw", "add-layer", "--image", f"{layout}:base", "--tag", key, *CREATED,
-             "--history.created_by", f"kuberos local_images {ROS_ENTRYPOINT} and setup scripts", layer],
-        )  # fmt: skip
-        config = ["umoci", "config", "--image", f"{layout}:{key}", "--clear=config.env", "--config.workingdir", "/"]
-        for item in ROS_BASE_ENV:
-            config += ["--config.env", item]
-        config += ["--config.entrypoint", ROS_ENTRYPOINT, "--config.cmd", "bash"]
-        _run([*config, *CREATED, "--history.created_by", f"kuberos local_images ENTRYPOINT {ROS_ENTRYPOINT}"])
-        _write_archive(layout, key, f"{ROS_BASE_IMAGE}:{key}", archive)
-    finally:
-        _remove(work)
 
 
 def _build_pause(repo_root: str, images: str, key: str, archive: str) -> None:
@@ -870,7 +850,7 @@ def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
             os.utime(archive)
         else:
             base = _ensure_base(images, base, base_key, lines, python, python_version, log)
-            _build_ros(images, base, key, files, archive)
+            _build_on_base(images, base, key, files, f"{ROS_IMAGE}:{key}", archive, f"application {key}")
             _prune(images, r"ros-[0-9a-f]{12}\.tar", KEEP_ARCHIVES, archive, log)
         results.append(_result(f"{ROS_IMAGE}:{key}", archive, started, cached))
 
@@ -882,7 +862,11 @@ def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
             os.utime(archive)
         else:
             base = _ensure_base(images, base, base_key, lines, python, python_version, log)
-            _build_ros_base(images, base, key, archive)
+            config = ["--clear=config.env", "--config.workingdir", "/"]
+            config += [option for item in ROS_BASE_ENV for option in ("--config.env", item)]
+            config += ["--config.entrypoint", ROS_ENTRYPOINT, "--config.cmd", "bash"]
+            what = f"{ROS_ENTRYPOINT}, setup scripts, ENTRYPOINT (the published ROS image's layout)"
+            _build_on_base(images, base, key, _ros_base_files(base), f"{ROS_BASE_IMAGE}:{key}", archive, what, config)
             _prune(images, r"ros-base-[0-9a-f]{12}\.tar", KEEP_ARCHIVES, archive, log)
         results.append(_result(f"{ROS_BASE_IMAGE}:{key}", archive, started, cached))
     return results
