@@ -25,6 +25,7 @@ import shlex
 import statistics
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -478,6 +479,119 @@ def test_a_deploy_pulls_its_modules_by_digest_with_the_pull_secret_named_in_imag
         undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec}")
         assert undo.returncode == 0, undo.stdout[-3000:]
         real.core.delete_namespaced_secret("registry-good", namespace)
+
+
+# -- rollouts with real containers ----------------------------------------------------------------------------------
+
+VERSIONED = "import rclpy, sys, time; print('talker version', sys.argv[1], flush=True); rclpy.init(); time.sleep(3600)"
+
+
+def test_a_rollout_upgrades_a_real_container_and_a_broken_image_stops_at_the_canary(real, deployed, tmp_path):
+    """A catalog module in three versions, each an image in the lab registry pulled by digest: 0.1.0 the published
+    ROS layout, 0.2.0 the collection's image, 0.2.1 an image whose entrypoint exits at start (derived in the
+    registry from 0.2.0: the same layers, another configuration). Deploy 0.1.0; roll out to 0.2.0 (it runs for
+    real, the downtime polled includes the container's start); roll out to 0.2.1: the canary's pod exits, the gate
+    stops the rollout and rolls the canary back to 0.2.0, which still runs."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import RegistryClient
+
+    address, served, password = registry_state(real)
+    # the catalog's form: the image by name and tag, its digest apart (rendered as name:tag@digest)
+    tagged = {built.rsplit("/", 1)[1].split(":")[0]: (f"{ref.split('@')[0]}:{built.rsplit(':', 1)[1]}", ref.split("@")[1])
+              for built, ref in served.items()}  # fmt: skip
+    ca = os.path.join(real.state_dir, "nodes", "registry", "ca.crt")
+    client = RegistryClient(address, "kuberos", password, ca)
+    repository = tagged["ros"][0].split("/", 1)[1].rsplit(":", 1)[0]
+    broken_digest = client.derive_image(repository, tagged["ros"][1], "0.2.1-broken", Entrypoint=["/bin/sh", "-c", "exit 3"])
+    versions = [
+        ("0.1.0", *tagged["ros-base"]),
+        ("0.2.0", *tagged["ros"]),
+        ("0.2.1", f"{address}/{repository}:0.2.1-broken", broken_digest),
+    ]
+    catalog = {
+        "apiVersion": "kuberos.io/v1alpha1",
+        "kind": "RosModuleCatalog",
+        "modules": [
+            {
+                "name": "real-talker",
+                "versions": [
+                    {"version": version, "image": image, "digest": digest, "rosDistro": "jazzy",
+                     "launch": [shlex.join(["python3", "-c", VERSIONED, version])], "preference": ["cloud", "edge"],
+                     "resources": {"cpu": "100m", "memory": "128Mi"}}
+                    for version, image, digest in versions
+                ],
+            }
+        ],
+    }  # fmt: skip
+    (tmp_path / "catalog").mkdir()
+    (tmp_path / "catalog" / "talker.yml").write_text(yaml.safe_dump(catalog), encoding="utf-8")
+    namespace = fleet_namespace(deployed)
+    pull_secret(real, namespace, "rollout-registry", address, password)
+
+    def spec(version_range):
+        path = tmp_path / f"talker-{version_range.strip('^')}.yml"
+        document = {
+            "apiVersion": "kuberos.io/v1alpha1",
+            "kind": "RosDeployment",
+            "metadata": {"name": "real-rollout", "targetFleet": "test-fleet"},
+            "imageRegistries": [{"name": "default", "pullSecret": "rollout-registry"}],
+            "rosModules": [{"name": "talker", "module": f"real-talker@{version_range}"}],
+        }
+        path.write_text(yaml.safe_dump(document), encoding="utf-8")
+        return str(path)
+
+    catalog_var = ("-e", f"kuberos_catalog={tmp_path / 'catalog'}")
+
+    def running():
+        pods = real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/deployment=real-rollout").items
+        return [p for p in pods if p.metadata.deletion_timestamp is None]
+
+    def images():
+        return sorted(p.spec.containers[0].image.rsplit("@", 1)[1] for p in running())
+
+    try:
+        result = real.deploy(spec("^0.1"), tmp_path / "render", *catalog_var)
+        assert result.returncode == 0, result.stdout[-6000:]
+        assert images() == [tagged["ros-base"][1]]
+        wait_for(lambda: "talker version 0.1.0" in logs(real, namespace, running()[0].metadata.name), 60, "0.1.0 talking")
+
+        down, stop = [], threading.Event()
+
+        def watch():
+            since = None
+            while not stop.is_set():
+                ready = any(all(s.ready for s in p.status.container_statuses or [False]) for p in running())
+                now = time.monotonic()
+                if not ready and since is None:
+                    since = now
+                elif ready and since is not None:
+                    down.append(now - since)
+                    since = None
+                time.sleep(0.2)
+
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
+        started = time.monotonic()
+        upgraded = real.play("rollout.yml", "-e", f"rosdeployment_file={spec('0.2.0')}", "-e", "rosdeployment_rollout_soak=3",
+                             *catalog_var)  # fmt: skip
+        stop.set()
+        watcher.join()
+        assert upgraded.returncode == 0, upgraded.stdout[-6000:]
+        assert images() == [tagged["ros"][1]], "0.2.0 runs, pulled by digest"
+        wait_for(lambda: "talker version 0.2.0" in logs(real, namespace, running()[0].metadata.name), 60, "0.2.0 talking")
+        took, longest = time.monotonic() - started, max(down, default=0.0)
+        print(f"rollout 0.1.0 -> 0.2.0 on real nodes: {took:.1f} s, longest downtime {longest:.1f} s")
+
+        broken = real.play("rollout.yml", "-e", f"rosdeployment_file={spec('0.2.1')}", "-e", "rosdeployment_rollout_soak=3",
+                           "-e", "rosdeployment_rollout_gate_timeout=90", *catalog_var)  # fmt: skip
+        assert broken.returncode != 0, broken.stdout[-3000:]
+        assert "stopped at the canary" in broken.stdout and "rolled back robots robot-1" in broken.stdout, broken.stdout[-4000:]
+        wait_for(lambda: images() == [tagged["ros"][1]], 120, "the canary back on 0.2.0")
+        wait_for(lambda: "talker version 0.2.0" in logs(real, namespace, running()[0].metadata.name), 60, "0.2.0 talking again")
+        print("broken 0.2.1 stopped at the canary and rolled back to 0.2.0")
+    finally:
+        undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec('^0.1')}", *catalog_var)
+        assert undo.returncode == 0, undo.stdout[-3000:]
+        real.core.delete_namespaced_secret("rollout-registry", namespace)
 
 
 # -- resource defaults: rclpy modules without `resources` under a 1 kHz load -----------------------------------------

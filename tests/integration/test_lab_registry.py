@@ -196,3 +196,14 @@ def test_containerd_pulls_by_digest_trusting_the_ca_of_hosts_toml_and_a_missing_
         os.killpg(daemon.pid, signal.SIGTERM)
         daemon.wait(timeout=30)
         subprocess.run(["umount", "-R", str(root)], capture_output=True, check=False)
+
+
+def test_a_derived_image_shares_the_layers_and_changes_only_its_configuration(registry, tmp_path):
+    archive = str(tmp_path / "source.tar")
+    digest = write_archive(archive, b"a program\n")
+    client = registry.client()
+    client.push_archive(archive, "kuberos/derived", "1")
+    derived = client.derive_image("kuberos/derived", digest, "1-broken", Entrypoint=["/bin/false"])
+    assert derived != digest
+    assert client.manifest_digest("kuberos/derived", "1-broken") == derived
+    assert client.manifest_digest("kuberos/derived", derived) == derived
