@@ -135,14 +135,16 @@ IMAGE_DISTRIBUTIONS = (
     "protobuf",
     "cryptography",
     "PyYAML",
-    # the controller (plugins/module_utils/kuberos_controller and the kuberos core)
+    # the controller (plugins/module_utils/kuberos_controller and the kuberos core), its dashboard and /metrics
     "kubernetes",
     "jsonschema",
+    "aiohttp",
+    "prometheus_client",
 )
 # Imported in a chroot before the base is cached.
 SMOKE_IMPORTS = (
     *("rclpy", "std_msgs.msg", "trajectory_msgs.msg", "visualization_msgs.msg", "pybullet", "ompl", "toppra", "scipy"),
-    *("grpc", "cryptography", "yaml", "kubernetes.client", "jsonschema"),
+    *("grpc", "cryptography", "yaml", "kubernetes.client", "jsonschema", "aiohttp.web", "prometheus_client"),
 )
 
 # (source in the repository, destination in the image)

@@ -77,6 +77,7 @@ import ansible_collections.kuberos.platform.plugins.module_utils.kuberos_control
 import ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.core
 import ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.ros_side
 import kubernetes.client, grpc, cryptography, yaml, jsonschema
+import aiohttp.web, prometheus_client  # the controller's dashboard and /metrics
 print("prefix", sys.prefix)
 """
 
