@@ -1,7 +1,7 @@
 """The rendered Fast DDS discovery configuration, proven with real processes in network namespaces.
 
 listing1 is rendered with the project's own code, and what it renders is used unchanged: each discovery
-server Deployment's container command (`fast-discovery-server -i <id> -l 0.0.0.0 -p 11811`, the program
+server Deployment's container args (`fast-discovery-server -i <id> -l 0.0.0.0 -p 11811`, the program
 from the ros-fastrtps wheel) runs in a network namespace of its own, and rclpy talker and listener
 processes run in others with a module container's environment (ROS_DISCOVERY_SERVER, RMW_IMPLEMENTATION,
 ROS_DOMAIN_ID, ...). /etc/netns/<ns>/hosts resolves the servers' cluster DNS names to the namespaces'
@@ -62,7 +62,7 @@ def require_ros() -> None:
 
 @dataclass(frozen=True)
 class Rendered:
-    servers: dict[str, list[str]]  # discovery server Deployment name -> its container command
+    servers: dict[str, list[str]]  # discovery server Deployment name -> its container args
     addresses: dict[str, str]  # host name in ROS_DISCOVERY_SERVER -> the discovery server Deployment it names
     module_env: dict[str, dict[str, str]]  # module Deployment name -> its container's environment
 

@@ -3,7 +3,7 @@
 Pods are modelled as Kubernetes runs them: a pod is a sandbox process in a network namespace of its own with a /dev/shm
 of its own (tmpfs, `PRIVATE_SHM`); its containers join the sandbox's network and mount namespaces (nsenter), so the
 containers of one pod share its /dev/shm and addresses. A hostNetwork pod is a sandbox in a network namespace that
-another sandbox uses too. The discovery server Deployment's command and a module container's environment are the
+another sandbox uses too. The discovery server Deployment's argv (its args) and a module container's environment are the
 rendered ones (examples/listing1.yml), ROS_DISCOVERY_SERVER pointing at the one server started here.
 
 A talker (50 Hz, reliable) and a listener (tests/integration/ros) meet through the server; once the talker counts the
@@ -80,7 +80,7 @@ LAYOUTS = {
 
 @dataclass(frozen=True)
 class Rendered:
-    server: list[str]  # discovery server 0's container command
+    server: list[str]  # discovery server 0's container args (its argv: the wheels' program is on PATH here)
     module_env: dict[str, str]  # a module container's environment, ROS_DISCOVERY_SERVER naming only server 0 here
 
 
@@ -95,7 +95,7 @@ def rendered(local_inventory) -> Rendered:
         if obj["kind"] == "Deployment":
             by_component.setdefault(obj["metadata"]["labels"][manifests.COMPONENT], []).append(obj)
     (server,) = [d for d in by_component["discovery-server"] if d["metadata"]["labels"][manifests.DISCOVERY_ID] == "0"]
-    command = server["spec"]["template"]["spec"]["containers"][0]["command"]
+    command = server["spec"]["template"]["spec"]["containers"][0]["args"]  # the image's entrypoint runs it: here, PATH
     container = by_component["ros-module"][0]["spec"]["template"]["spec"]["containers"][0]
     env = {e["name"]: e["value"] for e in container["env"] if "value" in e}
     port = command[command.index("-p") + 1]
