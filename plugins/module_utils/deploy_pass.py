@@ -79,6 +79,11 @@ def refusal(exc) -> str:
         return f"{exc.status} {exc.reason}"
 
 
+# Seconds a pod's image problem must last before the deploy's wait gives up on it: past the kubelet's first
+# back-off (10 s), so the problem is what its second try said.
+PULL_PROBLEM_GRACE = 15.0
+
+
 class Api:
     """Raw JSON lists, server-side applies and deletes of the kinds KubeROS renders, through the typed clients
     (``_preload_content=False``: the answer is read as the server sent it, without building model objects)."""
@@ -477,16 +482,24 @@ class DeployPass:
 
     def wait(self) -> dict:
         """Until every module runs on its placed node (or ``wait_timeout``): the table read back from the cluster.
-        A pod whose image cannot be pulled ends the wait at once (``problems``): waiting longer does not help."""
+        A pod whose image still cannot be pulled after the kubelet's next try (PULL_PROBLEM_GRACE seconds) ends the
+        wait (``problems``, the kubelet's latest words): waiting longer does not help. The first failure alone is
+        not final: a pull secret created just before the deploy may not have reached the kubelet yet."""
         placement = self.placement.to_dict()
         fleets = [d["fleet"] for d in placement["deployments"]]
         names = [d["name"] for d in placement["deployments"]]
         deadline = time.monotonic() + int(self.params.get("wait_timeout") or 0)
+        stuck_since: dict[str, float] = {}
         while True:
             rows = compare(placement, running_modules(self.clients, fleets, names))
             ready = all(r["ready"] for r in rows)
-            problems = sorted({r["problem"] for r in rows if r["problem"] and not r["ready"]})
-            if ready or problems or time.monotonic() >= deadline:
+            now = time.monotonic()
+            stuck = {r["pod"]: r["problem"] for r in rows if r["problem"] and not r["ready"]}
+            stuck_since = {pod: stuck_since.get(pod, now) for pod in stuck}
+            problems = sorted(set(stuck.values()))
+            if ready or time.monotonic() >= deadline:
+                break
+            if any(now - since >= PULL_PROBLEM_GRACE for since in stuck_since.values()):
                 break
             time.sleep(0.5)
         self._lap("wait")

@@ -166,7 +166,8 @@ ready:
 problems:
   description:
     - Images that cannot be pulled, one sentence each naming the image, its registry and why (refused credentials,
-      no such image, an untrusted certificate, no route). The wait ends at the first, since waiting does not help.
+      no such image, an untrusted certificate, no route). The wait ends when one lasts past the kubelet's next try
+      (15 s): waiting longer does not help.
   returned: when waiting
   type: list
   elements: str
