@@ -46,3 +46,25 @@ def test_the_cause_is_named_with_the_image_and_its_registry(reason, message, cau
 )
 def test_the_registry_of_an_image(image, registry):
     assert image_registry(image) == registry
+
+
+def test_every_compared_row_says_its_problem_remote_rows_included():
+    """The deploy's wait reads each row's ``problem``: a module in a third-party cluster has none here."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import compare
+
+    row = {
+        "deployment": "app",
+        "fleet": "f",
+        "robot": "r1",
+        "module": "m",
+        "tier": "edge",
+        "node": "edge-1",
+        "instance": "app-m-r1",
+    }
+    placement = {"placements": [row, {**row, "module": "far", "instance": "app-far-r1", "cluster": "partner", "tier": "cloud"}]}
+    pod = {"fleet": "f", "instance": "app-m-r1", "node": "edge-1", "phase": "Pending", "ready": False, "pod": "p1",
+           "problem": image_pull_problem(IMAGE, "ErrImagePull", PREFIX + "not found")}  # fmt: skip
+    rows = {r["module"]: r for r in compare(placement, [pod])}
+    assert rows["far"]["phase"] == "Remote" and rows["far"]["problem"] == ""
+    assert rows["m"]["problem"].startswith(f"image {IMAGE} from registry 10.241.0.1:5443: the registry has no such image")
+    assert compare({"placements": [row]}, [])[0]["problem"] == "", "no pod yet: no problem"

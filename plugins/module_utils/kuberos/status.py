@@ -90,7 +90,8 @@ def compare(placement: dict, pods: list[dict]) -> list[dict]:
             # Runs in a third-party cluster: applied and watched there, not here.
             rows.append(
                 {"deployment": row["deployment"], "robot": row["robot"], "module": row["module"], "tier": row["tier"],
-                 "placed_node": row["node"], "node": row["node"], "phase": "Remote", "ready": True, "pod": None}
+                 "placed_node": row["node"], "node": row["node"], "phase": "Remote", "ready": True, "pod": None,
+                 "problem": ""}
             )  # fmt: skip
             continue
         live = by_instance.get((row["fleet"], row["instance"]), [])
