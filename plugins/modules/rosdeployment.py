@@ -167,7 +167,7 @@ problems:
   description:
     - Images that cannot be pulled, one sentence each naming the image, its registry and why (refused credentials,
       no such image, an untrusted certificate, no route). The wait ends when one lasts past the kubelet's next try
-      (15 s): waiting longer does not help.
+      (15 s), since waiting longer does not help.
   returned: when waiting
   type: list
   elements: str

@@ -12,7 +12,8 @@ the registry serves is the archive's own, and checks that an image exists. Every
 whose message names the registry and the image and says why (refused credentials, unknown image, no
 connection, an untrusted certificate).
 
-No Ansible imports, no Kubernetes client: the standard library, ``cryptography`` (the one PKI) and ``bcrypt``.
+No Kubernetes client: Ansible's ``open_url`` (the collection's one HTTP client), ``cryptography`` (the one PKI)
+and ``bcrypt``.
 """
 
 from __future__ import annotations
@@ -29,8 +30,9 @@ import tarfile
 import time
 import urllib.error
 import urllib.parse
-import urllib.request
 from dataclasses import dataclass
+
+from ansible.module_utils.urls import open_url
 
 from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
 from ansible_collections.kuberos.platform.plugins.module_utils import pki
@@ -87,17 +89,21 @@ class RegistryClient:
             "Basic " + base64.b64encode(f"{username}:{password}".encode()).decode() if username or password else None
         )
         self._username = username
-        self._context = ssl.create_default_context(cafile=ca_file)
+        self._ca_file = ca_file
 
     def _request(self, method: str, url: str, image: str, *, body=None, headers: dict | None = None, ok=(200,)):
         """One request; (status, headers, body bytes). Raises RegistryError naming the registry and the image."""
         if not url.startswith("https://"):
             url = f"https://{self.address}{url}"
-        request = urllib.request.Request(url, data=body, method=method, headers=dict(headers or {}))
+        headers = dict(headers or {})
         if self._authorization:
-            request.add_header("Authorization", self._authorization)
+            headers["Authorization"] = self._authorization
         try:
-            with urllib.request.urlopen(request, timeout=REQUEST_TIMEOUT, context=self._context) as response:
+            response = open_url(
+                url, data=body, headers=headers, method=method, timeout=REQUEST_TIMEOUT, ca_path=self._ca_file,
+                use_proxy=False, use_netrc=False, decompress=False, follow_redirects="none", http_agent="kuberos-lab",
+            )  # fmt: skip
+            with response:
                 return response.status, response.headers, response.read()
         except urllib.error.HTTPError as error:
             if error.code in ok:
@@ -105,13 +111,19 @@ class RegistryClient:
             raise RegistryError(self._explain(error.code, error.read(), image, method)) from None
         except urllib.error.URLError as error:
             reason = error.reason
-            if isinstance(reason, ssl.SSLCertVerificationError):
+            if isinstance(reason, ssl.SSLCertVerificationError) or "CERTIFICATE_VERIFY_FAILED" in str(reason):
+                why = getattr(reason, "verify_message", "") or "certificate verify failed"
                 raise RegistryError(
-                    f"registry {self.address}: its certificate is not trusted ({reason.verify_message}); "
+                    f"registry {self.address}: its certificate is not trusted ({why}); "
                     f"give the registry's CA certificate (image {image})"
                 ) from None
             raise RegistryError(f"registry {self.address}: cannot connect ({reason}) (image {image})") from None
-        except (OSError, TimeoutError) as error:
+        except (OSError, TimeoutError, ValueError) as error:  # ansible's SSLValidationError is a ConnectionError
+            if "certificate" in str(error).lower():
+                raise RegistryError(
+                    f"registry {self.address}: its certificate is not trusted ({error}); "
+                    f"give the registry's CA certificate (image {image})"
+                ) from None
             raise RegistryError(f"registry {self.address}: {error} (image {image})") from None
 
     def _explain(self, status: int, body: bytes, image: str, method: str) -> str:
