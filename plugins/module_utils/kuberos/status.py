@@ -11,6 +11,7 @@ Pure: plain rows in, text out.
 from __future__ import annotations
 
 from .placement import Placement
+from .validation import split_image
 
 
 def format_table(header: tuple, rows: list[tuple]) -> str:
@@ -48,9 +49,8 @@ _PULL_CAUSES = (
 
 
 def image_registry(image: str) -> str:
-    """The registry an image reference names (Docker Hub when its first part is not a host)."""
-    first, sep, _rest = image.partition("/")
-    return first if sep and ("." in first or ":" in first or first == "localhost") else "docker.io"
+    """The registry an image reference names (Docker Hub when it names none), as validation reads references."""
+    return split_image(image)[0] or "docker.io"
 
 
 def image_pull_problem(image: str, reason: str, message: str) -> str:

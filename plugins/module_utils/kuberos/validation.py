@@ -154,7 +154,7 @@ IMAGE_EXPECTED = (
 )
 
 
-def _split_image(image: str) -> tuple[str, str, str | None, str]:
+def split_image(image: str) -> tuple[str, str, str | None, str]:
     """``[domain/]path[:tag][@digest]`` -> (domain, path, tag, digest); the tag is None without a ':'."""
     name, _sep, digest = image.partition("@")
     domain, path = "", name
@@ -173,7 +173,7 @@ def _image_reason(image: str, digest_allowed: bool) -> str | None:
         return "white space"
     if image.count("@") > 1:
         return "more than one '@'"
-    domain, path, tag, digest = _split_image(image)
+    domain, path, tag, digest = split_image(image)
     if domain and not _DOMAIN.fullmatch(domain):
         return f"the registry {describe(domain)} is not a host name or address with an optional :port"
     for component in path.split("/"):
