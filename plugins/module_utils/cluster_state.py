@@ -14,6 +14,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     MANAGED_BY,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import IMAGE_PULL_REASONS, image_pull_problem
 
 # The argument every module that talks to a cluster takes (documented by the kuberos.platform.cluster fragment).
 KUBECONFIG_ARG = {"kubeconfig": {"type": "path", "required": True}}
@@ -144,8 +145,6 @@ def _image_problem(clients, pod: dict) -> str:
     """Why a container of the pod cannot start because of its image ("" when none is stuck on its image). While
     the kubelet backs off, the container says only "Back-off pulling image": the cause is the pod's last
     Failed event."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import IMAGE_PULL_REASONS, image_pull_problem
-
     status = pod.get("status") or {}
     for container in (status.get("initContainerStatuses") or []) + (status.get("containerStatuses") or []):
         waiting = (container.get("state") or {}).get("waiting") or {}

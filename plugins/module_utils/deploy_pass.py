@@ -497,9 +497,7 @@ class DeployPass:
             stuck = {r["pod"]: r["problem"] for r in rows if r["problem"] and not r["ready"]}
             stuck_since = {pod: stuck_since.get(pod, now) for pod in stuck}
             problems = sorted(set(stuck.values()))
-            if ready or time.monotonic() >= deadline:
-                break
-            if any(now - since >= PULL_PROBLEM_GRACE for since in stuck_since.values()):
+            if ready or now >= deadline or any(now - since >= PULL_PROBLEM_GRACE for since in stuck_since.values()):
                 break
             time.sleep(0.5)
         self._lap("wait")
