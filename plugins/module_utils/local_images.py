@@ -86,6 +86,7 @@ import argparse
 import contextlib
 import errno
 import fcntl
+import functools
 import glob
 import hashlib
 import io
@@ -441,17 +442,15 @@ def _normalise(rootfs: str, since: float) -> None:
     for path in glob.glob(os.path.join(rootfs, "var/lib/dpkg/*-old")) + glob.glob(os.path.join(rootfs, "etc/*-")):
         _remove(path)
     day = str(APP_MTIME // 86400)
-    for relative in ("etc/shadow",):
-        path = os.path.join(rootfs, relative)
-        if os.path.isfile(path):
-            with open(path, encoding="utf-8") as handle:
-                lines = handle.read().splitlines()
-            fields = [line.split(":") for line in lines]  # name:password:last change (days):...
-            text = "\n".join(":".join([*f[:2], day if f[2] else "", *f[3:]] if len(f) > 2 else f) for f in fields)
-            mode = os.stat(path).st_mode
-            with open(path, "w", encoding="utf-8") as handle:
-                handle.write(text + "\n")
-            os.chmod(path, mode & 0o7777)
+    shadow = os.path.join(rootfs, "etc/shadow")
+    if os.path.isfile(shadow):
+        with open(shadow, encoding="utf-8") as handle:
+            fields = [line.split(":") for line in handle.read().splitlines()]  # name:password:last change (days):...
+        text = "\n".join(":".join([*f[:2], day if f[2] else "", *f[3:]] if len(f) > 2 else f) for f in fields)
+        mode = os.stat(shadow).st_mode
+        with open(shadow, "w", encoding="utf-8") as handle:
+            handle.write(text + "\n")
+        os.chmod(shadow, mode & 0o7777)
     for directory, subdirectories, files in os.walk(rootfs, topdown=False):
         for name in [*files, *subdirectories, *([""] if directory == rootfs else [])]:
             path = os.path.join(directory, name) if name else directory
@@ -815,7 +814,7 @@ def _locked(images: str, log):
 
 
 def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
-    """Build or reuse both images; one dict per image: reference, archive, bytes, seconds, cached."""
+    """Build or reuse the three images; one dict per image: reference, archive, bytes, seconds, cached."""
     repo_root, cache_dir = os.path.realpath(repo_root), os.path.abspath(os.path.expanduser(cache_dir))
     images = os.path.join(cache_dir, "images")
     os.makedirs(images, exist_ok=True)
@@ -828,50 +827,51 @@ def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
         started = time.monotonic()
         with open(os.path.join(repo_root, PAUSE_SOURCE), "rb") as handle:
             pause_key = _sha256(RECIPE_VERSION, handle.read())[:12]
-        archive = os.path.join(images, f"pause-{pause_key}.tar")
-        cached = os.path.exists(archive)
-        if cached:
-            os.utime(archive)  # the newest archives are the ones in use: _prune keeps them
-        else:
-            _build_pause(repo_root, images, pause_key, archive)
-            _prune(images, r"pause-[0-9a-f]{12}\.tar", KEEP_ARCHIVES, archive, log)
-        results.append(_result(PAUSE_IMAGE, archive, started, cached))
+        build_pause = functools.partial(_build_pause, repo_root, images, pause_key)
+        results.append(_archive(images, "pause", pause_key, PAUSE_IMAGE, build_pause, started, log))
 
         started = time.monotonic()
         python = _host_python(repo_root)
         lines, python_version = _base_requirements(repo_root, python, log)
         base_key = _sha256(RECIPE_VERSION, DEBIAN_SUITE, *DEBIAN_PACKAGES, python_version, *lines)[:12]
-        files = _app_files(repo_root)
-        key = _sha256(base_key, _app_key(files))[:12]
-        archive = os.path.join(images, f"ros-{key}.tar")
-        cached = os.path.exists(archive)
         base = os.path.join(images, f"base-{base_key}")
         if os.path.exists(os.path.join(base, "info.json")):
             os.utime(base)
-        if cached:
-            os.utime(archive)
-        else:
-            base = _ensure_base(images, base, base_key, lines, python, python_version, log)
-            _build_on_base(images, base, key, files, f"{ROS_IMAGE}:{key}", archive, f"application {key}")
-            _prune(images, r"ros-[0-9a-f]{12}\.tar", KEEP_ARCHIVES, archive, log)
-        results.append(_result(f"{ROS_IMAGE}:{key}", archive, started, cached))
+
+        def on_base(key: str, files, reference: str, what: str, config=()):
+            def build(archive: str) -> None:
+                built = _ensure_base(images, base, base_key, lines, python, python_version, log)
+                _build_on_base(images, built, key, files(built), reference, archive, what, config)
+
+            return build
+
+        files = _app_files(repo_root)
+        key = _sha256(base_key, _app_key(files))[:12]
+        build_ros = on_base(key, lambda _base: files, f"{ROS_IMAGE}:{key}", f"application {key}")
+        results.append(_archive(images, "ros", key, f"{ROS_IMAGE}:{key}", build_ros, started, log))
 
         started = time.monotonic()
         key = _sha256(RECIPE_VERSION, base_key, ENTRYPOINT_SCRIPT, *ROS_BASE_ENV, _setup_script({"LD_LIBRARY_PATH": ""}))[:12]
-        archive = os.path.join(images, f"ros-base-{key}.tar")
-        cached = os.path.exists(archive)
-        if cached:
-            os.utime(archive)
-        else:
-            base = _ensure_base(images, base, base_key, lines, python, python_version, log)
-            config = ["--clear=config.env", "--config.workingdir", "/"]
-            config += [option for item in ROS_BASE_ENV for option in ("--config.env", item)]
-            config += ["--config.entrypoint", ROS_ENTRYPOINT, "--config.cmd", "bash"]
-            what = f"{ROS_ENTRYPOINT}, setup scripts, ENTRYPOINT (the published ROS image's layout)"
-            _build_on_base(images, base, key, _ros_base_files(base), f"{ROS_BASE_IMAGE}:{key}", archive, what, config)
-            _prune(images, r"ros-base-[0-9a-f]{12}\.tar", KEEP_ARCHIVES, archive, log)
-        results.append(_result(f"{ROS_BASE_IMAGE}:{key}", archive, started, cached))
+        config = ["--clear=config.env", "--config.workingdir", "/"]
+        config += [option for item in ROS_BASE_ENV for option in ("--config.env", item)]
+        config += ["--config.entrypoint", ROS_ENTRYPOINT, "--config.cmd", "bash"]
+        what = f"{ROS_ENTRYPOINT}, setup scripts, ENTRYPOINT (the published ROS image's layout)"
+        build_ros_base = on_base(key, _ros_base_files, f"{ROS_BASE_IMAGE}:{key}", what, config)
+        results.append(_archive(images, "ros-base", key, f"{ROS_BASE_IMAGE}:{key}", build_ros_base, started, log))
     return results
+
+
+def _archive(images: str, kind: str, key: str, reference: str, build, started: float, log) -> dict:
+    """The archive ``<kind>-<key>.tar``: reused when it exists (touched: the newest archives are the ones in use,
+    which _prune keeps), else built by ``build(archive)`` and the older ones of its kind pruned."""
+    archive = os.path.join(images, f"{kind}-{key}.tar")
+    cached = os.path.exists(archive)
+    if cached:
+        os.utime(archive)
+    else:
+        build(archive)
+        _prune(images, rf"{re.escape(kind)}-[0-9a-f]{{12}}\.tar", KEEP_ARCHIVES, archive, log)
+    return _result(reference, archive, started, cached)
 
 
 def _ensure_base(images: str, base: str, base_key: str, lines: list[str], python: str, python_version: str, log) -> str:
