@@ -36,7 +36,7 @@ from bench_deploy import REPO, log, machine
 
 sys.path[:0] = [str(REPO / ".collections")]
 from ansible_collections.kuberos.platform.plugins.module_utils import local_images  # noqa: E402
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import LocalRegistry  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import LocalRegistry, lab_repository  # noqa: E402
 
 CONTAINERD = """version = 2
 root = "{d}/root"
@@ -141,9 +141,9 @@ def main() -> int:
         try:
             client = registry.client()
             for image in images:
-                repository = "kuberos/" + image["name"].split("/", 1)[1].rsplit(":", 1)[0]
+                repository, tag = lab_repository(image["name"])
                 started = time.monotonic()
-                digest, done = client.push_archive(image["archive"], repository, image["name"].rsplit(":", 1)[1])
+                digest, done = client.push_archive(image["archive"], repository, tag)
                 image["push_s"] = round(time.monotonic() - started, 1)
                 assert digest == image["digest"], (digest, image)
                 _digest, again_done = client.push_archive(image["archive"], repository)

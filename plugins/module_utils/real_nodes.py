@@ -50,7 +50,11 @@ from ansible.module_utils.urls import open_url
 
 from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
 from ansible_collections.kuberos.platform.plugins.module_utils import delay_fabric
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import LocalRegistry, RegistryError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import (
+    LocalRegistry,
+    RegistryError,
+    lab_repository,
+)
 
 HOST_SYSCTLS = ("kernel/panic", "kernel/panic_on_oops", "vm/overcommit_memory", "net/ipv4/ip_forward")
 CGROUP_ROOT = "/sys/fs/cgroup"
@@ -60,6 +64,12 @@ NODE_COMPONENTS = ("containerd", "kubelet", "kube-proxy")
 SHARED_COMPONENTS = ("fabric", "apiserver-relay", "coredns")
 CLUSTER_DOMAIN = "cluster.local"
 DEVICE_PLUGIN_SOCKET = "/var/lib/kubelet/device-plugins/kubelet.sock"  # fixed in the kubelet, whatever --root-dir is
+
+
+def host_address(base: int) -> str:
+    """The root namespace's address on the management bridge of the real nodes of ``base``: the API server relay,
+    CoreDNS and the registry listen there (and the API server advertises it)."""
+    return f"10.{base}.0.1"
 
 
 class RealNodeError(RuntimeError):
@@ -128,6 +138,7 @@ class RealNodes:
     registry_port: int = 0  # the lab registry on the management bridge (0: none)
     log: list = field(default_factory=list)
     _children: dict = field(default_factory=dict, repr=False)  # (component, node) -> Popen, started by this object
+    _served: dict = field(default_factory=dict, repr=False)  # built image -> its pull reference in the lab registry
 
     def __post_init__(self):
         if not 1 <= len(self.tag) <= 4 or not self.tag.isalnum():
@@ -164,7 +175,7 @@ class RealNodes:
 
     @property
     def host_ip(self) -> str:
-        return f"10.{self.base}.0.1"
+        return host_address(self.base)
 
     @property
     def cluster_cidr(self) -> str:
@@ -622,9 +633,9 @@ class RealNodes:
             served = {}
             client = self.registry.client()
             for reference, archive in sorted(self.images.items()):
-                repository = "kuberos/" + reference.split("/", 1)[-1].rsplit(":", 1)[0]
+                repository, tag = lab_repository(reference)
                 started = time.monotonic()
-                digest, done = client.push_archive(archive, repository, reference.rsplit(":", 1)[-1])
+                digest, done = client.push_archive(archive, repository, tag)
                 served[reference] = f"{self.registry.address}/{repository}@{digest}"
                 if done["uploaded"]:
                     changed = True
@@ -635,17 +646,17 @@ class RealNodes:
         except RegistryError as error:
             raise RealNodeError(str(error)) from None
         _write(self.registry.path("images.json"), json.dumps(served, indent=1, sort_keys=True))
+        self._served = served
         return changed
 
     def registry_info(self) -> dict:
-        """The registry as the module returns it: address, user, CA file, and what it serves (no password)."""
-        with open(self.registry.path("images.json"), encoding="utf-8") as handle:
-            images = json.load(handle)
+        """The registry as the module returns it after a start: address, user, CA file, and what it serves (as
+        ``images.json`` says; no password)."""
         return {
             "address": self.registry.address,
             "username": self.registry.username,
             "ca_file": self.registry.ca_file,
-            "images": images,
+            "images": self._served,
         }
 
     def _import_images(self) -> bool:

@@ -131,7 +131,7 @@ import shutil
 from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane, Ports
-from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodeError, RealNodes
+from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodeError, RealNodes, host_address
 
 
 def main():
@@ -158,7 +158,7 @@ def main():
     except TypeError as exc:
         module.fail_json(msg=f"ports: {exc}")
     # Pods on real nodes reach the API server through the `kubernetes` Service: its endpoint is the nodes' relay.
-    advertise = f"10.{params['real_nodes_base']}.0.1" if params["real_nodes"].get("nodes") else "127.0.0.1"
+    advertise = host_address(params["real_nodes_base"]) if params["real_nodes"].get("nodes") else "127.0.0.1"
     plane = LocalControlPlane(params["state_dir"], params["binaries"], ports, params["kwok_stages"], advertise_address=advertise)
     running = plane.running()
     result = {"kubeconfig": plane.kubeconfig, "server": plane.server, "actions": []}

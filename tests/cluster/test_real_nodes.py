@@ -492,15 +492,17 @@ def test_a_rollout_upgrades_a_real_container_and_a_broken_image_stops_at_the_can
     registry from 0.2.0: the same layers, another configuration). Deploy 0.1.0; roll out to 0.2.0 (it runs for
     real, the downtime polled includes the container's start); roll out to 0.2.1: the canary's pod exits, the gate
     stops the rollout and rolls the canary back to 0.2.0, which still runs."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import RegistryClient
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import RegistryClient, lab_repository
 
     address, served, password = registry_state(real)
     # the catalog's form: the image by name and tag, its digest apart (rendered as name:tag@digest)
-    tagged = {built.rsplit("/", 1)[1].split(":")[0]: (f"{ref.split('@')[0]}:{built.rsplit(':', 1)[1]}", ref.split("@")[1])
-              for built, ref in served.items()}  # fmt: skip
+    tagged = {}  # "ros" -> (registry/kuberos/ros:<key>, digest)
+    for built, ref in served.items():
+        repository, tag = lab_repository(built)
+        tagged[repository.split("/")[-1]] = (f"{address}/{repository}:{tag}", ref.split("@")[1])
     ca = os.path.join(real.state_dir, "nodes", "registry", "ca.crt")
     client = RegistryClient(address, "kuberos", password, ca)
-    repository = tagged["ros"][0].split("/", 1)[1].rsplit(":", 1)[0]
+    repository = lab_repository(next(built for built in served if "/ros:" in built))[0]
     broken_digest = client.derive_image(repository, tagged["ros"][1], "0.2.1-broken", Entrypoint=["/bin/sh", "-c", "exit 3"])
     versions = [
         ("0.1.0", *tagged["ros-base"]),

@@ -127,14 +127,7 @@ def test_nothing_answers_on_a_closed_port():
         client.check()
 
 
-def test_references_and_pull_secrets():
-    assert lab_registry.split_reference("10.1.0.1:5443/kuberos/ros@sha256:ab") == ("10.1.0.1:5443", "kuberos/ros", "sha256:ab")
-    assert lab_registry.split_reference("registry.example.com/team/planner:2.1") == (
-        "registry.example.com", "team/planner", "2.1",
-    )  # fmt: skip
-    assert lab_registry.split_reference("localhost/app") == ("localhost", "app", "latest")
-    with pytest.raises(lab_registry.RegistryError, match="expected <registry host"):
-        lab_registry.split_reference("ros:jazzy-ros-base")
+def test_pull_secrets():
     config = json.loads(lab_registry.docker_config_json("10.1.0.1:5443", "kuberos", "s3cret"))
     assert config == {"auths": {"10.1.0.1:5443": {"username": "kuberos", "password": "s3cret", "auth": "a3ViZXJvczpzM2NyZXQ="}}}
 
@@ -207,3 +200,9 @@ def test_a_derived_image_shares_the_layers_and_changes_only_its_configuration(re
     assert derived != digest
     assert client.manifest_digest("kuberos/derived", "1-broken") == derived
     assert client.manifest_digest("kuberos/derived", derived) == derived
+
+
+def test_the_lab_keeps_a_built_image_under_kuberos_and_its_key():
+    assert lab_registry.lab_repository("kuberos.local/ros:0123456789ab") == ("kuberos/ros", "0123456789ab")
+    assert lab_registry.lab_repository("kuberos.local/ros-base:ba5e0123abcd") == ("kuberos/ros-base", "ba5e0123abcd")
+    assert lab_registry.lab_repository("kuberos.local/pause:3.10") == ("kuberos/pause", "3.10")

@@ -59,19 +59,11 @@ def image_reference(address: str, repository: str, digest: str) -> str:
     return f"{address}/{repository}@{digest}"
 
 
-def split_reference(reference: str) -> tuple[str, str, str]:
-    """(registry address, repository, tag or digest) of ``host[:port]/repo[:tag|@digest]``; the registry part
-    is required (a name without one is Docker Hub's, which the lab never serves)."""
-    first, sep, rest = reference.partition("/")
-    if not sep or not ("." in first or ":" in first or first == "localhost"):
-        raise RegistryError(f"{reference}: expected <registry host[:port]>/<repository>[:tag|@digest]")
-    if "@" in rest:
-        repository, _sep, ref = rest.partition("@")
-    elif ":" in rest.rsplit("/", 1)[-1]:
-        repository, _sep, ref = rest.rpartition(":")
-    else:
-        repository, ref = rest, "latest"
-    return first, repository, ref
+def lab_repository(reference: str) -> tuple[str, str]:
+    """(repository, tag) under which the lab registry keeps a built image: ``kuberos.local/ros:<key>`` is
+    ``kuberos/ros`` tagged ``<key>``."""
+    name, _sep, tag = reference.split("/", 1)[-1].rpartition(":")
+    return f"kuberos/{name}", tag
 
 
 def docker_config_json(address: str, username: str, password: str) -> str:
