@@ -67,10 +67,14 @@ def fleet(cluster, tmp_path_factory):
         cluster.undeploy(SPEC)
 
 
+# Ansible's open_url installs its own opener process-wide (one that may refuse redirects): the tests keep theirs.
+OPENER = urllib.request.build_opener()
+
+
 def fetch(url: str, token: str = "", data: bytes | None = None) -> tuple[int, bytes]:
     request = urllib.request.Request(url, data=data, headers={"Authorization": f"Bearer {token}"} if token else {})
     try:
-        with urllib.request.urlopen(request, timeout=10) as response:
+        with OPENER.open(request, timeout=10) as response:
             return response.status, response.read()
     except urllib.error.HTTPError as exc:
         return exc.code, exc.read()

@@ -335,9 +335,13 @@ def served(deployed):
         dashboard.stop()
 
 
+# Ansible's open_url installs its own opener process-wide (one that may refuse redirects): the tests keep theirs.
+OPENER = urllib.request.build_opener()
+
+
 def fetch(url: str) -> tuple[int, dict, bytes]:
     try:
-        with urllib.request.urlopen(url, timeout=5) as response:
+        with OPENER.open(url, timeout=5) as response:
             return response.status, dict(response.headers), response.read()
     except urllib.error.HTTPError as exc:
         return exc.code, dict(exc.headers), exc.read()
