@@ -7,9 +7,10 @@ role variable), on a machine that reaches the discovery servers (``ROS_DISCOVERY
         --expect '/{robot}/motion_planner' --timeout 10
 
 Every ``--expect`` is a fully qualified node name; ``{robot}`` stands for each robot of the wave (``KUBEROS_ROBOTS``,
-with ``-`` written ``_`` as ROS names need). It joins the graph as a Fast DDS *super client* (a plain discovery-server
-client only learns of the participants it shares topics with), waits up to ``--timeout`` seconds for every expected
-node, and exits 0 when all are there, 1 (naming the missing ones) when not, 2 on bad arguments.
+as a ROS name: ``kuberos.naming.robot_ros_name``, ``fetch-1`` is ``fetch_1``). It joins the graph as a Fast DDS
+*super client* (a plain discovery-server client only learns of the participants it shares topics with), waits up to
+``--timeout`` seconds for every expected node, and exits 0 when all are there, 1 (naming the missing ones) when
+not, 2 on bad arguments.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import re
 import sys
 import time
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import robot_ros_name
+
 _ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 
 
@@ -27,7 +30,7 @@ def expected_nodes(patterns: list[str], robots: list[str]) -> list[str]:
     """Fully qualified node names to look for; ``{robot}`` expands to every robot (as a ROS name)."""
     names = []
     for pattern in patterns:
-        targets = [r.replace("-", "_") for r in robots] if "{robot}" in pattern else [""]
+        targets = [robot_ros_name(r) for r in robots] if "{robot}" in pattern else [""]
         for robot in targets:
             name = pattern.replace("{robot}", robot)
             if not _ROS_NAME.match(name):

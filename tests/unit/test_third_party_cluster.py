@@ -37,7 +37,7 @@ def spec_data(root):
         return yaml.safe_load(handle)
 
 
-def test_a_module_in_a_third_party_cluster_is_placed_there_with_a_bridge_at_the_edge(raw, root):
+def test_a_module_in_a_third_party_cluster_is_placed_there_with_a_bridge_at_the_edge(raw, root, tmp_path):
     deployments, placement = load_and_place(f"{root}/{SPEC}", raw)
     planners = [i for i in placement.instances if i.module == "motion-planner"]
     assert {(i.node, i.cluster, i.robots) for i in planners} == {
@@ -83,12 +83,18 @@ def test_a_module_in_a_third_party_cluster_is_placed_there_with_a_bridge_at_the_
     topics = yaml.safe_load(
         next(o for o in objects if o["metadata"]["name"] == "kuberos-bridge-client-topics")["data"]["topics.yaml"]
     )
+    # {robot} is the robot's ROS name (fetch-1 is fetch_1): a hyphen in a topic name is refused by ROS and the bridge.
     assert topics["topics"] == [
-        {"name": "/fetch-1/planning/request", "type": "std_msgs/msg/String", "direction": "to_client"},
-        {"name": "/fetch-1/planning/response", "type": "std_msgs/msg/String", "direction": "to_server"},
-        {"name": "/fetch-2/planning/request", "type": "std_msgs/msg/String", "direction": "to_client"},
-        {"name": "/fetch-2/planning/response", "type": "std_msgs/msg/String", "direction": "to_server"},
+        {"name": "/fetch_1/planning/request", "type": "std_msgs/msg/String", "direction": "to_client"},
+        {"name": "/fetch_1/planning/response", "type": "std_msgs/msg/String", "direction": "to_server"},
+        {"name": "/fetch_2/planning/request", "type": "std_msgs/msg/String", "direction": "to_client"},
+        {"name": "/fetch_2/planning/response", "type": "std_msgs/msg/String", "direction": "to_server"},
     ]
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.topics import load_topics
+
+    rendered = tmp_path / "topics.yaml"
+    rendered.write_text(yaml.safe_dump(topics))
+    assert [t.name for t in load_topics(str(rendered))] == [t["name"] for t in topics["topics"]], "the bridge reads it"
 
 
 def test_both_sides_are_valid_kubernetes_objects(raw, root):

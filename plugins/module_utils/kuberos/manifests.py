@@ -534,15 +534,15 @@ def _module_deployment(
 
 def bridge_topics(deployments: list[RosDeployment], placement: Placement, fleet: str, cluster: str) -> list[dict]:
     """The topics one bridge carries, for every robot of every module of the fleet placed in ``cluster``.
-    ``{robot}`` in a topic name is the robot's name. Directions as the bridge sees them: to_client goes from this
-    cluster to the module's cluster, to_server comes back."""
+    ``{robot}`` in a topic name is the robot's name as a ROS name (``naming.robot_ros_name``). Directions as the
+    bridge sees them: to_client goes from this cluster to the module's cluster, to_server comes back."""
     modules = {(d.name, m.name): m for d in deployments for m in d.modules}
     topics: dict[str, dict] = {}
     for inst in placement.instances:
         if inst.cluster != cluster or inst.fleet != fleet:
             continue
         for topic in modules[(inst.deployment, inst.module)].bridge_topics:
-            name = topic.name.replace("{robot}", inst.robots[0])
+            name = topic.name.replace("{robot}", naming.robot_ros_name(inst.robots[0]))
             direction = "to_client" if topic.direction == "to_module" else "to_server"
             topics.setdefault(name, {"name": name, "type": topic.type, "direction": direction})
     return [topics[name] for name in sorted(topics)]

@@ -27,6 +27,14 @@ def dns_label(*parts: str, max_len: int = 63) -> str:
     return f"{name[: max_len - 9].rstrip('-')}-{digest}"
 
 
+def robot_ros_name(robot: str) -> str:
+    """A robot's name as a ROS 2 name token (``fetch-1`` -> ``fetch_1``): ROS names allow letters, digits and
+    underscores and may not start with a digit (``7x`` -> ``r_7x``). ``{robot}`` in a bridged topic becomes this, the
+    namespace the pick-and-place app gives each robot's topics too."""
+    cleaned = "".join(c if c.isascii() and c.isalnum() else "_" for c in robot)
+    return cleaned if cleaned and not cleaned[0].isdigit() else f"r_{cleaned}"
+
+
 def fleet_namespace(fleet: str) -> str:
     return dns_label("kuberos", fleet)
 
