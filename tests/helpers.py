@@ -183,6 +183,52 @@ class Cluster:
         return client.CoreV1Api(api), client.AppsV1Api(api), client.DiscoveryV1Api(api)
 
 
+def partner_site(core, folder, name: str, api_server: str, ca_cert: str, endpoint: str, latency_ms: float = 30) -> dict:
+    """An inventory registering a third-party cluster as ``name`` (group ``clusters``, docs/inventory.md): a
+    ServiceAccount with a token in that cluster (``core``: its CoreV1Api), the token encrypted with ansible-vault.
+    ``endpoint`` is where that cluster's bridge clients reach this cluster's nodes. Returns the inventory's path, the
+    vault password file and the token."""
+    import yaml
+    from kubernetes import client
+
+    rbac = client.RbacAuthorizationV1Api(core.api_client)
+    core.create_namespace({"metadata": {"name": "kuberos-partner-access"}})
+    core.create_namespaced_service_account("kuberos-partner-access", {"metadata": {"name": "kuberos"}})
+    rbac.create_cluster_role_binding(
+        {
+            "metadata": {"name": "kuberos-partner-access"},
+            "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": "cluster-admin"},
+            "subjects": [{"kind": "ServiceAccount", "name": "kuberos", "namespace": "kuberos-partner-access"}],
+        }
+    )
+    token = core.create_namespaced_service_account_token(
+        "kuberos", "kuberos-partner-access", {"spec": {"expirationSeconds": 3600}}
+    ).status.token
+    folder = str(folder)
+    password = os.path.join(folder, "vault-password")
+    with open(password, "w", encoding="utf-8") as handle:
+        handle.write("kuberos-test-vault\n")
+    encrypted = subprocess.run(
+        [venv_tool("ansible-vault"), "encrypt_string", "--vault-password-file", password, token, "--name", "kuberos_token"],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    host = {
+        "kuberos_latency_ms": latency_ms,
+        "kuberos_fleets": ["test-fleet"],
+        "kuberos_bridge_endpoint": endpoint,
+        "kuberos_api_server": api_server,
+        "kuberos_ca_cert": ca_cert,
+        "ansible_connection": "local",
+    }
+    os.makedirs(os.path.join(folder, "host_vars"), exist_ok=True)
+    with open(os.path.join(folder, "host_vars", f"{name}.yml"), "w", encoding="utf-8") as handle:
+        handle.write(yaml.safe_dump(host) + encrypted)
+    inventory = os.path.join(folder, "clusters.yml")
+    with open(inventory, "w", encoding="utf-8") as handle:
+        handle.write(yaml.safe_dump({"clusters": {"hosts": {name: None}}}))
+    return {"inventory": inventory, "password": password, "token": token}
+
+
 @contextlib.contextmanager
 def deployments_denied(api_client, name: str, expression: str, message: str):
     """A ValidatingAdmissionPolicy (and its binding) that refuses Deployments failing the CEL ``expression`` with

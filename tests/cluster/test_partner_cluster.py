@@ -11,11 +11,9 @@ from __future__ import annotations
 
 import base64
 import os
-import subprocess
 
 import pytest
-import yaml
-from helpers import PARTNER_PORTS, Cluster, venv_tool
+from helpers import PARTNER_PORTS, Cluster, partner_site
 
 pytestmark = pytest.mark.cluster
 
@@ -38,42 +36,10 @@ def partner(tmp_path_factory):
 @pytest.fixture(scope="module")
 def site(partner, tmp_path_factory):
     """An inventory adding the partner cluster, its token encrypted with ansible-vault."""
-    from kubernetes import client
-
     core, _, _ = partner.clients()
-    rbac = client.RbacAuthorizationV1Api(core.api_client)
-    core.create_namespace({"metadata": {"name": "kuberos-partner-access"}})
-    core.create_namespaced_service_account("kuberos-partner-access", {"metadata": {"name": "kuberos"}})
-    rbac.create_cluster_role_binding(
-        {
-            "metadata": {"name": "kuberos-partner-access"},
-            "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": "cluster-admin"},
-            "subjects": [{"kind": "ServiceAccount", "name": "kuberos", "namespace": "kuberos-partner-access"}],
-        }
-    )
-    token = core.create_namespaced_service_account_token(
-        "kuberos", "kuberos-partner-access", {"spec": {"expirationSeconds": 3600}}
-    ).status.token
-    folder = tmp_path_factory.mktemp("site")
-    password = folder / "vault-password"
-    password.write_text("kuberos-test-vault\n")
-    encrypted = subprocess.run(
-        [venv_tool("ansible-vault"), "encrypt_string", "--vault-password-file", str(password), token, "--name", "kuberos_token"],
-        capture_output=True, text=True, check=True,
-    ).stdout  # fmt: skip
-    host = {
-        "kuberos_latency_ms": 30,
-        "kuberos_fleets": ["test-fleet"],
-        "kuberos_bridge_endpoint": "127.0.0.1",
-        "kuberos_api_server": f"https://127.0.0.1:{PARTNER_PORTS['apiserver']}",
-        "kuberos_ca_cert": os.path.join(partner.state_dir, "pki", "ca.crt"),
-        "ansible_connection": "local",
-    }
-    vars_file = folder / "host_vars" / "partner-cloud.yml"
-    vars_file.parent.mkdir()
-    vars_file.write_text(yaml.safe_dump(host) + encrypted)
-    (folder / "clusters.yml").write_text(yaml.safe_dump({"clusters": {"hosts": {"partner-cloud": None}}}))
-    return {"inventory": str(folder / "clusters.yml"), "password": str(password), "token": token}
+    api_server = f"https://127.0.0.1:{PARTNER_PORTS['apiserver']}"
+    ca_cert = os.path.join(partner.state_dir, "pki", "ca.crt")
+    return partner_site(core, tmp_path_factory.mktemp("site"), "partner-cloud", api_server, ca_cert, "127.0.0.1")
 
 
 def _secret(core, name):

@@ -30,7 +30,19 @@ import time
 
 import pytest
 import yaml
-from helpers import ROOT, Cluster, playbook
+from helpers import ROOT
+from real_tier import (
+    ROS_IMAGE,
+    RealCluster,
+    bridge_echo_spec,
+    logs,
+    program_pod,
+    programs_configmap,
+    round_trips,
+    wait_for,
+    wait_for_round_trips,
+    write_inventory,
+)  # fmt: skip
 
 sys.path.insert(0, os.path.join(ROOT, ".collections"))
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
@@ -38,7 +50,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import
 
 pytestmark = [pytest.mark.cluster, pytest.mark.real_nodes]
 
-INVENTORY = "inventories/real-pods"
 REAL_PORTS = {
     "apiserver": 28443,
     "etcd_client": 28379,
@@ -49,8 +60,6 @@ REAL_PORTS = {
 }
 BASE, TAG = 241, "kt"  # addresses 10.241-243.x, names kt...: apart from a developer's real nodes (10.231, kr)
 NODES = ["cloud-1", "edge-1", "edge-2", "robot-1"]
-ROS_IMAGE = "ghcr.io/kuberos/pnp-planner:0.1"  # any name of the collection's ROS image
-PROGRAMS = os.path.join(ROOT, "tests", "integration", "ros")
 SPEC = os.path.join(ROOT, "examples", "pick-and-place.yml")
 GRACE = 2
 
@@ -71,86 +80,21 @@ def require_real_nodes() -> None:
         pytest.skip(message)
 
 
-class RealCluster(Cluster):
-    def __init__(self, state_dir):
-        super().__init__(state_dir, REAL_PORTS)
-        extra = {"local_cluster_real_nodes_base": BASE, "local_cluster_real_nodes_tag": TAG}
-        self.vars += ["-e", json.dumps({**extra, "kuberos_kubeconfig": self.kubeconfig})]
-
-    def start(self):
-        return playbook("local_cluster.yml", *self.vars, inventory=INVENTORY, timeout=2400)
-
-    def stop(self, state="stopped"):
-        return playbook("local_cluster.yml", *self.vars, "-e", f"local_cluster_state={state}", inventory=INVENTORY)
-
-    def deploy(self, spec, render_dir, *extra):
-        render = ["-e", f"rosdeployment_file={spec}", "-e", f"kuberos_render_dir={render_dir}"]
-        return self.play("deploy.yml", *render, *extra)
-
-    def play(self, name, *extra, timeout=900):
-        return playbook(name, *self.vars, *extra, inventory=INVENTORY, timeout=timeout)
-
-
 @pytest.fixture(scope="module")
 def real(tmp_path_factory):
     require_real_nodes()
     before = snapshot_host()
-    cluster = RealCluster(tmp_path_factory.mktemp("real-cluster"))
+    cluster = RealCluster(tmp_path_factory.mktemp("real-cluster"), REAL_PORTS, BASE, TAG)
     cluster.before = before
     try:
         started = time.monotonic()
         result = cluster.start()
         assert result.returncode == 0, result.stdout[-8000:] + result.stderr[-3000:]
         cluster.start_seconds = time.monotonic() - started
-        core, apps, _ = cluster.clients()
-        cluster.core, cluster.apps = core, apps
+        cluster.connect()
         yield cluster
     finally:
         cluster.stop(state="absent")
-
-
-def wait_for(check, timeout, what, interval=1.0):
-    deadline = time.monotonic() + timeout
-    value = None
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {value!r})")
-
-
-def logs(real, namespace, pod):
-    """The pod's log so far ("" before it has any: the client gives None for an empty body)."""
-    try:
-        return real.core.read_namespaced_pod_log(pod, namespace) or ""
-    except Exception:
-        return ""
-
-
-def program_pod(name, node, namespace, args, env, robot=None):
-    tolerations = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}] if robot else []
-    return {
-        "apiVersion": "v1",
-        "kind": "Pod",
-        "metadata": {"name": name, "namespace": namespace, "labels": {"test": name}},
-        "spec": {
-            "nodeSelector": {"kubernetes.io/hostname": node},
-            "tolerations": tolerations,
-            "terminationGracePeriodSeconds": 1,
-            "containers": [
-                {
-                    "name": "main",
-                    "image": ROS_IMAGE,
-                    "imagePullPolicy": "IfNotPresent",
-                    "args": ["python3", *args],
-                    "env": [{"name": k, "value": v} for k, v in env.items()],
-                    "volumeMounts": [{"name": "programs", "mountPath": "/programs"}],
-                }
-            ],
-            "volumes": [{"name": "programs", "configMap": {"name": "programs"}}],
-        },
-    }
 
 
 @pytest.fixture(scope="module")
@@ -158,11 +102,7 @@ def lab(real):
     """A namespace with the test's ROS programs (a ConfigMap) and a discovery server pod on edge-1 + its Service."""
     namespace = "real-node-test"
     real.core.create_namespace({"metadata": {"name": namespace}})
-    data = {}
-    for name in ("talker.py", "listener.py", "node_runner.py", "ros_ping.py"):
-        with open(os.path.join(PROGRAMS, name), encoding="utf-8") as handle:
-            data[name] = handle.read()
-    real.core.create_namespaced_config_map(namespace, {"metadata": {"name": "programs"}, "data": data})
+    programs_configmap(real.core, namespace)
     server = program_pod("discovery", "edge-1", namespace, [], {})
     server["spec"]["containers"][0].update(
         command=["fast-discovery-server", "-i", "0", "-l", "0.0.0.0", "-p", "11811"], args=[], volumeMounts=[]
@@ -238,10 +178,10 @@ def test_discovery_through_a_service_across_two_real_nodes_with_a_negative_contr
         wait_for(lambda name=name: (phase(real, lab, name) or ("",))[0] == "Running", 120, f"{name} Running")
     placed = {name: phase(real, lab, name)[1] for name in ("discovery", *pods)}
     assert placed == {"discovery": "edge-1", "talker": "robot-1", "listener": "cloud-1", "lonely": "cloud-1"}
-    wait_for(lambda: "received kuberos" in logs(real, lab, "listener"), 60, "the listener to hear the talker")
-    assert "ready" in logs(real, lab, "lonely"), "the negative control runs"
+    wait_for(lambda: "received kuberos" in logs(real.core, lab, "listener"), 60, "the listener to hear the talker")
+    assert "ready" in logs(real.core, lab, "lonely"), "the negative control runs"
     time.sleep(5)  # the talker keeps publishing; the control had as long as the listener and more
-    assert "received" not in logs(real, lab, "lonely"), "a listener without a discovery server heard the talker"
+    assert "received" not in logs(real.core, lab, "lonely"), "a listener without a discovery server heard the talker"
     for name in pods:
         real.core.delete_namespaced_pod(name, lab, grace_period_seconds=0)
 
@@ -250,12 +190,12 @@ def test_ros_round_trips_between_real_nodes_show_the_inventorys_delays(real, lab
     env = ros_env("discovery", lab)
     real.core.create_namespaced_pod(lab, program_pod("ping", "robot-1", lab, ["/programs/ros_ping.py", "ping"], env, robot=True))
     real.core.create_namespaced_pod(lab, program_pod("echo-edge", "edge-2", lab, ["/programs/ros_ping.py", "echo"], env))
-    wait_for(lambda: "rtt_ms" in logs(real, lab, "ping"), 120, "round trips robot-1 <-> edge-2")
+    wait_for(lambda: "rtt_ms" in logs(real.core, lab, "ping"), 120, "round trips robot-1 <-> edge-2")
 
     def samples(count):
         return wait_for(
             lambda: (
-                (v := [float(line.split()[1]) for line in logs(real, lab, "ping").splitlines() if line.startswith("rtt_ms")])
+                (v := [float(line.split()[1]) for line in logs(real.core, lab, "ping").splitlines() if line.startswith("rtt_ms")])
                 and len(v) >= count
                 and v
             ),
@@ -350,7 +290,7 @@ def test_the_discovery_servers_run_the_published_ros_layout_through_its_entrypoi
         (status,) = pod.status.container_statuses
         assert status.ready and status.restart_count == 0, status
         assert "/ros-base:" in status.image or status.image.endswith("ros:jazzy-ros-base"), status.image
-        assert "### Server is running ###" in logs(real, namespace, pod.metadata.name)
+        assert "### Server is running ###" in logs(real.core, namespace, pod.metadata.name)
 
 
 # -- the lab registry: pulls by digest with pull secrets ---------------------------------------------------------
@@ -415,7 +355,7 @@ def test_pods_pull_by_digest_from_the_registry_with_a_pull_secret_on_every_node(
         names.append(name)
     for name in names:
         wait_for(lambda name=name: (phase(real, lab, name) or ("",))[0] == "Succeeded", 180, f"{name} Succeeded")
-        assert "pulled and sourced rclpy" in logs(real, lab, name)
+        assert "pulled and sourced rclpy" in logs(real.core, lab, name)
     pulled = {}
     for event in real.core.list_namespaced_event(lab, field_selector="reason=Pulled").items:
         if event.involved_object.name in names and "Successfully pulled" in event.message:
@@ -474,7 +414,8 @@ def test_a_deploy_pulls_its_modules_by_digest_with_the_pull_secret_named_in_imag
         pods = real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/deployment=registry-good").items
         assert len(pods) == 1 and pods[0].spec.image_pull_secrets[0].name == "registry-good"
         assert pods[0].spec.containers[0].image == image and not pods[0].spec.containers[0].command
-        wait_for(lambda: "hello from the registry" in logs(real, namespace, pods[0].metadata.name), 60, "the module's output")
+        pod = pods[0].metadata.name
+        wait_for(lambda: "hello from the registry" in logs(real.core, namespace, pod), 60, "the module's output")
     finally:
         undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec}")
         assert undo.returncode == 0, undo.stdout[-3000:]
@@ -554,7 +495,7 @@ def test_a_rollout_upgrades_a_real_container_and_a_broken_image_stops_at_the_can
         result = real.deploy(spec("^0.1"), tmp_path / "render", *catalog_var)
         assert result.returncode == 0, result.stdout[-6000:]
         assert images() == [tagged["ros-base"][1]]
-        wait_for(lambda: "talker version 0.1.0" in logs(real, namespace, running()[0].metadata.name), 60, "0.1.0 talking")
+        wait_for(lambda: "talker version 0.1.0" in logs(real.core, namespace, running()[0].metadata.name), 60, "0.1.0 talking")
 
         down, stop = [], threading.Event()
 
@@ -579,7 +520,7 @@ def test_a_rollout_upgrades_a_real_container_and_a_broken_image_stops_at_the_can
         watcher.join()
         assert upgraded.returncode == 0, upgraded.stdout[-6000:]
         assert images() == [tagged["ros"][1]], "0.2.0 runs, pulled by digest"
-        wait_for(lambda: "talker version 0.2.0" in logs(real, namespace, running()[0].metadata.name), 60, "0.2.0 talking")
+        wait_for(lambda: "talker version 0.2.0" in logs(real.core, namespace, running()[0].metadata.name), 60, "0.2.0 talking")
         took, longest = time.monotonic() - started, max(down, default=0.0)
         print(f"rollout 0.1.0 -> 0.2.0 on real nodes: {took:.1f} s, longest downtime {longest:.1f} s")
 
@@ -588,7 +529,8 @@ def test_a_rollout_upgrades_a_real_container_and_a_broken_image_stops_at_the_can
         assert broken.returncode != 0, broken.stdout[-3000:]
         assert "stopped at the canary" in broken.stdout and "rolled back robots robot-1" in broken.stdout, broken.stdout[-4000:]
         wait_for(lambda: images() == [tagged["ros"][1]], 120, "the canary back on 0.2.0")
-        wait_for(lambda: "talker version 0.2.0" in logs(real, namespace, running()[0].metadata.name), 60, "0.2.0 talking again")
+        talking = lambda: "talker version 0.2.0" in logs(real.core, namespace, running()[0].metadata.name)  # noqa: E731
+        wait_for(talking, 60, "0.2.0 talking again")
         print("broken 0.2.1 stopped at the canary and rolled back to 0.2.0")
     finally:
         undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec('^0.1')}", *catalog_var)
@@ -612,7 +554,7 @@ LOAD = (  # a publisher at RATE Hz of 64-byte strings, or a subscriber that says
 def memory_peak(real, pod) -> int:
     """The pod's memory cgroup high-water mark (cgroup v1 cgroupfs: <kubelet root>/kubepods/<qos>/pod<uid>)."""
     node = pod.spec.node_name
-    net = RealNodes.from_state(_plane(real), {}).nets[node]
+    net = RealNodes.from_state(real.plane(), {}).nets[node]
     pattern = f"/sys/fs/cgroup/memory/{net.cgroup}/kubepods*/**/pod{pod.metadata.uid}/memory.max_usage_in_bytes"
     import glob
 
@@ -646,7 +588,7 @@ def test_rclpy_modules_without_resources_run_a_1khz_load_under_the_defaults_with
         limits = {m: p.spec.containers[0].resources.limits["memory"] for m, p in pods.items()}
         assert limits == {"load-pub": "128Mi", "load-sub": "128Mi"}, limits
         time.sleep(20)  # four of the subscriber's 5 s reports; the memory peak is reached within seconds
-        counts = [int(line.split()[1]) for line in logs(real, namespace, pods["load-sub"].metadata.name).splitlines()
+        counts = [int(line.split()[1]) for line in logs(real.core, namespace, pods["load-sub"].metadata.name).splitlines()
                   if line.startswith("received")]  # fmt: skip
         assert len(counts) >= 2 and counts[-1] > counts[-2], counts
         rate = (counts[-1] - counts[-2]) / 5.0
@@ -751,7 +693,7 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
             "kuberos-dashboard-viewer", "kuberos-system", client.AuthenticationV1TokenRequest(spec={"expirationSeconds": 600})
         ).status.token
         address = real.core.read_namespaced_service("kuberos-controller", "kuberos-system").spec.cluster_ip
-        netns = RealNodes.from_state(_plane(real), {}).nets["edge-1"].netns
+        netns = RealNodes.from_state(real.plane(), {}).nets["edge-1"].netns
         done = subprocess.run(
             ["ip", "netns", "exec", netns, sys.executable, "-c", IN_NODE, address, name, str(tmp_path / "ca.crt"), token],
             capture_output=True, text=True, timeout=60,
@@ -774,6 +716,97 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
         extra["controller_state"] = "stopped"
         real.play("controller.yml", "-e", json.dumps(extra))
         real.core.delete_namespaced_secret("kuberos-dashboard-tls", "kuberos-system")
+
+
+PARTNER_PORTS = {
+    "apiserver": 29443,
+    "etcd_client": 29379,
+    "etcd_peer": 29380,
+    "controller_manager": 29257,
+    "scheduler": 29259,
+    "kwok": 29247,
+}
+PARTNER_BASE, PARTNER_TAG = 245, "kq"  # the partner's real nodes: addresses 10.245-247.x, names kq...
+
+
+def fleet_ros_env(real, namespace, deployment) -> dict:
+    """The ROS environment a rendered container of ``deployment`` has (discovery servers, RMW, domain)."""
+    (container,) = real.apps.read_namespaced_deployment(deployment, namespace).spec.template.spec.containers
+    return {e.name: e.value for e in container.env if e.value is not None and e.name.startswith(("ROS_", "RMW_"))}
+
+
+def test_the_bridge_runs_as_pods_between_this_cluster_and_a_partner_cluster_of_real_nodes(real, deployed, tmp_path_factory):
+    """A second cluster of real nodes (partner-1, its own control plane, addresses and ports) registered as the
+    third-party cluster ``partner-real``; a module placed there answers the robot's pings across the bridge: the
+    bridge server as a pod at this cluster's edge, the client, a discovery server and the module as pods in the
+    partner cluster, the client reaching the server's NodePort on an edge node's address. A ping pod on robot-1
+    measures round trips first to an echo on edge-1 (this cluster, direct) and then through the bridge."""
+    from helpers import partner_site
+
+    folder = tmp_path_factory.mktemp("partner-real")
+    (folder / "inventory").mkdir()
+    write_inventory(folder / "inventory", {"partner-1": {}})
+    partner = RealCluster(folder / "state", PARTNER_PORTS, PARTNER_BASE, PARTNER_TAG, str(folder / "inventory"),
+                          local_cluster_registry_port=0)  # fmt: skip
+    namespace = fleet_namespace(deployed)
+    spec = folder / "bridge-echo.yml"
+    spec.write_text(yaml.safe_dump(bridge_echo_spec("partner-real")))
+    server = "kuberos-bridge-partner-real"
+    extra = ()
+    try:
+        started = partner.start()
+        assert started.returncode == 0, started.stdout[-8000:] + started.stderr[-3000:]
+        partner.connect()
+        endpoint = real.nets()["edge-1"].node_ip  # any node's kube-proxy serves the NodePort
+        api_server = f"https://127.0.0.1:{PARTNER_PORTS['apiserver']}"
+        ca_cert = os.path.join(partner.state_dir, "pki", "ca.crt")
+        site = partner_site(partner.core, folder, "partner-real", api_server, ca_cert, endpoint, latency_ms=10)
+        extra = ("-i", site["inventory"], "--vault-password-file", site["password"])
+
+        # The direct path first: robot-1 pings an echo on edge-1 through the fleet's discovery servers.
+        env = fleet_ros_env(real, namespace, next(d["name"] for d in deployed["instances"] if d["module"] == "perception"))
+        programs_configmap(real.core, namespace)
+        topics = ["/robot_1/kuberos_ping", "/robot_1/kuberos_pong"]
+        ping = program_pod("bridge-ping", "robot-1", namespace, ["/programs/ros_ping.py", "ping", *topics], env, robot=True)
+        echo = program_pod("direct-echo", "edge-1", namespace, ["/programs/ros_ping.py", "echo", *topics], env)
+        real.core.create_namespaced_pod(namespace, ping)
+        real.core.create_namespaced_pod(namespace, echo)
+        direct = wait_for_round_trips(real.core, namespace, "bridge-ping", 25, 180)[-20:]
+        real.core.delete_namespaced_pod("direct-echo", namespace, grace_period_seconds=0)
+        wait_for(lambda: phase(real, namespace, "direct-echo") is None, 60, "the direct echo gone")
+        seen = len(round_trips(real.core, namespace, "bridge-ping"))
+
+        deployed_echo = real.deploy(str(spec), folder / "render", *extra)
+        assert deployed_echo.returncode == 0, deployed_echo.stdout[-8000:]
+        assert site["token"] not in deployed_echo.stdout + deployed_echo.stderr, "the token is never printed"
+        bridge = real.core.list_namespaced_pod(namespace, label_selector=f"kuberos.io/instance={server}").items
+        remote = {p.metadata.name.rsplit("-", 2)[0]: p for p in partner.core.list_namespaced_pod(namespace).items}
+        assert {"kuberos-bridge-client", "kuberos-discovery-0", "bridge-echo-echo-robot-1"} <= set(remote), sorted(remote)
+        assert all(p.spec.node_name == "partner-1" for p in remote.values())
+        through = wait_for_round_trips(real.core, namespace, "bridge-ping", seen + 25, 240)[seen:][-20:]
+        added = statistics.median(through) - statistics.median(direct)
+        print(
+            f"robot-1 <-> echo: direct (edge-1) p50 {statistics.median(direct):.1f} ms, through the bridge pods "
+            f"(server on {bridge[0].spec.node_name if bridge else '?'}, client and echo on partner-1) p50 "
+            f"{statistics.median(through):.1f} ms: {added:.1f} ms added"
+        )
+        assert bridge and bridge[0].status.phase == "Running"
+    finally:
+        for name in ("bridge-ping", "direct-echo"):
+            try:
+                real.core.delete_namespaced_pod(name, namespace, grace_period_seconds=0)
+            except Exception:
+                pass
+        try:
+            real.core.delete_namespaced_config_map("programs", namespace)
+        except Exception:
+            pass
+        if extra:
+            removed = real.undeploy(str(spec), *extra)
+            assert removed.returncode == 0, removed.stdout[-4000:]
+            assert [d.metadata.name for d in partner.apps.list_namespaced_deployment(namespace).items] == []
+        stopped = partner.stop(state="absent")
+        assert stopped.returncode == 0, stopped.stdout[-4000:]
 
 
 TRIAL = (  # a run's program: says its mode, leaves a termination message, then exits 0, exits 3 or hangs
@@ -836,7 +869,7 @@ def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_ag
         victim = "edge-2"
         moved = sorted(name for name, node in before.items() if node == victim)
         assert moved, f"nothing runs on {victim}: {before}"
-        nodes = RealNodes.from_state(_plane(real), {})
+        nodes = RealNodes.from_state(real.plane(), {})
         assert nodes.stop_kubelet(victim)
         started = time.monotonic()
 
@@ -853,12 +886,6 @@ def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_ag
     finally:
         extra["controller_state"] = "stopped"
         real.play("controller.yml", "-e", json.dumps(extra))
-
-
-def _plane(real):
-    from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane, Ports
-
-    return LocalControlPlane(real.state_dir, {}, Ports(**REAL_PORTS))
 
 
 def test_teardown_leaves_the_host_as_it_was(real):

@@ -1,0 +1,179 @@
+"""The local cluster's real-node tier driven as a user drives it (docs/real-nodes.md), for the tests and the benchmarks.
+
+``RealCluster`` starts and stops a cluster of real nodes with playbooks/local_cluster.yml on ports, addresses and a
+state directory of its own; ``program_pod`` runs one of the test's ROS programs (tests/integration/ros, given to the
+pod as a ConfigMap) on a node; ``bridge_echo_spec`` is a module in a partner cluster that answers pings across the
+KubeROS-Bridge; ``round_trips`` reads what a ping pod measured.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import time
+
+from helpers import ROOT, Cluster, playbook
+
+INVENTORY = "inventories/real-pods"
+ROS_IMAGE = "ghcr.io/kuberos/pnp-planner:0.1"  # any name of the collection's ROS image
+PROGRAMS = os.path.join(ROOT, "tests", "integration", "ros")
+PROGRAM_FILES = ("talker.py", "listener.py", "node_runner.py", "ros_ping.py")
+FLEET = "test-fleet"
+
+
+class RealCluster(Cluster):
+    """A cluster of real nodes (``inventory``: hosts marked ``kuberos_local_node: real``) on addresses 10.<base>..+2."""
+
+    def __init__(self, state_dir, ports: dict, base: int, tag: str, inventory: str = INVENTORY, **variables):
+        super().__init__(state_dir, ports)
+        self.ports, self.base, self.tag, self.inventory = ports, base, tag, str(inventory)
+        extra = {"local_cluster_real_nodes_base": base, "local_cluster_real_nodes_tag": tag, **variables}
+        self.vars += ["-e", json.dumps({**extra, "kuberos_kubeconfig": self.kubeconfig})]
+
+    def start(self):
+        return playbook("local_cluster.yml", *self.vars, inventory=self.inventory, timeout=2400)
+
+    def stop(self, state="stopped"):
+        return playbook("local_cluster.yml", *self.vars, "-e", f"local_cluster_state={state}", inventory=self.inventory)
+
+    def deploy(self, spec, render_dir, *extra):
+        render = ["-e", f"rosdeployment_file={spec}", "-e", f"kuberos_render_dir={render_dir}"]
+        return self.play("deploy.yml", *render, *extra)
+
+    def undeploy(self, spec, *extra):
+        return self.play("undeploy.yml", "-e", f"rosdeployment_file={spec}", *extra)
+
+    def play(self, name, *extra, timeout=900):
+        return playbook(name, *self.vars, *extra, inventory=self.inventory, timeout=timeout)
+
+    def connect(self):
+        """Kubernetes clients as attributes (``core``, ``apps``), once the cluster runs."""
+        self.core, self.apps, _ = self.clients()
+        return self
+
+    def plane(self):
+        from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane, Ports
+
+        return LocalControlPlane(self.state_dir, {}, Ports(**self.ports))
+
+    def nets(self) -> dict:
+        """Node name -> its NodeNet (network namespace, addresses), as the running tier's state says."""
+        from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes
+
+        return RealNodes.from_state(self.plane(), {}).nets
+
+
+def write_inventory(folder, hosts: dict, group: str = "cloud") -> str:
+    """A real-node inventory of its own (a partner's cluster): ``hosts`` (name -> host vars) in ``group``."""
+    import yaml
+
+    host_vars = {"kuberos_cpu": 2, "kuberos_memory": "8Gi", "kuberos_local_node": "real", "ansible_connection": "local"}
+    host_vars["ansible_python_interpreter"] = "{{ ansible_playbook_python }}"
+    inventory = {"all": {"vars": host_vars, "children": {group: {"hosts": hosts}}}}
+    path = os.path.join(str(folder), "hosts.yml")
+    with open(path, "w", encoding="utf-8") as handle:
+        yaml.safe_dump(inventory, handle)
+    return path
+
+
+def wait_for(check, timeout, what, interval=1.0):
+    deadline = time.monotonic() + timeout
+    value = None
+    while time.monotonic() < deadline:
+        value = check()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {value!r})")
+
+
+def logs(core, namespace, pod):
+    """The pod's log so far ("" before it has any: the client gives None for an empty body)."""
+    try:
+        return core.read_namespaced_pod_log(pod, namespace) or ""
+    except Exception:
+        return ""
+
+
+def programs_configmap(core, namespace):
+    """The test's ROS programs as the ConfigMap ``programs`` that ``program_pod`` mounts."""
+    data = {}
+    for name in PROGRAM_FILES:
+        with open(os.path.join(PROGRAMS, name), encoding="utf-8") as handle:
+            data[name] = handle.read()
+    core.create_namespaced_config_map(namespace, {"metadata": {"name": "programs"}, "data": data})
+
+
+def program_pod(name, node, namespace, args, env, robot=None):
+    tolerations = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}] if robot else []
+    return {
+        "apiVersion": "v1",
+        "kind": "Pod",
+        "metadata": {"name": name, "namespace": namespace, "labels": {"test": name}},
+        "spec": {
+            "nodeSelector": {"kubernetes.io/hostname": node},
+            "tolerations": tolerations,
+            "terminationGracePeriodSeconds": 1,
+            "containers": [
+                {
+                    "name": "main",
+                    "image": ROS_IMAGE,
+                    "imagePullPolicy": "IfNotPresent",
+                    "args": ["python3", *args],
+                    "env": [{"name": k, "value": v} for k, v in env.items()],
+                    "volumeMounts": [{"name": "programs", "mountPath": "/programs"}],
+                }
+            ],
+            "volumes": [{"name": "programs", "configMap": {"name": "programs"}}],
+        },
+    }
+
+
+# A module that answers pings: what it hears on /<robot>/kuberos_ping it says again on /<robot>/kuberos_pong.
+ECHO = (
+    "import os, rclpy; from std_msgs.msg import String; rclpy.init(); node = rclpy.create_node('kuberos_echo'); "
+    "robot = os.environ['KUBEROS_ROBOT_NAME'].replace('-', '_'); "
+    "pong = node.create_publisher(String, f'/{robot}/kuberos_pong', 10); "
+    "node.create_subscription(String, f'/{robot}/kuberos_ping', pong.publish, 10); print('echo ready', flush=True); "
+    "rclpy.spin(node)"
+)
+
+
+def bridge_echo_spec(cluster: str, fleet: str = FLEET) -> dict:
+    """A RosDeployment whose one module runs in the third-party cluster ``cluster`` and answers pings of each robot
+    across the bridge (ping to the module, pong back)."""
+    topic = {"type": "std_msgs/msg/String"}
+    return {
+        "apiVersion": "kuberos.io/v1alpha1",
+        "kind": "RosDeployment",
+        "metadata": {"name": "bridge-echo", "targetFleet": fleet},
+        "rosModules": [
+            {
+                "name": "echo",
+                "image": ROS_IMAGE,
+                "launch": shlex.join(["python3", "-c", ECHO]),
+                "cluster": cluster,
+                "resources": {"cpu": "100m", "memory": "256Mi"},
+                "bridge": {
+                    "topics": [
+                        {"name": "/{robot}/kuberos_ping", **topic, "direction": "to_module"},
+                        {"name": "/{robot}/kuberos_pong", **topic, "direction": "from_module"},
+                    ]
+                },
+            }
+        ],
+    }
+
+
+def round_trips(core, namespace, pod) -> list[float]:
+    """The round trips (ms) a ``ros_ping.py ping`` pod printed so far."""
+    return [float(line.split()[1]) for line in logs(core, namespace, pod).splitlines() if line.startswith("rtt_ms ")]
+
+
+def wait_for_round_trips(core, namespace, pod, count, timeout=90) -> list[float]:
+    return wait_for(
+        lambda: (lambda found: found if len(found) >= count else None)(round_trips(core, namespace, pod)),
+        timeout,
+        f"{count} round trips of {pod}",
+    )
