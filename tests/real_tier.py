@@ -12,7 +12,9 @@ import json
 import os
 import shlex
 import time
+from pathlib import Path
 
+import yaml
 from helpers import ROOT, Cluster, playbook
 
 INVENTORY = "inventories/real-pods"
@@ -66,8 +68,6 @@ class RealCluster(Cluster):
 
 def write_inventory(folder, hosts: dict, group: str = "cloud") -> str:
     """A real-node inventory of its own (a partner's cluster): ``hosts`` (name -> host vars) in ``group``."""
-    import yaml
-
     host_vars = {"kuberos_cpu": 2, "kuberos_memory": "8Gi", "kuberos_local_node": "real", "ansible_connection": "local"}
     host_vars["ansible_python_interpreter"] = "{{ ansible_playbook_python }}"
     inventory = {"all": {"vars": host_vars, "children": {group: {"hosts": hosts}}}}
@@ -177,3 +177,137 @@ def wait_for_round_trips(core, namespace, pod, count, timeout=90) -> list[float]
         timeout,
         f"{count} round trips of {pod}",
     )
+
+
+# -- the controller as pods -----------------------------------------------------------------------------------------
+CONTROLLER_NAMESPACE = "kuberos-system"
+
+
+def lease_holder(core):
+    from kubernetes import client
+
+    coordination = client.CoordinationV1Api(core.api_client)
+    try:
+        return coordination.read_namespaced_lease("kuberos-controller", CONTROLLER_NAMESPACE).spec.holder_identity
+    except Exception:
+        return None
+
+
+def controller_pods(core) -> dict:
+    """Pod name -> node of the controller's replicas that are Running and Ready."""
+    pods = core.list_namespaced_pod(CONTROLLER_NAMESPACE, label_selector="app.kubernetes.io/name=kuberos-controller").items
+    return {
+        p.metadata.name: p.spec.node_name
+        for p in pods
+        if p.status.phase == "Running"
+        and p.metadata.deletion_timestamp is None
+        and all(s.ready for s in p.status.container_statuses or [])
+    }
+
+
+def first_pass_as_leader(core, pod: str, after: float) -> float | None:
+    """The epoch at which ``pod`` logged its first completed pass as leader, if that came after ``after``."""
+    for line in logs(core, CONTROLLER_NAMESPACE, pod).splitlines():
+        if "first pass as leader completed at " in line:
+            at = float(line.split("first pass as leader completed at ")[1].split()[0])
+            if at > after:
+                return at
+    return None
+
+
+# -- the bridge between this cluster and a partner cluster of real nodes ---------------------------------------------
+PARTNER = "partner-real"
+TOPICS = ["/robot_1/kuberos_ping", "/robot_1/kuberos_pong"]  # robot-1's, as ROS names them
+
+
+def fleet_ros_env(real, namespace, deployment) -> dict:
+    """The ROS environment a rendered container of ``deployment`` has (discovery servers, RMW, domain)."""
+    (container,) = real.apps.read_namespaced_deployment(deployment, namespace).spec.template.spec.containers
+    return {e.name: e.value for e in container.env if e.value is not None and e.name.startswith(("ROS_", "RMW_"))}
+
+
+def _ping_samples(real, namespace, name, env, samples, warmup=50) -> list[float]:
+    """``samples`` round trips of a new ping pod on robot-1 after ``warmup`` ones (10 s at 5 Hz): the first pings wait
+    for matching, and through the bridge for each side's new publisher (up to 3 s each, docs/bridge.md)."""
+    ping = program_pod(name, "robot-1", namespace, ["/programs/ros_ping.py", "ping", *TOPICS], env, robot=True)
+    real.core.create_namespaced_pod(namespace, ping)
+    try:
+        return wait_for_round_trips(real.core, namespace, name, warmup + samples, 120 + samples)[warmup:]
+    finally:
+        real.core.delete_namespaced_pod(name, namespace, grace_period_seconds=0)
+
+
+def bridge_round_trips(real, placement, folder, ports, base, tag, samples=20) -> dict:
+    """Round trips from robot-1 to an echo: direct (a pod on edge-1) and then through the bridge (``bridge_echo_spec``
+    deployed with its module in a second cluster of real nodes, ``partner-1``, started here on ``ports``, ``base``
+    and ``tag``). Everything is removed again, the partner cluster too. Returns the samples (ms) of both paths and
+    what was seen: the server's node, the partner's pods, whether deploy printed the partner's token."""
+    from helpers import partner_site
+
+    folder = Path(folder)
+    (folder / "inventory").mkdir(parents=True)
+    write_inventory(folder / "inventory", {"partner-1": {}})
+    partner = RealCluster(folder / "state", ports, base, tag, str(folder / "inventory"), local_cluster_registry_port=0)
+    namespace = placement["deployments"][0]["namespace"]
+    spec = folder / "bridge-echo.yml"
+    spec.write_text(yaml.safe_dump(bridge_echo_spec(PARTNER)))
+    server = f"kuberos-bridge-{PARTNER}"
+    seen: dict = {}
+    extra: tuple = ()
+    try:
+        started = partner.start()
+        assert started.returncode == 0, started.stdout[-8000:] + started.stderr[-3000:]
+        partner.connect()
+        endpoint = real.nets()["edge-1"].node_ip  # any node's kube-proxy serves the NodePort
+        api_server = f"https://127.0.0.1:{ports['apiserver']}"
+        ca_cert = os.path.join(partner.state_dir, "pki", "ca.crt")
+        site = partner_site(partner.core, folder, PARTNER, api_server, ca_cert, endpoint, latency_ms=10)
+        extra = ("-i", site["inventory"], "--vault-password-file", site["password"])
+
+        perception = next(i["name"] for i in placement["instances"] if i["module"] == "perception")
+        env = fleet_ros_env(real, namespace, perception)
+        programs_configmap(real.core, namespace)
+        echo = program_pod("direct-echo", "edge-1", namespace, ["/programs/ros_ping.py", "echo", *TOPICS], env)
+        real.core.create_namespaced_pod(namespace, echo)
+        seen["direct_ms"] = _ping_samples(real, namespace, "direct-ping", env, samples)
+        real.core.delete_namespaced_pod("direct-echo", namespace, grace_period_seconds=0)
+        wait_for(lambda: not _exists(real.core, namespace, "direct-echo"), 60, "the direct echo gone")
+
+        deployed = real.deploy(str(spec), folder / "render", *extra)
+        assert deployed.returncode == 0, deployed.stdout[-8000:]
+        seen["token_printed"] = site["token"] in deployed.stdout + deployed.stderr
+        seen["server_nodes"] = [
+            p.spec.node_name
+            for p in real.core.list_namespaced_pod(namespace, label_selector=f"kuberos.io/instance={server}").items
+        ]
+        seen["partner_pods"] = {
+            p.metadata.name.rsplit("-", 2)[0]: p.spec.node_name for p in partner.core.list_namespaced_pod(namespace).items
+        }
+        client = next(p for p in partner.core.list_namespaced_pod(namespace).items if "bridge-client" in p.metadata.name)
+        wait_for(
+            lambda: "connected to " in logs(partner.core, namespace, client.metadata.name), 120, "the bridge client connected"
+        )
+        seen["through_ms"] = _ping_samples(real, namespace, "bridge-ping", env, samples)
+    finally:
+        for name in ("direct-ping", "direct-echo", "bridge-ping"):
+            if _exists(real.core, namespace, name):
+                real.core.delete_namespaced_pod(name, namespace, grace_period_seconds=0)
+        try:
+            real.core.delete_namespaced_config_map("programs", namespace)
+        except Exception:
+            pass
+        if extra:
+            removed = real.undeploy(str(spec), *extra)
+            assert removed.returncode == 0, removed.stdout[-4000:]
+            seen["partner_left"] = [d.metadata.name for d in partner.apps.list_namespaced_deployment(namespace).items]
+        stopped = partner.stop(state="absent")
+        assert stopped.returncode == 0, stopped.stdout[-4000:]
+    return seen
+
+
+def _exists(core, namespace, pod) -> bool:
+    try:
+        core.read_namespaced_pod(pod, namespace)
+        return True
+    except Exception:
+        return False

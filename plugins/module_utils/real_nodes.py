@@ -338,6 +338,13 @@ class RealNodes:
             run("ip", "link", "set", self.bridge, "up")
             self.log.append(f"created bridge {self.bridge} ({self.host_ip}/24)")
             changed = True
+        # The root namespace routes between the lab's sites (another cluster of real nodes on another base), as the
+        # network between two sites does: packets that come in on a management bridge are forwarded. Only these
+        # bridges forward (the host's net.ipv4.ip_forward stays as it is); the setting goes with the bridge.
+        forwarding = f"/proc/sys/net/ipv4/conf/{self.bridge}/forwarding"
+        if _read(forwarding).strip() != "1":
+            _write(forwarding, "1")
+            changed = True
         for net in self.nets.values():
             if not os.path.exists(f"/var/run/netns/{net.netns}"):
                 self._create_netns(net)
