@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -112,6 +112,12 @@ bench-real-pods:
 ## registry and pulled cold by digest into fresh containerds (docs/real-nodes.md).
 bench-images: setup
 	cd bench && ../$(VENV)/python bench_images.py --json results/images.json
+
+## The platform as pods (as root): the in-cluster controller's takeover over 20 killed leaders (p95), and the bridge's
+## added latency as pods between this cluster and a second cluster of real nodes (bench/results/images.json).
+bench-platform-pods: setup
+	$(MAKE) binaries WITH_NODES=1
+	cd bench && ../$(VENV)/python bench_platform_pods.py --json results/images.json
 
 ## Dashboard and /metrics benchmark: 1,000 robots; first paint in Chromium, view builds, scrape cost (docs/dashboard.md).
 bench-dashboard: binaries
