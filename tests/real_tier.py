@@ -193,16 +193,16 @@ def lease_holder(core):
         return None
 
 
+def pod_ready(pod) -> bool:
+    """Running, not being deleted, every container ready."""
+    statuses = pod.status.container_statuses or []
+    return pod.status.phase == "Running" and pod.metadata.deletion_timestamp is None and all(s.ready for s in statuses)
+
+
 def controller_pods(core) -> dict:
     """Pod name -> node of the controller's replicas that are Running and Ready."""
     pods = core.list_namespaced_pod(CONTROLLER_NAMESPACE, label_selector="app.kubernetes.io/name=kuberos-controller").items
-    return {
-        p.metadata.name: p.spec.node_name
-        for p in pods
-        if p.status.phase == "Running"
-        and p.metadata.deletion_timestamp is None
-        and all(s.ready for s in p.status.container_statuses or [])
-    }
+    return {p.metadata.name: p.spec.node_name for p in pods if pod_ready(p)}
 
 
 def first_pass_as_leader(core, pod: str, after: float) -> float | None:
@@ -311,3 +311,115 @@ def _exists(core, namespace, pod) -> bool:
         return True
     except Exception:
         return False
+
+
+# -- a Prometheus in the cluster (no Operator), scraping the controller -------------------------------------------------
+PROMETHEUS_IMAGE = "kuberos.local/prometheus:debian"  # Debian's Prometheus as an image (local_images)
+PROMETHEUS = "kuberos-prometheus"
+
+
+def prometheus_objects(namespace: str, tls_secret: str) -> list[dict]:
+    """A plain Prometheus in ``namespace``: its ServiceAccount may discover endpoints and is bound to
+    ``kuberos-metrics-reader``; its configuration is the controller's scrape job (``monitoring.scrape_config``, the
+    ServiceMonitor's equivalent) over TLS with ``tls_secret``'s ca.crt, and the collection's rule file."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import monitoring
+
+    with open(os.path.join(ROOT, "roles", "controller", "files", "prometheus", "kuberos-rules.yml"), encoding="utf-8") as handle:
+        rules = handle.read()
+    config = {
+        "global": {"scrape_interval": "5s", "evaluation_interval": "5s"},
+        "rule_files": ["/etc/prometheus/kuberos-rules.yml"],
+        "scrape_configs": [monitoring.scrape_config(namespace, ca_file="/etc/prometheus/tls/ca.crt")],
+    }
+    rbac = "rbac.authorization.k8s.io/v1"
+    discover = [{"apiGroups": [""], "resources": ["services", "endpoints", "pods"], "verbs": ["get", "list", "watch"]}]
+    subjects = [{"kind": "ServiceAccount", "name": PROMETHEUS, "namespace": namespace}]
+    volumes = [
+        {"name": "config", "configMap": {"name": PROMETHEUS}},
+        {"name": "tls", "secret": {"secretName": tls_secret, "items": [{"key": "ca.crt", "path": "ca.crt"}]}},
+        {"name": "data", "emptyDir": {}},
+    ]
+    mounts = [
+        {"name": "config", "mountPath": "/etc/prometheus"},
+        {"name": "tls", "mountPath": "/etc/prometheus/tls"},
+        {"name": "data", "mountPath": "/prometheus"},
+    ]
+    container = {
+        "name": "prometheus",
+        "image": PROMETHEUS_IMAGE,
+        "imagePullPolicy": "IfNotPresent",
+        "args": ["--config.file=/etc/prometheus/prometheus.yml", "--storage.tsdb.path=/prometheus"],
+        "ports": [{"name": "web", "containerPort": 9090}],
+        "readinessProbe": {"httpGet": {"path": "/-/ready", "port": 9090}, "periodSeconds": 2},
+        "volumeMounts": mounts,
+    }
+    return [
+        {"apiVersion": "v1", "kind": "ServiceAccount", "metadata": {"name": PROMETHEUS, "namespace": namespace}},
+        {"apiVersion": rbac, "kind": "ClusterRole", "metadata": {"name": PROMETHEUS}, "rules": discover},
+        {
+            "apiVersion": rbac,
+            "kind": "ClusterRole",
+            "metadata": {"name": monitoring.READER_ROLE},
+            "rules": monitoring.READER_RULES,
+        },
+        *(
+            {
+                "apiVersion": rbac,
+                "kind": "ClusterRoleBinding",
+                "metadata": {"name": f"{PROMETHEUS}-{role}"},
+                "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": role},
+                "subjects": subjects,
+            }
+            for role in (PROMETHEUS, monitoring.READER_ROLE)
+        ),
+        {
+            "apiVersion": "v1",
+            "kind": "ConfigMap",
+            "metadata": {"name": PROMETHEUS, "namespace": namespace},
+            "data": {"prometheus.yml": yaml.safe_dump(config, sort_keys=False), "kuberos-rules.yml": rules},
+        },
+        {
+            "apiVersion": "v1",
+            "kind": "Pod",
+            "metadata": {"name": PROMETHEUS, "namespace": namespace, "labels": {"app.kubernetes.io/name": PROMETHEUS}},
+            "spec": {
+                "serviceAccountName": PROMETHEUS,
+                "securityContext": {"runAsUser": 65534, "runAsGroup": 65534, "runAsNonRoot": True, "fsGroup": 65534},
+                "terminationGracePeriodSeconds": 2,
+                "containers": [container],
+                "volumes": volumes,
+            },
+        },
+    ]
+
+
+def apply_objects(api_client, objects: list[dict], delete: bool = False) -> None:
+    """Create (or, with ``delete``, remove in reverse order) plain objects through the dynamic client."""
+    from kubernetes import dynamic
+    from kubernetes.dynamic.exceptions import NotFoundError
+
+    client = dynamic.DynamicClient(api_client)
+    for obj in reversed(objects) if delete else objects:
+        resource = client.resources.get(api_version=obj["apiVersion"], kind=obj["kind"])
+        namespace = obj["metadata"].get("namespace")
+        if delete:
+            try:
+                resource.delete(name=obj["metadata"]["name"], namespace=namespace)
+            except NotFoundError:
+                pass
+        else:
+            resource.create(body=obj, namespace=namespace)
+
+
+def prometheus_api(address: str, path: str, **params) -> dict | None:
+    """``data`` of an answer of the Prometheus HTTP API at ``address`` (its pod IP, reached from the host), or None
+    while it does not answer."""
+    import urllib.parse
+    import urllib.request
+
+    url = f"http://{address}:9090/api/v1/{path}?" + urllib.parse.urlencode(params)
+    try:
+        with urllib.request.build_opener().open(url, timeout=5) as answer:
+            return json.loads(answer.read())["data"]
+    except OSError:
+        return None

@@ -2,7 +2,7 @@
 
 The real-node tier of the local cluster (kubelets and containerd in network namespaces) cannot pull images:
 everything its pods run is built here from the repository and imported into each node's containerd (or pushed
-to the lab's registry, `kuberos_lab.registry`, and pulled from it). Three images:
+to the lab's registry, `kuberos_lab.registry`, and pulled from it). Four images:
 
 ``kuberos.local/pause:3.10``
     The pod sandbox: ``roles/local_cluster/files/pause.c`` compiled with ``gcc -static -Os`` is the only file,
@@ -55,6 +55,14 @@ to the lab's registry, `kuberos_lab.registry`, and pulled from it). Three images
     ROS_DISTRO...), and the published configuration: only the system directories on PATH, ``ROS_DISTRO=jazzy``,
     entrypoint ``/ros_entrypoint.sh``, command ``bash``. Nothing of ROS runs unless the entrypoint runs first,
     so a rendered pod that overrode the entrypoint (``command:``) would fail here as it would on a real site.
+
+``kuberos.local/prometheus:<key>``
+    Debian's Prometheus (the ``prometheus`` package scripts/setup.sh installs on the host: one Go program linked
+    against libc only) for a Prometheus in the cluster, as the published ``prom/prometheus`` image runs it: the
+    same base plus a layer with ``/bin/prometheus`` and a minimal ``/etc/prometheus/prometheus.yml``; entrypoint
+    ``/bin/prometheus``, command ``--config.file=/etc/prometheus/prometheus.yml --storage.tsdb.path=/prometheus``,
+    user ``nobody`` (65534), working directory ``/prometheus``. Known as ``kuberos.local/prometheus:debian`` too.
+    Keyed by the base and the program's bytes.
 
 Cache, under ``<cache_dir>/images/`` (``cache_dir`` is ``~/.cache/kuberos`` or ``$KUBEROS_CACHE_DIR``):
 ``base-<key>/`` (the base as an OCI layout, kept for the current and one previous key), ``ros-<key>.tar``,
@@ -173,6 +181,23 @@ ALIASES = (
 )
 # The names under which the published-layout image is known: the discovery servers' default image.
 ROS_BASE_ALIASES = (f"ros:{ROS_DISTRO}-ros-base",)
+PROMETHEUS_IMAGE = "kuberos.local/prometheus"
+PROMETHEUS_ALIASES = ("kuberos.local/prometheus:debian",)
+PROMETHEUS_BINARY = "/usr/bin/prometheus"  # Debian's package prometheus
+PROMETHEUS_CONFIG = """# kuberos local_images: a Prometheus that scrapes itself; mount the real configuration over this file.
+global:
+  scrape_interval: 15s
+scrape_configs:
+  - job_name: prometheus
+    static_configs:
+      - targets: ["localhost:9090"]
+"""
+PROMETHEUS_IMAGE_CONFIG = (
+    "--clear=config.env", "--config.env", "PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin",
+    "--config.user", "65534:65534", "--config.workingdir", "/prometheus", "--config.entrypoint", "/bin/prometheus",
+    "--config.cmd", "--config.file=/etc/prometheus/prometheus.yml", "--config.cmd", "--storage.tsdb.path=/prometheus",
+    "--config.exposedports", "9090/tcp",
+)  # fmt: skip
 
 NAME_ANNOTATION = "io.containerd.image.name"
 REF_ANNOTATION = "org.opencontainers.image.ref.name"
@@ -759,6 +784,24 @@ def _ros_base_files(base: str) -> list[tuple[str, bytes | None, bool]]:
     ]
 
 
+def _prometheus_files() -> list[tuple[str, bytes | None, bool]]:
+    """The Prometheus image's own layer (as _app_files returns): the program, a default configuration, and the
+    empty directory ``/prometheus`` that the pod mounts its storage volume on."""
+    try:
+        with open(PROMETHEUS_BINARY, "rb") as handle:
+            program = handle.read()
+    except OSError as error:
+        raise ImageBuildError(
+            f"{PROMETHEUS_BINARY}: {error.strerror}; Debian's prometheus package is not installed (scripts/setup.sh installs it)"
+        ) from None
+    return [
+        ("bin/prometheus", program, True),
+        ("etc/prometheus", None, True),
+        ("etc/prometheus/prometheus.yml", PROMETHEUS_CONFIG.encode(), False),
+        ("prometheus", None, True),
+    ]
+
+
 def _build_pause(repo_root: str, images: str, key: str, archive: str) -> None:
     _require_programs("gcc", "umoci")
     work = os.path.join(images, "tmp", f"pause-{key}-{os.getpid()}")
@@ -814,7 +857,7 @@ def _locked(images: str, log):
 
 
 def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
-    """Build or reuse the three images; one dict per image: reference, archive, bytes, seconds, cached."""
+    """Build or reuse the four images; one dict per image: reference, archive, bytes, seconds, cached."""
     repo_root, cache_dir = os.path.realpath(repo_root), os.path.abspath(os.path.expanduser(cache_dir))
     images = os.path.join(cache_dir, "images")
     os.makedirs(images, exist_ok=True)
@@ -858,6 +901,13 @@ def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
         what = f"{ROS_ENTRYPOINT}, setup scripts, ENTRYPOINT (the published ROS image's layout)"
         build_ros_base = on_base(key, _ros_base_files, f"{ROS_BASE_IMAGE}:{key}", what, config)
         results.append(_archive(images, "ros-base", key, f"{ROS_BASE_IMAGE}:{key}", build_ros_base, started, log))
+
+        started = time.monotonic()
+        prometheus = _prometheus_files()
+        key = _sha256(base_key, _app_key(prometheus), *PROMETHEUS_IMAGE_CONFIG)[:12]
+        what = "Debian's /usr/bin/prometheus, ENTRYPOINT (as prom/prometheus runs it)"
+        build_prometheus = on_base(key, lambda _base: prometheus, f"{PROMETHEUS_IMAGE}:{key}", what, PROMETHEUS_IMAGE_CONFIG)
+        results.append(_archive(images, "prometheus", key, f"{PROMETHEUS_IMAGE}:{key}", build_prometheus, started, log))
     return results
 
 
@@ -892,7 +942,7 @@ def _result(reference: str, archive: str, started: float, cached: bool) -> dict:
 
 
 def build_images(repo_root: str, cache_dir: str, log=print) -> dict[str, str]:
-    """Build (or reuse from `<cache_dir>/images/`) the pause, ROS and published-layout ROS images:
+    """Build (or reuse from `<cache_dir>/images/`) the pause, ROS, published-layout ROS and Prometheus images:
     {image reference: OCI archive path}."""
     results = _build(repo_root, cache_dir, log)
     for result in results:
@@ -923,6 +973,8 @@ def image_aliases(images) -> dict[str, str]:
             aliases.update({_qualified(alias): _qualified(reference) for alias in ALIASES})
         elif reference.startswith(f"{ROS_BASE_IMAGE}:"):
             aliases.update({_qualified(alias): _qualified(reference) for alias in ROS_BASE_ALIASES})
+        elif reference.startswith(f"{PROMETHEUS_IMAGE}:"):
+            aliases.update({_qualified(alias): _qualified(reference) for alias in PROMETHEUS_ALIASES})
     return aliases
 
 

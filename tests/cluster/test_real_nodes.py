@@ -32,14 +32,19 @@ import pytest
 import yaml
 from helpers import ROOT
 from real_tier import (
+    PROMETHEUS,
     ROS_IMAGE,
     RealCluster,
+    apply_objects,
     bridge_round_trips,
     controller_pods,
     lease_holder,
     logs,
+    pod_ready,
     program_pod,
     programs_configmap,
+    prometheus_api,
+    prometheus_objects,
     wait_for,
 )  # fmt: skip
 
@@ -685,6 +690,30 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
         assert answers["/metrics True"][0] == 200 and "kuberos_" in answers["/metrics True"][1], answers["/metrics True"][1][:500]
         assert answers["/metrics False"][0] == 401, "no token, no metrics"
         assert answers["/healthz False"][0] == 200
+
+        # A Prometheus in the cluster (Debian's, no Operator) scrapes both replicas through the Service's endpoints,
+        # over TLS with its own ServiceAccount's token, with the scrape job the ServiceMonitor stands for.
+        prometheus = prometheus_objects("kuberos-system", "kuberos-dashboard-tls")
+        apply_objects(real.core.api_client, prometheus)
+        try:
+            ready = lambda: (lambda p: p.status.pod_ip if pod_ready(p) else None)(  # noqa: E731
+                real.core.read_namespaced_pod(PROMETHEUS, "kuberos-system")
+            )
+            address = wait_for(ready, 180, "Prometheus Ready")
+            up = 'up{job="kuberos-controller"}'
+            scraped = lambda: (lambda d: d["result"] if d and len(d["result"]) == 2 else None)(  # noqa: E731
+                prometheus_api(address, "query", query=up)
+            )
+            targets = wait_for(scraped, 90, "both replicas scraped", 2)
+            assert {s["metric"]["pod"] for s in targets} == set(pods), targets
+            assert all(s["value"][1] == "1" for s in targets), targets
+            nodes = prometheus_api(address, "query", query=f"kuberos_node_ready{{pod='{leader}'}}")["result"]
+            assert {s["metric"]["node"] for s in nodes} == set(NODES), nodes
+            groups = {g["name"] for g in prometheus_api(address, "rules")["groups"]}
+            assert {"kuberos.recording", "kuberos.alerts"} <= groups, groups
+            print(f"Prometheus in the cluster: both replicas up over TLS, {len(nodes)} nodes' kuberos_node_ready, rules {groups}")
+        finally:
+            apply_objects(real.core.api_client, prometheus, delete=True)
 
         other = next(p for p in pods if p != leader)
         killed = time.monotonic()

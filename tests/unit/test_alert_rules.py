@@ -147,3 +147,49 @@ def test_the_controller_exports_the_metrics_the_rules_know():
         source = handle.read()
     families = {re.sub(r"_(total|bucket|sum|count)$", "", name) for name in CONTROLLER_METRICS}
     assert sorted(f for f in families if f'"{f}"' not in source) == []
+
+
+def test_the_scrape_job_for_a_prometheus_without_the_operator_is_the_service_monitors_and_promtool_accepts_it(tmp_path):
+    """monitoring.scrape_config: what the ServiceMonitor declares, as a plain prometheus.yml job (docs/monitoring.md)."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.monitoring import (
+        TOKEN_FILE,
+        monitoring_objects,
+        scrape_config,
+    )
+
+    job = scrape_config("kuberos-ops", ca_file="/etc/prometheus/tls/ca.crt")
+    (monitor,) = [
+        o for o in monitoring_objects("kuberos-ops", {}, True, False, False, tls_secret="tls") if o["kind"] == "ServiceMonitor"
+    ]
+    (endpoint,) = monitor["spec"]["endpoints"]
+    assert (job["scheme"], job["metrics_path"], job["scrape_interval"]) == (
+        endpoint["scheme"],
+        endpoint["path"],
+        endpoint["interval"],
+    )
+    assert job["honor_labels"] is endpoint["honorLabels"] is True
+    assert job["tls_config"]["server_name"] == endpoint["tlsConfig"]["serverName"]
+    assert job["authorization"]["credentials_file"] == endpoint["bearerTokenFile"] == TOKEN_FILE
+    keep = {tuple(r["source_labels"]): r["regex"] for r in job["relabel_configs"] if r.get("action") == "keep"}
+    assert keep == {
+        ("__meta_kubernetes_service_label_app_kubernetes_io_name",): monitor["spec"]["selector"]["matchLabels"][
+            "app.kubernetes.io/name"
+        ],
+        ("__meta_kubernetes_endpoint_port_name",): endpoint["port"],
+    }
+    assert job["kubernetes_sd_configs"] == [
+        {"role": "endpoints", "namespaces": {"names": monitor["spec"]["namespaceSelector"]["matchNames"]}}
+    ]
+    assert "scheme" not in scrape_config("kuberos-ops"), "plain HTTP without a CA file"
+
+    # promtool checks the files a job names: point them at files that exist here.
+    for name in ("token", "ca.crt"):
+        (tmp_path / name).write_text("x\n")
+    job["authorization"]["credentials_file"] = str(tmp_path / "token")
+    job["tls_config"]["ca_file"] = str(tmp_path / "ca.crt")
+    config = tmp_path / "prometheus.yml"
+    config.write_text(yaml.safe_dump({"rule_files": [RULES], "scrape_configs": [job]}))
+    result = subprocess.run(
+        [_promtool(), "check", "config", str(config)], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert result.returncode == 0, result.stdout + result.stderr

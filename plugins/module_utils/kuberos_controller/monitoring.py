@@ -57,6 +57,32 @@ def _checked_groups(rules) -> list:
     return copy.deepcopy(groups)
 
 
+def scrape_config(namespace: str, ca_file: str = "") -> dict:
+    """The scrape job of a Prometheus without the Operator, what the ServiceMonitor stands for: the endpoints of the
+    Service ``kuberos-controller`` in ``namespace`` (``kubernetes_sd_configs``, role ``endpoints``), port ``http``,
+    path ``/metrics``, every 15 s, the metrics' own labels kept, with the token of the Prometheus pod's
+    ServiceAccount (bound to ``kuberos-metrics-reader``); each target labelled with its ``pod``.
+    ``ca_file``: the controller serves HTTPS (``controller_dashboard_tls_secret``); the job checks its certificate
+    against that file (the Secret's ``ca.crt`` mounted in the Prometheus pod) for the Service's name."""
+    job = {
+        "job_name": NAME,
+        "scrape_interval": INTERVAL,
+        "metrics_path": PATH,
+        "honor_labels": True,
+        "authorization": {"type": "Bearer", "credentials_file": TOKEN_FILE},
+        "kubernetes_sd_configs": [{"role": "endpoints", "namespaces": {"names": [namespace]}}],
+        "relabel_configs": [
+            {"source_labels": ["__meta_kubernetes_service_label_app_kubernetes_io_name"], "regex": NAME, "action": "keep"},
+            {"source_labels": ["__meta_kubernetes_endpoint_port_name"], "regex": PORT, "action": "keep"},
+            {"source_labels": ["__meta_kubernetes_pod_name"], "target_label": "pod"},
+        ],
+    }
+    if ca_file:
+        job["scheme"] = "https"
+        job["tls_config"] = {"ca_file": ca_file, "server_name": f"{NAME}.{namespace}.svc"}
+    return job
+
+
 def monitoring_objects(
     namespace: str,
     rules: dict,
