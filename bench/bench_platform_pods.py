@@ -7,7 +7,7 @@ addresses and state directory), in one run:
 (1) the pick-and-place example deployed (``playbooks/deploy.yml``) and every instance Running and Ready;
 (2) ``controller.yml`` in-cluster: two replicas from the collection's image on the edge servers. Then ``--trials``
     times: the leader is read from the Lease and killed (the clock starts right before: epoch time), in turn by
-    deleting its pod with grace 0 (the kubelet stops the container, whose SIGTERM handler gives the Lease up) and
+    deleting its pod (with its grace period: the kubelet sends SIGTERM, and the controller gives the Lease up) and
     by SIGKILL to its process through the node's containerd (a crash: nothing gives the Lease up; the kubelet
     restarts the container in its pod, which holds the Lease under the same name and may lead again before the
     other replica's wait for the Lease to run out, 6 s, ends); the takeover is the epoch at which a replica (the
@@ -93,15 +93,16 @@ def restarted(real: RealCluster, pod_name: str, before: int) -> bool:
 
 
 def takeover_trial(real: RealCluster, namespace: str, index: int, kind: str) -> dict:
-    """One kill of the leader: ``pod deleted`` (grace 0: the kubelet stops the container, which gives the Lease up)
-    or ``process killed`` (SIGKILL in the container: the Lease runs out first)."""
+    """One kill of the leader: ``pod deleted`` (with its grace period, as a drain or an eviction deletes it: the
+    kubelet sends SIGTERM and the controller gives the Lease up) or ``process killed`` (SIGKILL in the container:
+    nothing gives the Lease up)."""
     pods = wait_for(lambda: (lambda f: f if len(f) == 2 else None)(controller_pods(real.core)), 240, "two replicas Ready")
     leader = wait_for(lambda: (lambda h: h if h in pods else None)(lease_holder(real.core)), 60, "a leader")
     other = next(p for p in pods if p != leader)
     before = fleet_pods(real.core, namespace)
     killed = time.time()
     if kind == "pod deleted":
-        real.core.delete_namespaced_pod(leader, CONTROLLER_NAMESPACE, grace_period_seconds=0)
+        real.core.delete_namespaced_pod(leader, CONTROLLER_NAMESPACE)  # its grace period, as a drain or an eviction
     else:
         restarts = kill_process(real, leader)
     # The other replica, or the killed one restarted in its pod: it holds the Lease under its own name already.

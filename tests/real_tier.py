@@ -319,9 +319,10 @@ PROMETHEUS = "kuberos-prometheus"
 
 
 def prometheus_objects(namespace: str, tls_secret: str) -> list[dict]:
-    """A plain Prometheus in ``namespace``: its ServiceAccount may discover endpoints and is bound to
-    ``kuberos-metrics-reader``; its configuration is the controller's scrape job (``monitoring.scrape_config``, the
-    ServiceMonitor's equivalent) over TLS with ``tls_secret``'s ca.crt, and the collection's rule file."""
+    """A plain Prometheus in ``namespace``: its ServiceAccount is bound to ``kuberos-metrics-reader`` (and may
+    discover endpoints, for a job by Kubernetes discovery); its configuration is the controller's scrape job
+    (``monitoring.scrape_config``, the ServiceMonitor's equivalent) over TLS with ``tls_secret``'s ca.crt, and the
+    collection's rule file."""
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import monitoring
 
     with open(os.path.join(ROOT, "roles", "controller", "files", "prometheus", "kuberos-rules.yml"), encoding="utf-8") as handle:
@@ -329,7 +330,8 @@ def prometheus_objects(namespace: str, tls_secret: str) -> list[dict]:
     config = {
         "global": {"scrape_interval": "5s", "evaluation_interval": "5s"},
         "rule_files": ["/etc/prometheus/kuberos-rules.yml"],
-        "scrape_configs": [monitoring.scrape_config(namespace, ca_file="/etc/prometheus/tls/ca.crt")],
+        # Debian's Prometheus is built without Kubernetes discovery: the replicas by DNS (the headless Service).
+        "scrape_configs": [monitoring.scrape_config(namespace, ca_file="/etc/prometheus/tls/ca.crt", discovery="dns")],
     }
     rbac = "rbac.authorization.k8s.io/v1"
     discover = [{"apiGroups": [""], "resources": ["services", "endpoints", "pods"], "verbs": ["get", "list", "watch"]}]

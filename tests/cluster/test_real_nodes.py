@@ -691,8 +691,8 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
         assert answers["/metrics False"][0] == 401, "no token, no metrics"
         assert answers["/healthz False"][0] == 200
 
-        # A Prometheus in the cluster (Debian's, no Operator) scrapes both replicas through the Service's endpoints,
-        # over TLS with its own ServiceAccount's token, with the scrape job the ServiceMonitor stands for.
+        # A Prometheus in the cluster (Debian's, no Operator) scrapes both replicas, found by DNS through the headless
+        # Service, over TLS with its own ServiceAccount's token: the scrape job the ServiceMonitor stands for.
         prometheus = prometheus_objects("kuberos-system", "kuberos-dashboard-tls")
         apply_objects(real.core.api_client, prometheus)
         try:
@@ -705,9 +705,10 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
                 prometheus_api(address, "query", query=up)
             )
             targets = wait_for(scraped, 90, "both replicas scraped", 2)
-            assert {s["metric"]["pod"] for s in targets} == set(pods), targets
+            addresses = {real.core.read_namespaced_pod(p, "kuberos-system").status.pod_ip for p in pods}
+            assert {s["metric"]["instance"].rsplit(":", 1)[0] for s in targets} == addresses, targets
             assert all(s["value"][1] == "1" for s in targets), targets
-            nodes = prometheus_api(address, "query", query=f"kuberos_node_ready{{pod='{leader}'}}")["result"]
+            nodes = prometheus_api(address, "query", query="max by (node) (kuberos_node_ready)")["result"]
             assert {s["metric"]["node"] for s in nodes} == set(NODES), nodes
             groups = {g["name"] for g in prometheus_api(address, "rules")["groups"]}
             assert {"kuberos.recording", "kuberos.alerts"} <= groups, groups
@@ -717,7 +718,9 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
 
         other = next(p for p in pods if p != leader)
         killed = time.monotonic()
-        real.core.delete_namespaced_pod(leader, "kuberos-system", grace_period_seconds=0)
+        # Deleted as a drain or an eviction deletes it (SIGTERM, the Lease given up). A forced deletion (grace 0) only
+        # removes the object: the process may run on, holding the Lease, until its kubelet stops it.
+        real.core.delete_namespaced_pod(leader, "kuberos-system")
         wait_for(lambda: lease_holder(real.core) == other, 30, f"{other} to take the Lease from {leader}", interval=0.1)
         takeover = time.monotonic() - killed
         print(f"in-cluster controller: leader {leader} killed, {other} took the Lease in {takeover:.1f} s")

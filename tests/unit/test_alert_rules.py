@@ -150,46 +150,69 @@ def test_the_controller_exports_the_metrics_the_rules_know():
 
 
 def test_the_scrape_job_for_a_prometheus_without_the_operator_is_the_service_monitors_and_promtool_accepts_it(tmp_path):
-    """monitoring.scrape_config: what the ServiceMonitor declares, as a plain prometheus.yml job (docs/monitoring.md)."""
+    """monitoring.scrape_config: what the ServiceMonitor declares, as a plain prometheus.yml job (docs/monitoring.md),
+    by Kubernetes discovery (upstream Prometheus) or by DNS over the headless Service (Debian's, built without it)."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import controller_objects
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.monitoring import (
         TOKEN_FILE,
         monitoring_objects,
         scrape_config,
     )
 
-    job = scrape_config("kuberos-ops", ca_file="/etc/prometheus/tls/ca.crt")
-    (monitor,) = [
-        o for o in monitoring_objects("kuberos-ops", {}, True, False, False, tls_secret="tls") if o["kind"] == "ServiceMonitor"
-    ]
+    objects = monitoring_objects("kuberos-ops", {}, True, False, False, tls_secret="tls")
+    (monitor,) = [o for o in objects if o["kind"] == "ServiceMonitor"]
     (endpoint,) = monitor["spec"]["endpoints"]
-    assert (job["scheme"], job["metrics_path"], job["scrape_interval"]) == (
-        endpoint["scheme"],
-        endpoint["path"],
-        endpoint["interval"],
-    )
-    assert job["honor_labels"] is endpoint["honorLabels"] is True
-    assert job["tls_config"]["server_name"] == endpoint["tlsConfig"]["serverName"]
-    assert job["authorization"]["credentials_file"] == endpoint["bearerTokenFile"] == TOKEN_FILE
-    keep = {tuple(r["source_labels"]): r["regex"] for r in job["relabel_configs"] if r.get("action") == "keep"}
+    selected = monitor["spec"]["selector"]["matchLabels"]["app.kubernetes.io/name"]
+    for discovery in ("kubernetes", "dns"):
+        job = scrape_config("kuberos-ops", ca_file="/etc/prometheus/tls/ca.crt", discovery=discovery)
+        assert (job["scheme"], job["metrics_path"], job["scrape_interval"]) == (
+            endpoint["scheme"],
+            endpoint["path"],
+            endpoint["interval"],
+        )
+        assert job["honor_labels"] is endpoint["honorLabels"] is True
+        assert job["tls_config"]["server_name"] == endpoint["tlsConfig"]["serverName"]
+        assert job["authorization"]["credentials_file"] == endpoint["bearerTokenFile"] == TOKEN_FILE
+    kubernetes = scrape_config("kuberos-ops", discovery="kubernetes")
+    keep = {tuple(r["source_labels"]): r["regex"] for r in kubernetes["relabel_configs"] if r.get("action") == "keep"}
     assert keep == {
-        ("__meta_kubernetes_service_label_app_kubernetes_io_name",): monitor["spec"]["selector"]["matchLabels"][
-            "app.kubernetes.io/name"
-        ],
+        ("__meta_kubernetes_service_label_app_kubernetes_io_name",): selected,
         ("__meta_kubernetes_endpoint_port_name",): endpoint["port"],
     }
-    assert job["kubernetes_sd_configs"] == [
-        {"role": "endpoints", "namespaces": {"names": monitor["spec"]["namespaceSelector"]["matchNames"]}}
-    ]
-    assert "scheme" not in scrape_config("kuberos-ops"), "plain HTTP without a CA file"
+    assert kubernetes["kubernetes_sd_configs"][0]["namespaces"]["names"] == monitor["spec"]["namespaceSelector"]["matchNames"]
+    assert "scheme" not in kubernetes, "plain HTTP without a CA file"
+    # DNS: the headless Service of the controller's objects, which the ServiceMonitor does not also select.
+    services = {o["metadata"]["name"]: o for o in controller_objects("kuberos-ops", "img", ["f"], []) if o["kind"] == "Service"}
+    dns = scrape_config("kuberos-ops", discovery="dns")
+    (sd,) = dns["dns_sd_configs"]
+    headless = services["kuberos-controller-pods"]
+    assert sd["names"] == ["kuberos-controller-pods.kuberos-ops.svc.cluster.local"] and sd["type"] == "A"
+    assert headless["spec"]["clusterIP"] == "None" and sd["port"] == headless["spec"]["ports"][0]["port"]
+    assert headless["spec"]["selector"] == services["kuberos-controller"]["spec"]["selector"]
+    assert headless["metadata"]["labels"]["app.kubernetes.io/name"] != selected, "scraped once, not twice"
+    with pytest.raises(ValueError, match="expected kubernetes or dns"):
+        scrape_config("kuberos-ops", discovery="consul")
 
-    # promtool checks the files a job names: point them at files that exist here.
+    # promtool (Debian's, without Kubernetes discovery) checks the DNS job and the files it names.
     for name in ("token", "ca.crt"):
         (tmp_path / name).write_text("x\n")
+    job = scrape_config("kuberos-ops", ca_file=str(tmp_path / "ca.crt"), discovery="dns")
     job["authorization"]["credentials_file"] = str(tmp_path / "token")
-    job["tls_config"]["ca_file"] = str(tmp_path / "ca.crt")
     config = tmp_path / "prometheus.yml"
     config.write_text(yaml.safe_dump({"rule_files": [RULES], "scrape_configs": [job]}))
     result = subprocess.run(
         [_promtool(), "check", "config", str(config)], capture_output=True, text=True, timeout=120, check=False
     )
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_the_docs_show_the_dns_scrape_job_as_the_code_writes_it():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.monitoring import scrape_config
+
+    with open(os.path.join(ROOT, "docs", "monitoring.md"), encoding="utf-8") as handle:
+        text = handle.read()
+    section = text[text.index("## A Prometheus without the Operator") :]
+    block = section[section.index("```yaml\n") + 8 : section.index("```\n", section.index("```yaml\n") + 8)]
+    assert yaml.safe_load(block) == {
+        "scrape_configs": [scrape_config("kuberos-system", ca_file="/etc/prometheus/tls/ca.crt", discovery="dns")]
+    }

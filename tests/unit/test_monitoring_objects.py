@@ -53,9 +53,11 @@ def by_kind(objects: list[dict]) -> dict[str, dict]:
 
 
 def controller() -> dict[str, dict]:
-    """The controller's own Deployment and Service (manifests.py)."""
+    """The controller's own Deployment and Service (manifests.py); its headless twin as ``HeadlessService``."""
     objects = controller_objects(NAMESPACE, "img", ["a"], [])
-    return {o["kind"]: o for o in objects if o["kind"] in ("Deployment", "Service")}
+    found = {o["kind"]: o for o in objects if o["kind"] == "Deployment" or o["metadata"]["name"] == "kuberos-controller"}
+    found["HeadlessService"] = next(o for o in objects if o["metadata"]["name"] == "kuberos-controller-pods")
+    return found
 
 
 def matches(selector: dict, labels: dict) -> bool:
@@ -119,6 +121,7 @@ def test_the_service_monitor_scrapes_the_controllers_service_with_a_token(rules)
     service = ours["Service"]
     assert service["metadata"]["name"] == "kuberos-controller" and service["metadata"]["namespace"] == NAMESPACE
     assert matches(monitor["spec"]["selector"], service["metadata"]["labels"])
+    assert not matches(monitor["spec"]["selector"], ours["HeadlessService"]["metadata"]["labels"]), "each replica scraped once"
     assert monitor["spec"]["namespaceSelector"] == {"matchNames": [NAMESPACE]}
     (endpoint,) = monitor["spec"]["endpoints"]
     assert endpoint["port"] in {p.get("name") for p in service["spec"]["ports"]}

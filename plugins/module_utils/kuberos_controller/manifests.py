@@ -47,6 +47,7 @@ REVIEW_RULES = [
 VIEWER_ROLE = "kuberos-dashboard-viewer"
 VIEWER_RULES = [{"nonResourceURLs": ["/kuberos/dashboard", "/metrics"], "verbs": ["get"]}]
 DASHBOARD_PORT = 8611
+PODS_SERVICE = f"{NAME}-pods"  # the headless Service: one DNS address per Ready replica
 TLS_DIR = "/etc/kuberos/dashboard-tls"
 FLEET_RULES = [
     {"apiGroups": [""], "resources": ["configmaps"], "verbs": ["get", "create", "patch"]},
@@ -62,7 +63,8 @@ def controller_objects(
     namespace: str, image: str, fleets: list[str], args: list[str], replicas: int = 2, tls_secret: str = ""
 ) -> list[dict]:
     """Namespace, ServiceAccount, the two ClusterRoles, their bindings (one per fleet), the Lease Role and its
-    binding, the dashboard viewer's ServiceAccount, ClusterRole and binding, the Service, the Deployment and, with
+    binding, the dashboard viewer's ServiceAccount, ClusterRole and binding, the Service and its headless twin
+    ``kuberos-controller-pods``, the Deployment and, with
     more than one replica, its PodDisruptionBudget. ``tls_secret``: a ``kubernetes.io/tls`` Secret in ``namespace``
     (``tls.crt``, ``tls.key``) mounted into the pods, and the dashboard serves HTTPS with it."""
     tls_args = ["--dashboard-tls-cert", f"{TLS_DIR}/tls.crt", "--dashboard-tls-key", f"{TLS_DIR}/tls.key"] if tls_secret else []
@@ -129,6 +131,22 @@ def controller_objects(
             "kind": "Service",
             "metadata": {"name": NAME, "namespace": namespace, "labels": labels},
             "spec": {
+                "selector": {"app.kubernetes.io/name": NAME},
+                "ports": [{"name": "http", "port": DASHBOARD_PORT, "targetPort": "http", "protocol": "TCP"}],
+            },
+        },
+        {
+            # Headless: DNS lists each Ready replica's address, for a Prometheus that discovers targets by DNS
+            # (monitoring.scrape_config). Labelled apart from the Service above, which the ServiceMonitor selects.
+            "apiVersion": "v1",
+            "kind": "Service",
+            "metadata": {
+                "name": PODS_SERVICE,
+                "namespace": namespace,
+                "labels": {MANAGED_BY: "kuberos", "app.kubernetes.io/name": PODS_SERVICE},
+            },
+            "spec": {
+                "clusterIP": "None",
                 "selector": {"app.kubernetes.io/name": NAME},
                 "ports": [{"name": "http", "port": DASHBOARD_PORT, "targetPort": "http", "protocol": "TCP"}],
             },

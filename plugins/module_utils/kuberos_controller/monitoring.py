@@ -21,7 +21,11 @@ import copy
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import NAME
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import (
+    DASHBOARD_PORT,
+    NAME,
+    PODS_SERVICE,
+)
 
 API_VERSION = "monitoring.coreos.com/v1"
 READER_ROLE = "kuberos-metrics-reader"
@@ -57,26 +61,35 @@ def _checked_groups(rules) -> list:
     return copy.deepcopy(groups)
 
 
-def scrape_config(namespace: str, ca_file: str = "") -> dict:
-    """The scrape job of a Prometheus without the Operator, what the ServiceMonitor stands for: the endpoints of the
-    Service ``kuberos-controller`` in ``namespace`` (``kubernetes_sd_configs``, role ``endpoints``), port ``http``,
-    path ``/metrics``, every 15 s, the metrics' own labels kept, with the token of the Prometheus pod's
-    ServiceAccount (bound to ``kuberos-metrics-reader``); each target labelled with its ``pod``.
-    ``ca_file``: the controller serves HTTPS (``controller_dashboard_tls_secret``); the job checks its certificate
-    against that file (the Secret's ``ca.crt`` mounted in the Prometheus pod) for the Service's name."""
+def scrape_config(namespace: str, ca_file: str = "", discovery: str = "kubernetes", domain: str = "cluster.local") -> dict:
+    """The scrape job of a Prometheus without the Operator, what the ServiceMonitor stands for: every replica of the
+    in-cluster controller in ``namespace``, port ``http`` (8611), path ``/metrics``, every 15 s, the metrics' own
+    labels kept, with the token of the Prometheus pod's ServiceAccount (bound to ``kuberos-metrics-reader``).
+    ``discovery``: ``kubernetes`` finds the replicas as the endpoints of the Service ``kuberos-controller``
+    (``kubernetes_sd_configs``, role ``endpoints``; each target labelled with its ``pod``); ``dns`` as the addresses
+    of the headless Service ``kuberos-controller-pods`` (``dns_sd_configs``: for a Prometheus built without
+    Kubernetes discovery, such as Debian's package). ``ca_file``: the controller serves HTTPS
+    (``controller_dashboard_tls_secret``); the job checks its certificate against that file (the Secret's ``ca.crt``
+    mounted in the Prometheus pod) for the Service's name."""
     job = {
         "job_name": NAME,
         "scrape_interval": INTERVAL,
         "metrics_path": PATH,
         "honor_labels": True,
         "authorization": {"type": "Bearer", "credentials_file": TOKEN_FILE},
-        "kubernetes_sd_configs": [{"role": "endpoints", "namespaces": {"names": [namespace]}}],
-        "relabel_configs": [
+    }
+    if discovery == "kubernetes":
+        job["kubernetes_sd_configs"] = [{"role": "endpoints", "namespaces": {"names": [namespace]}}]
+        job["relabel_configs"] = [
             {"source_labels": ["__meta_kubernetes_service_label_app_kubernetes_io_name"], "regex": NAME, "action": "keep"},
             {"source_labels": ["__meta_kubernetes_endpoint_port_name"], "regex": PORT, "action": "keep"},
             {"source_labels": ["__meta_kubernetes_pod_name"], "target_label": "pod"},
-        ],
-    }
+        ]
+    elif discovery == "dns":
+        name = f"{PODS_SERVICE}.{namespace}.svc.{domain}"
+        job["dns_sd_configs"] = [{"names": [name], "type": "A", "port": DASHBOARD_PORT, "refresh_interval": "15s"}]
+    else:
+        raise ValueError(f"discovery {discovery!r}: expected kubernetes or dns")
     if ca_file:
         job["scheme"] = "https"
         job["tls_config"] = {"ca_file": ca_file, "server_name": f"{NAME}.{namespace}.svc"}
