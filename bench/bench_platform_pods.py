@@ -11,7 +11,8 @@ addresses and state directory), in one run:
     by SIGKILL to its process through the node's containerd (a crash: nothing gives the Lease up; the kubelet
     restarts the container in its pod, which holds the Lease under the same name and may lead again before the
     other replica's wait for the Lease to run out, 6 s, ends); the takeover is the epoch at which a replica (the
-    other, or the restarted one) logs ``first pass as leader completed at`` minus the kill's, as
+    other, the restarted one, or the Deployment's replacement of a deleted pod) logs ``first pass as leader
+    completed at`` minus the kill's, as
     ``bench_controller_ha.py`` measures the processes. After each trial, once the Deployment's
     replacement replica is Ready, the fleet's pods are compared with those before: an instance without its pod is
     lost, one with two is duplicated, a pod with another UID was restarted (none may be);
@@ -92,22 +93,27 @@ def restarted(real: RealCluster, pod_name: str, before: int) -> bool:
     return status.restart_count > before and status.ready
 
 
+def replica_names(real: RealCluster) -> list[str]:
+    selector = "app.kubernetes.io/name=kuberos-controller"
+    return [p.metadata.name for p in real.core.list_namespaced_pod(CONTROLLER_NAMESPACE, label_selector=selector).items]
+
+
 def takeover_trial(real: RealCluster, namespace: str, index: int, kind: str) -> dict:
     """One kill of the leader: ``pod deleted`` (with its grace period, as a drain or an eviction deletes it: the
     kubelet sends SIGTERM and the controller gives the Lease up) or ``process killed`` (SIGKILL in the container:
     nothing gives the Lease up)."""
     pods = wait_for(lambda: (lambda f: f if len(f) == 2 else None)(controller_pods(real.core)), 240, "two replicas Ready")
     leader = wait_for(lambda: (lambda h: h if h in pods else None)(lease_holder(real.core)), 60, "a leader")
-    other = next(p for p in pods if p != leader)
     before = fleet_pods(real.core, namespace)
     killed = time.time()
     if kind == "pod deleted":
         real.core.delete_namespaced_pod(leader, CONTROLLER_NAMESPACE)  # its grace period, as a drain or an eviction
     else:
         restarts = kill_process(real, leader)
-    # The other replica, or the killed one restarted in its pod: it holds the Lease under its own name already.
+    # Whichever replica takes the Lease: the other, the killed one restarted in its pod (it holds the Lease under its
+    # own name already), or the Deployment's replacement for a deleted pod, when it starts before the other's retry.
     led = lambda: next(  # noqa: E731
-        ((pod, at) for pod in (other, leader) if (at := first_pass_as_leader(real.core, pod, killed))), None
+        ((pod, at) for pod in replica_names(real) if (at := first_pass_as_leader(real.core, pod, killed))), None
     )
     new_leader, passed = wait_for(led, 60, "a replica's first pass as leader", 0.2)
     wait_for(lambda: lease_holder(real.core) == new_leader, 10, f"{new_leader} holding the Lease", 0.2)
