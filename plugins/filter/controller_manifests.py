@@ -11,7 +11,9 @@ description:
     a ClusterRole bound in each fleet namespace only (patch Deployments, delete pods, get/create/patch ConfigMaps,
     create Events), their bindings, a Role to get, create and update Leases in the controller's namespace (leader
     election) and its binding, the dashboard viewer's ServiceAccount, ClusterRole and binding, the Service of the
-    dashboard and C(/metrics), the controller's Deployment and, with more than one replica, a PodDisruptionBudget.
+    dashboard and C(/metrics), a headless Service C(kuberos-controller-pods) listing each Ready replica by DNS (for a
+    Prometheus that discovers its targets by DNS), the controller's Deployment and, with more than one replica, a
+    PodDisruptionBudget.
 options:
   _input:
     description: Names of the fleets whose namespaces the controller may act in.

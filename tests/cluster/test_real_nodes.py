@@ -716,14 +716,15 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
         finally:
             apply_objects(real.core.api_client, prometheus, delete=True)
 
-        other = next(p for p in pods if p != leader)
         killed = time.monotonic()
         # Deleted as a drain or an eviction deletes it (SIGTERM, the Lease given up). A forced deletion (grace 0) only
-        # removes the object: the process may run on, holding the Lease, until its kubelet stops it.
+        # removes the object, without waiting for the process to end. The other replica takes the free Lease, or the
+        # Deployment's replacement does when it starts before the other's next try (bench/RESULTS.md).
         real.core.delete_namespaced_pod(leader, "kuberos-system")
-        wait_for(lambda: lease_holder(real.core) == other, 30, f"{other} to take the Lease from {leader}", interval=0.1)
+        taken = lambda: (lambda h: h if h and h != leader else None)(lease_holder(real.core))  # noqa: E731
+        holder = wait_for(taken, 30, f"another replica to take the Lease from {leader}", interval=0.1)
         takeover = time.monotonic() - killed
-        print(f"in-cluster controller: leader {leader} killed, {other} took the Lease in {takeover:.1f} s")
+        print(f"in-cluster controller: leader {leader} deleted, {holder} took the Lease in {takeover:.1f} s")
         assert takeover < 10
         wait_for(lambda: len(controller_pods(real.core)) == 2, 180, "the Deployment's replacement replica Ready")
     finally:

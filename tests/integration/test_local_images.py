@@ -268,7 +268,9 @@ def test_image_aliases_are_fully_qualified():
 
 
 def test_build_is_cached_and_named(built, ros_image, ros_base_image):
-    assert set(built) == {local_images.PAUSE_IMAGE, ros_image, ros_base_image}
+    (prometheus,) = [reference for reference in built if reference.startswith(f"{local_images.PROMETHEUS_IMAGE}:")]
+    assert set(built) == {local_images.PAUSE_IMAGE, ros_image, ros_base_image, prometheus}
+    assert re.fullmatch(r"kuberos\.local/prometheus:[0-9a-f]{12}", prometheus)
     assert re.fullmatch(r"kuberos\.local/ros:[0-9a-f]{12}", ros_image)
     assert re.fullmatch(r"kuberos\.local/ros-base:[0-9a-f]{12}", ros_base_image)
     started = time.monotonic()
@@ -279,6 +281,18 @@ def test_build_is_cached_and_named(built, ros_image, ros_base_image):
         assert os.path.isfile(archive)
         assert local_images.archive_image(archive)[0] == reference
     assert os.listdir(os.path.join(CACHE_DIR, "images", "tmp")) == [], "a finished build leaves nothing in tmp/"
+
+
+def test_prometheus_image_runs_debians_program_as_the_published_image_does(built):
+    """Debian's /usr/bin/prometheus on the base, entrypoint and command as prom/prometheus has them, user nobody."""
+    (reference,) = [reference for reference in built if reference.startswith(f"{local_images.PROMETHEUS_IMAGE}:")]
+    _, config, layers = archive_layers(built[reference])
+    assert config["config"]["Entrypoint"] == ["/bin/prometheus"]
+    assert config["config"]["Cmd"] == ["--config.file=/etc/prometheus/prometheus.yml", "--storage.tsdb.path=/prometheus"]
+    assert config["config"]["User"] == "65534:65534" and config["config"]["WorkingDir"] == "/prometheus"
+    assert {"bin/prometheus", "etc/prometheus/prometheus.yml"} <= {name.lstrip("./") for name in layers[-1]}
+    aliases = local_images.image_aliases(built)
+    assert aliases["kuberos.local/prometheus:debian"] == reference
 
 
 def test_pause_image_holds_only_the_program(built):
