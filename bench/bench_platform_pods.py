@@ -39,6 +39,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_controller_ha import percentile  # the process benchmark's p95, so that the two compare
 from bench_deploy import REPO, log, machine
 
 sys.path[:0] = [str(REPO / ".collections"), str(REPO / "tests")]
@@ -58,11 +59,6 @@ PARTNER_PORTS = {k: v + 1000 for k, v in PORTS.items()}
 BASE, TAG = 211, "kc"  # 10.211-213.x
 PARTNER_BASE, PARTNER_TAG = 215, "kd"  # 10.215-217.x
 SPEC = REPO / "examples" / "pick-and-place.yml"
-
-
-def percentile(values: list[float], share: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, max(0, round(share * len(ordered) + 0.5) - 1))]
 
 
 def fleet_pods(core, namespace: str) -> dict[str, list[str]]:

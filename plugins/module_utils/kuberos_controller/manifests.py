@@ -23,6 +23,8 @@ PodDisruptionBudget keeps one replica through voluntary evictions such as a node
 
 from __future__ import annotations
 
+import copy
+
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
@@ -69,6 +71,7 @@ def controller_objects(
     (``tls.crt``, ``tls.key``) mounted into the pods, and the dashboard serves HTTPS with it."""
     tls_args = ["--dashboard-tls-cert", f"{TLS_DIR}/tls.crt", "--dashboard-tls-key", f"{TLS_DIR}/tls.key"] if tls_secret else []
     labels = {MANAGED_BY: "kuberos", "app.kubernetes.io/name": NAME}
+    ports = [{"name": "http", "port": DASHBOARD_PORT, "targetPort": "http", "protocol": "TCP"}]  # both Services
     subject = {"kind": "ServiceAccount", "name": NAME, "namespace": namespace}
     objects = [
         {"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": namespace, "labels": labels}},
@@ -132,7 +135,7 @@ def controller_objects(
             "metadata": {"name": NAME, "namespace": namespace, "labels": labels},
             "spec": {
                 "selector": {"app.kubernetes.io/name": NAME},
-                "ports": [{"name": "http", "port": DASHBOARD_PORT, "targetPort": "http", "protocol": "TCP"}],
+                "ports": copy.deepcopy(ports),
             },
         },
         {
@@ -148,7 +151,7 @@ def controller_objects(
             "spec": {
                 "clusterIP": "None",
                 "selector": {"app.kubernetes.io/name": NAME},
-                "ports": [{"name": "http", "port": DASHBOARD_PORT, "targetPort": "http", "protocol": "TCP"}],
+                "ports": copy.deepcopy(ports),
             },
         },
     ]

@@ -61,6 +61,11 @@ def _checked_groups(rules) -> list:
     return copy.deepcopy(groups)
 
 
+def _service_name(namespace: str) -> str:
+    """The name the controller's certificate is checked for: its Service's."""
+    return f"{NAME}.{namespace}.svc"
+
+
 def scrape_config(namespace: str, ca_file: str = "", discovery: str = "kubernetes", domain: str = "cluster.local") -> dict:
     """The scrape job of a Prometheus without the Operator, what the ServiceMonitor stands for: every replica of the
     in-cluster controller in ``namespace``, port ``http`` (8611), path ``/metrics``, every 15 s, the metrics' own
@@ -92,7 +97,7 @@ def scrape_config(namespace: str, ca_file: str = "", discovery: str = "kubernete
         raise ValueError(f"discovery {discovery!r}: expected kubernetes or dns")
     if ca_file:
         job["scheme"] = "https"
-        job["tls_config"] = {"ca_file": ca_file, "server_name": f"{NAME}.{namespace}.svc"}
+        job["tls_config"] = {"ca_file": ca_file, "server_name": _service_name(namespace)}
     return job
 
 
@@ -121,7 +126,7 @@ def monitoring_objects(
     endpoint = {"port": PORT, "path": PATH, "scheme": "http", "interval": INTERVAL, "honorLabels": True}
     if tls_secret:  # the controller serves HTTPS with this Secret: verify it with the Secret's ca.crt
         endpoint["scheme"] = "https"
-        endpoint["tlsConfig"] = {"ca": {"secret": {"name": tls_secret, "key": "ca.crt"}}, "serverName": f"{NAME}.{namespace}.svc"}
+        endpoint["tlsConfig"] = {"ca": {"secret": {"name": tls_secret, "key": "ca.crt"}}, "serverName": _service_name(namespace)}
     objects: list[dict] = []
     if service_monitor or pod_monitor:
         objects.append(
