@@ -47,9 +47,10 @@ command -v wireguard-go >/dev/null 2>&1 || missing+=(wireguard-go)
 command -v shellcheck >/dev/null 2>&1 || missing+=(shellcheck)  # ansible-test sanity's shellcheck test
 # node_prereqs' packages: the role's test hosts have no route to package mirrors, so they are installed here.
 # The local cluster's real nodes: CNI plugins, umoci and debootstrap to build the images they run, and the CNCF
-# distribution registry (docker-registry) that serves them to the nodes.
+# distribution registry (docker-registry) that serves them to the nodes. The lab machines of the kubeadm and site
+# tests: systemd-nspawn (systemd-container) booting a debootstrap root.
 for package in containerd runc conntrack socat iptables ethtool gpg containernetworking-plugins umoci debootstrap gcc libc6-dev \
-  docker-registry; do
+  docker-registry systemd-container; do
   dpkg-query -W -f '${Status}' "$package" 2>/dev/null | grep -q 'install ok installed' || missing+=("$package")
 done
 if [ ${#missing[@]} -gt 0 ]; then

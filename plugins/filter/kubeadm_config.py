@@ -66,6 +66,22 @@ options:
     description: The port each API server listens on.
     type: int
     default: 6443
+  cgroup_driver:
+    description: The kubelets' cgroup driver, the same as containerd's (C(systemd) or C(cgroupfs)).
+    type: str
+    default: systemd
+  image_repository:
+    description: Registry path of the control-plane images (a mirror); empty for kubeadm's default (registry.k8s.io).
+    type: str
+    default: ""
+  etcd_image_tag:
+    description: Tag of the etcd image, when the site runs another etcd than kubeadm's default (e.g. C(3.5.35-0)).
+    type: str
+    default: ""
+  coredns_image_tag:
+    description: Tag of the CoreDNS image, when the site runs another CoreDNS than kubeadm's default.
+    type: str
+    default: ""
   control_plane_schedulable:
     description: Control planes run modules too (no C(node-role.kubernetes.io/control-plane) taint).
     type: bool
@@ -144,7 +160,10 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster i
 from ansible_collections.kuberos.platform.plugins.plugin_utils.filter_errors import reports_kuberos_errors
 from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import host_address, plain
 
-_SETTINGS = ("kubernetes_version", "pod_cidr", "service_cidr", "control_plane_endpoint", "cri_socket", "bind_port")
+_SETTINGS = (
+    "kubernetes_version", "pod_cidr", "service_cidr", "control_plane_endpoint", "cri_socket", "bind_port", "cgroup_driver",
+    "image_repository", "etcd_image_tag", "coredns_image_tag",
+)  # fmt: skip
 
 
 @reports_kuberos_errors

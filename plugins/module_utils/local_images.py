@@ -867,11 +867,7 @@ def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
         _remove(os.path.join(images, "tmp"))
         os.makedirs(os.path.join(images, "tmp"))
 
-        started = time.monotonic()
-        with open(os.path.join(repo_root, PAUSE_SOURCE), "rb") as handle:
-            pause_key = _sha256(RECIPE_VERSION, handle.read())[:12]
-        build_pause = functools.partial(_build_pause, repo_root, images, pause_key)
-        results.append(_archive(images, "pause", pause_key, PAUSE_IMAGE, build_pause, started, log))
+        results.append(_pause(repo_root, images, log))
 
         started = time.monotonic()
         python = _host_python(repo_root)
@@ -909,6 +905,23 @@ def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
         build_prometheus = on_base(key, lambda _base: prometheus, f"{PROMETHEUS_IMAGE}:{key}", what, PROMETHEUS_IMAGE_CONFIG)
         results.append(_archive(images, "prometheus", key, f"{PROMETHEUS_IMAGE}:{key}", build_prometheus, started, log))
     return results
+
+
+def _pause(repo_root: str, images: str, log) -> dict:
+    """The pause image's archive, built unless cached (the caller holds the lock)."""
+    started = time.monotonic()
+    with open(os.path.join(repo_root, PAUSE_SOURCE), "rb") as handle:
+        pause_key = _sha256(RECIPE_VERSION, handle.read())[:12]
+    build_pause = functools.partial(_build_pause, repo_root, images, pause_key)
+    return _archive(images, "pause", pause_key, PAUSE_IMAGE, build_pause, started, log)
+
+
+def build_pause(repo_root: str, cache_dir: str, log=print) -> str:
+    """Only the pause image (seconds, no Debian base): its OCI archive."""
+    images = os.path.join(os.path.abspath(os.path.expanduser(cache_dir)), "images")
+    os.makedirs(os.path.join(images, "tmp"), exist_ok=True)
+    with _locked(images, log):
+        return _pause(os.path.realpath(repo_root), images, log)["archive"]
 
 
 def _archive(images: str, kind: str, key: str, reference: str, build, started: float, log) -> dict:

@@ -18,6 +18,8 @@ import pytest
 from helpers import ROOT, VENV_BIN
 from sshlab import missing_requirements
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines
+
 pytestmark = pytest.mark.molecule
 
 SCENARIOS = sorted(
@@ -51,13 +53,20 @@ def lab_secrets(scenario: str) -> list[str]:
     return found
 
 
+def uses_machines(scenario: str) -> bool:
+    """Scenarios on lab machines (systemd-nspawn) rather than SSH hosts in network namespaces."""
+    with open(os.path.join(ROOT, "molecule", scenario, "molecule.yml"), encoding="utf-8") as handle:
+        return "machines-create.yml" in handle.read()
+
+
 def test_there_are_scenarios():
-    assert {"wireguard", "node_prereqs", "robot_register"} <= set(SCENARIOS), SCENARIOS
+    assert {"wireguard", "node_prereqs", "robot_register", "kubeadm_init", "kubeadm_join"} <= set(SCENARIOS), SCENARIOS
+    assert uses_machines("kubeadm_init") and uses_machines("kubeadm_join") and not uses_machines("wireguard")
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS)
 def test_scenario(scenario):
-    problems = missing_requirements()
+    problems = machines.missing_requirements() if uses_machines(scenario) else missing_requirements()
     if problems:
         if os.environ.get("CI"):
             pytest.fail("molecule scenarios need SSH lab hosts in CI; missing: " + ", ".join(problems))

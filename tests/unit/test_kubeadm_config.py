@@ -208,6 +208,11 @@ BAD_SETTINGS = [
         "kuberos_control_plane_endpoint: 'https://k8s.example:6443' is not valid",
     ),
     ({"cri_socket": "containerd"}, "cri_socket: 'containerd' is not valid"),
+    ({"cgroup_driver": "cgroupv2"}, "kuberos_cgroup_driver: 'cgroupv2' is not valid; expected systemd"),
+    ({"image_repository": "https://mirror.example/k8s"}, "kuberos_kubeadm_image_repository: 'https://mirror.example/k8s'"),
+    ({"image_repository": "Mirror.Example/k8s"}, "expected a registry path such as mirror.site.example:5000/k8s"),
+    ({"etcd_image_tag": "3.5 35"}, "kuberos_etcd_image_tag: '3.5 35' is not valid; expected an image tag"),
+    ({"coredns_image_tag": ":v1"}, "kuberos_coredns_image_tag: ':v1' is not valid"),
 ]
 
 
@@ -261,3 +266,20 @@ def test_unknown_filter_option_is_named():
 def test_yaml_is_multi_document_and_keeps_order():
     text = core.to_yaml([{"b": 1, "a": 2}, {"kind": "X"}])
     assert text == "---\nb: 1\na: 2\n---\nkind: X\n"
+
+
+def test_a_site_with_a_mirror_other_versions_and_the_cgroupfs_driver():
+    """The settings of a site that runs its own mirror, another etcd and CoreDNS, and cgroupfs (the lab's machines)."""
+    result = render(
+        "edge-1", HA, image_repository="mirror.site.example:5000/k8s", etcd_image_tag="3.5.35-0",
+        coredns_image_tag="v1.14.7", cgroup_driver="cgroupfs",
+    )  # fmt: skip
+    _init, cluster, kubelet = result["documents"]
+    assert cluster["imageRepository"] == "mirror.site.example:5000/k8s"
+    assert cluster["etcd"] == {"local": {"dataDir": "/var/lib/etcd", "imageTag": "3.5.35-0"}}
+    assert cluster["dns"] == {"imageTag": "v1.14.7"}
+    assert kubelet["cgroupDriver"] == "cgroupfs"
+    # joins take the cluster's settings from it: their documents do not change
+    assert render("edge-2", HA, cgroup_driver="cgroupfs", image_repository="mirror.site.example:5000/k8s") == render("edge-2", HA)
+    # unset, kubeadm's defaults hold: no key at all
+    assert "imageRepository" not in render("edge-1", HA)["documents"][1] and "dns" not in render("edge-1", HA)["documents"][1]

@@ -44,6 +44,10 @@ SOURCE = "inventory"
 _VERSION = re.compile(r"^v(0|[1-9]\d*)\.(0|[1-9]\d*)\.(0|[1-9]\d*)(-[0-9A-Za-z.-]+)?(\+[0-9A-Za-z.-]+)?$")
 _DNS_LABEL = r"[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?"
 _DNS_NAME = re.compile(rf"^{_DNS_LABEL}(\.{_DNS_LABEL})*$")
+# A registry path kubeadm prefixes to its images: host[:port] then path segments, e.g. mirror.site.example:5000/k8s.
+_IMAGE_REPOSITORY = re.compile(r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?(:[0-9]{1,5})?(/[a-z0-9]+([._-][a-z0-9]+)*)*$")
+_IMAGE_TAG = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")
+CGROUP_DRIVERS = ("systemd", "cgroupfs")
 _TOKEN = re.compile(r"--token[= ]+([a-z0-9]{6}\.[a-z0-9]{16})(?=\s|$)")
 _CA_HASH = re.compile(r"--discovery-token-ca-cert-hash[= ]+(sha256:[a-f0-9]{64})(?=\s|$)")
 _CERT_KEY = re.compile(r"^\s*([a-f0-9]{64})\s*$", re.M)
@@ -86,6 +90,10 @@ class ClusterSettings:
     cri_socket: str = DEFAULT_CRI_SOCKET
     bind_port: int = DEFAULT_API_PORT
     control_plane_schedulable: bool = True
+    cgroup_driver: str = "systemd"
+    image_repository: str = ""
+    etcd_image_tag: str = ""
+    coredns_image_tag: str = ""
 
 
 @dataclass(frozen=True)
@@ -186,6 +194,10 @@ def cluster_settings(
     cri_socket=DEFAULT_CRI_SOCKET,
     bind_port=DEFAULT_API_PORT,
     control_plane_schedulable=True,
+    cgroup_driver="systemd",
+    image_repository="",
+    etcd_image_tag="",
+    coredns_image_tag="",
 ) -> ClusterSettings:
     """Validated site settings; the endpoint defaults to the first control plane's address and port 6443."""
     problems: list[Problem] = []
@@ -207,6 +219,19 @@ def cluster_settings(
         problems.append(_problem("cri_socket", cri_socket, "expected a socket such as unix:///run/containerd/containerd.sock"))
     if not isinstance(cluster_name, str) or not _DNS_NAME.match(cluster_name):
         problems.append(_problem("cluster_name", cluster_name, "expected a name of lowercase letters, digits and '-'"))
+    if cgroup_driver not in CGROUP_DRIVERS:
+        problems.append(_problem("kuberos_cgroup_driver", cgroup_driver, "expected systemd (what systemd hosts use) or cgroupfs"))
+    if image_repository and (not isinstance(image_repository, str) or not _IMAGE_REPOSITORY.match(image_repository)):
+        problems.append(
+            _problem(
+                "kuberos_kubeadm_image_repository",
+                image_repository,
+                "expected a registry path such as mirror.site.example:5000/k8s",
+            )
+        )
+    for variable, tag in (("kuberos_etcd_image_tag", etcd_image_tag), ("kuberos_coredns_image_tag", coredns_image_tag)):
+        if tag and (not isinstance(tag, str) or not _IMAGE_TAG.match(tag)):
+            problems.append(_problem(variable, tag, "expected an image tag such as 3.5.35-0 or v1.12.1"))
     if problems:
         raise SpecError(problems, "invalid kubeadm settings")
     sans: list[str] = []
@@ -223,6 +248,10 @@ def cluster_settings(
         cri_socket=cri_socket,
         bind_port=bind_port,
         control_plane_schedulable=bool(control_plane_schedulable),
+        cgroup_driver=cgroup_driver,
+        image_repository=image_repository or "",
+        etcd_image_tag=etcd_image_tag or "",
+        coredns_image_tag=coredns_image_tag or "",
     )
 
 
@@ -300,9 +329,10 @@ def node_registration(machine: Machine, settings: ClusterSettings, control_plane
     return registration
 
 
-def kubelet_configuration() -> dict:
-    """The kubelet settings kubeadm uploads for every node (kubelet-config ConfigMap)."""
-    return {"apiVersion": KUBELET_API_VERSION, "kind": "KubeletConfiguration", "cgroupDriver": "systemd"}
+def kubelet_configuration(cgroup_driver: str = "systemd") -> dict:
+    """The kubelet settings kubeadm uploads for every node (kubelet-config ConfigMap); the cgroup driver must be
+    containerd's (node_prereqs_cgroup_driver)."""
+    return {"apiVersion": KUBELET_API_VERSION, "kind": "KubeletConfiguration", "cgroupDriver": cgroup_driver}
 
 
 def init_documents(machine: Machine, settings: ClusterSettings, self_labels: dict[str, str]) -> list[dict]:
@@ -323,7 +353,13 @@ def init_documents(machine: Machine, settings: ClusterSettings, self_labels: dic
         "apiServer": {"certSANs": list(settings.cert_sans)},
         "etcd": {"local": {"dataDir": "/var/lib/etcd"}},  # stacked: one etcd member beside each API server
     }
-    return [init, cluster, kubelet_configuration()]
+    if settings.image_repository:
+        cluster["imageRepository"] = settings.image_repository
+    if settings.etcd_image_tag:
+        cluster["etcd"]["local"]["imageTag"] = settings.etcd_image_tag
+    if settings.coredns_image_tag:
+        cluster["dns"] = {"imageTag": settings.coredns_image_tag}
+    return [init, cluster, kubelet_configuration(settings.cgroup_driver)]
 
 
 def join_documents(

@@ -1,0 +1,60 @@
+"""The lab machines' and kubeadm images' pure parts: names, references, the inventory the lab writes."""
+
+from __future__ import annotations
+
+import yaml
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import kubeadm_images, machines
+
+
+def test_kubeadm_images_are_named_as_kubeadm_names_them():
+    found = kubeadm_images.references("registry.k8s.io", "v1.34.4", "v3.5.35", "v1.14.7")
+    assert found == {
+        "kube-apiserver": "registry.k8s.io/kube-apiserver:v1.34.4",
+        "kube-controller-manager": "registry.k8s.io/kube-controller-manager:v1.34.4",
+        "kube-scheduler": "registry.k8s.io/kube-scheduler:v1.34.4",
+        "kube-proxy": "registry.k8s.io/kube-proxy:v1.34.4",
+        "etcd": "registry.k8s.io/etcd:3.5.35-0",
+        "coredns": "registry.k8s.io/coredns/coredns:v1.14.7",
+        "pause": "registry.k8s.io/pause:3.10.1",
+    }
+    # a mirror holds CoreDNS without the extra path segment, as kubeadm asks for it there
+    mirror = kubeadm_images.references("mirror.site.example:5000/k8s", "v1.34.4", "v3.5.35", "v1.14.7")
+    assert mirror["coredns"] == "mirror.site.example:5000/k8s/coredns:v1.14.7"
+
+
+def test_pinned_versions_are_the_local_clusters():
+    versions = kubeadm_images.pinned_versions()
+    assert set(versions) == {"kubernetes", "etcd", "coredns"}
+    assert all(value.startswith("v") for value in versions.values())
+
+
+def test_link_names_fit_the_kernels_limit_and_are_stable(tmp_path):
+    lab = machines.MachineLab(str(tmp_path), tag="km")
+    assert lab.veth("edge-1") == "kmv-edge-1"
+    long = lab.veth("a-very-long-machine-name")
+    assert len(long) <= 15 and long == machines.MachineLab(str(tmp_path), tag="km").veth("a-very-long-machine-name")
+    assert lab.netns("edge-1") == "km-edge-1" and lab.cgroup("edge-1") == "kuberos-lab-km/edge-1"
+
+
+def test_the_inventory_reaches_machines_as_a_non_root_user_with_become(tmp_path):
+    lab = machines.MachineLab(str(tmp_path), tag="km", subnet="10.214.0")
+    lab.machines = {
+        "edge-1": machines.Machine("edge-1", ["edge", "control_plane"], "10.214.0.11", host_key="ssh-ed25519 AAAA1"),
+        "fetch-1": machines.Machine("fetch-1", ["robots"], "10.214.0.12", host_key="ssh-ed25519 AAAA2"),
+    }
+    lab.write_inventory()
+    lab.write_known_hosts()
+    inventory = yaml.safe_load((tmp_path / "inventory.yml").read_text())
+    assert inventory["all"]["vars"]["ansible_user"] == "kuberos" and inventory["all"]["vars"]["ansible_become"] is True
+    assert "StrictHostKeyChecking=yes" in inventory["all"]["vars"]["ansible_ssh_common_args"]
+    assert set(inventory["all"]["children"]) == {"edge", "control_plane", "robots"}
+    assert inventory["all"]["children"]["robots"]["hosts"]["fetch-1"]["ansible_host"] == "10.214.0.12"
+    assert (tmp_path / "known_hosts").read_text().splitlines() == [
+        "10.214.0.11 ssh-ed25519 AAAA1", "10.214.0.12 ssh-ed25519 AAAA2",
+    ]  # fmt: skip
+
+
+def test_the_machine_image_is_keyed_by_its_recipe():
+    assert len(machines.image_key()) == 12 and machines.image_key() == machines.image_key()
+    assert "containerd" in machines.PACKAGES and "python3-apt" in machines.PACKAGES
