@@ -64,9 +64,11 @@ controller-stop: setup
 status: setup
 	$(VENV)/ansible-playbook playbooks/status.yml -i inventories/local
 
-## Lint and every test (the cluster tests start their own control plane; the cluster setup roles' tests need kubeadm).
+## Lint and every test (the cluster tests start their own control plane; the cluster setup roles' tests need kubeadm,
+## and Calico's programs, built from Calico's Go module and ../shared/third_party's api/ tree).
 test: setup
 	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1
+	@roles/local_cluster/files/build-calico.sh  # Calico from its Go module, for the lab machines' tests (cached)
 	@scripts/operator-crds.sh >/dev/null  # the Prometheus Operator's CRDs, from its Go module (a monitoring test)
 	$(VENV)/python -m pytest
 

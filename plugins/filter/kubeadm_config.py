@@ -82,6 +82,11 @@ options:
     description: Tag of the CoreDNS image, when the site runs another CoreDNS than kubeadm's default.
     type: str
     default: ""
+  conntrack_max_per_core:
+    description:
+      - kube-proxy's C(conntrack.maxPerCore) (a KubeProxyConfiguration document); unset for kube-proxy's default.
+      - C(0) leaves the host's connection-tracking limit alone, for nodes that cannot set it (nested in a container).
+    type: int
   control_plane_schedulable:
     description: Control planes run modules too (no C(node-role.kubernetes.io/control-plane) taint).
     type: bool
@@ -162,7 +167,7 @@ from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import
 
 _SETTINGS = (
     "kubernetes_version", "pod_cidr", "service_cidr", "control_plane_endpoint", "cri_socket", "bind_port", "cgroup_driver",
-    "image_repository", "etcd_image_tag", "coredns_image_tag",
+    "image_repository", "etcd_image_tag", "coredns_image_tag", "conntrack_max_per_core",
 )  # fmt: skip
 
 
@@ -178,8 +183,9 @@ def kubeadm_config(raw, hostvars, host, control_planes, extra_labels=None, join_
         variables = hostvars[name]
         addresses[name] = {"address": host_address(variables, name), "vpn_address": plain(variables.get("kuberos_vpn_address"))}
     settings = plain(settings)
-    if isinstance(settings.get("bind_port"), str) and settings["bind_port"].isdigit():
-        settings["bind_port"] = int(settings["bind_port"])
+    for name in ("bind_port", "conntrack_max_per_core"):
+        if isinstance(settings.get(name), str) and settings[name].isdigit():
+            settings[name] = int(settings[name])
     return core.kubeadm_config(
         inventory,
         str(host),

@@ -244,7 +244,7 @@ def test_roles_leave_joined_hosts_alone_and_a_second_run_changes_nothing(kubeadm
     written = tmp_path / "etc" / "edge-1" / "kubeadm-init.yaml"
     assert oct(written.stat().st_mode & 0o777) == "0o600"
     assert yaml.safe_load_all(written.read_text()).__next__()["kind"] == "InitConfiguration"
-    assert tasks["Initialise the first control plane"]["edge-1"].get("changed") is False  # creates: admin.conf
+    assert tasks["Run kubeadm init"]["edge-1"].get("changed") is False  # creates: admin.conf
 
     second, stats, tasks = play(inventory, playbook)
     assert second.returncode == 0, second.stdout[-4000:]

@@ -128,8 +128,9 @@ def failures(report: dict) -> list[str]:
                     items = [r for r in result.get("results", []) if r.get("failed")]
                     for item in items or [result]:
                         message = item.get("msg") or item.get("stderr") or ""
+                        message = f"{message}\n{item['problems']}" if item.get("problems") else str(message)[:700]
                         label = f" [{item.get('item')}]" if items else ""
-                        found.append(f"{where}{label}: {str(message)[:700]}")
+                        found.append(f"{where}{label}: {message}")
     return found
 
 
@@ -182,5 +183,6 @@ def test_a_bad_inventory_is_refused_before_any_machine_is_touched(site, tmp_path
     assert "10.244.0.0/33" in problems, problems
     assert "Traceback" not in problems and "Traceback" not in done.stderr
     assert all(line.startswith("Check the inventory before any machine is touched") for line in failures(report)), problems
+    assert len(failures(report)) == 1 and problems.count("hosts.cloud-1.kuberos_vpn_address") == 1, problems  # once
     assert set(report["stats"]) == {"localhost"}, report["stats"]  # no machine was contacted
     assert {name: etc_digest(lab, name) for name in lab.hosts} == before

@@ -60,8 +60,8 @@ def uses_machines(scenario: str) -> bool:
 
 
 def test_there_are_scenarios():
-    assert {"wireguard", "node_prereqs", "robot_register", "kubeadm_init", "kubeadm_join"} <= set(SCENARIOS), SCENARIOS
-    assert uses_machines("kubeadm_init") and uses_machines("kubeadm_join") and not uses_machines("wireguard")
+    assert {"wireguard", "node_prereqs", "robot_register", "kubeadm_init", "kubeadm_join", "calico"} <= set(SCENARIOS)
+    assert all(uses_machines(name) for name in ("kubeadm_init", "kubeadm_join", "calico")) and not uses_machines("wireguard")
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS)

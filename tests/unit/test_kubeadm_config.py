@@ -213,6 +213,7 @@ BAD_SETTINGS = [
     ({"image_repository": "Mirror.Example/k8s"}, "expected a registry path such as mirror.site.example:5000/k8s"),
     ({"etcd_image_tag": "3.5 35"}, "kuberos_etcd_image_tag: '3.5 35' is not valid; expected an image tag"),
     ({"coredns_image_tag": ":v1"}, "kuberos_coredns_image_tag: ':v1' is not valid"),
+    ({"conntrack_max_per_core": -1}, "kuberos_kube_proxy_conntrack_max_per_core: -1 (int) is not valid; expected a whole number"),
 ]
 
 
@@ -283,3 +284,11 @@ def test_a_site_with_a_mirror_other_versions_and_the_cgroupfs_driver():
     assert render("edge-2", HA, cgroup_driver="cgroupfs", image_repository="mirror.site.example:5000/k8s") == render("edge-2", HA)
     # unset, kubeadm's defaults hold: no key at all
     assert "imageRepository" not in render("edge-1", HA)["documents"][1] and "dns" not in render("edge-1", HA)["documents"][1]
+
+
+def test_kube_proxy_can_leave_the_hosts_conntrack_limit_alone():
+    documents = render("edge-1", HA, conntrack_max_per_core="0")["documents"]
+    assert documents[-1] == {
+        "apiVersion": "kubeproxy.config.k8s.io/v1alpha1", "kind": "KubeProxyConfiguration", "conntrack": {"maxPerCore": 0},
+    }  # fmt: skip
+    assert [d["kind"] for d in render("edge-1", HA)["documents"]] == INIT_KINDS  # unset: kube-proxy's own default

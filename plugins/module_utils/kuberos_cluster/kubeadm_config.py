@@ -24,6 +24,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.third_par
 
 API_VERSION = "kubeadm.k8s.io/v1beta4"
 KUBELET_API_VERSION = "kubelet.config.k8s.io/v1beta1"
+KUBE_PROXY_API_VERSION = "kubeproxy.config.k8s.io/v1alpha1"
 DEFAULT_KUBERNETES_VERSION = "v1.34.4"
 DEFAULT_POD_CIDR = "10.244.0.0/16"
 DEFAULT_SERVICE_CIDR = "10.96.0.0/12"
@@ -94,6 +95,7 @@ class ClusterSettings:
     image_repository: str = ""
     etcd_image_tag: str = ""
     coredns_image_tag: str = ""
+    conntrack_max_per_core: int | None = None
 
 
 @dataclass(frozen=True)
@@ -198,6 +200,7 @@ def cluster_settings(
     image_repository="",
     etcd_image_tag="",
     coredns_image_tag="",
+    conntrack_max_per_core=None,
 ) -> ClusterSettings:
     """Validated site settings; the endpoint defaults to the first control plane's address and port 6443."""
     problems: list[Problem] = []
@@ -229,6 +232,16 @@ def cluster_settings(
                 "expected a registry path such as mirror.site.example:5000/k8s",
             )
         )
+    if conntrack_max_per_core is not None and (
+        isinstance(conntrack_max_per_core, bool) or not isinstance(conntrack_max_per_core, int) or conntrack_max_per_core < 0
+    ):
+        problems.append(
+            _problem(
+                "kuberos_kube_proxy_conntrack_max_per_core",
+                conntrack_max_per_core,
+                "expected a whole number of connections per CPU, or 0 to leave the host's limit alone",
+            )
+        )
     for variable, tag in (("kuberos_etcd_image_tag", etcd_image_tag), ("kuberos_coredns_image_tag", coredns_image_tag)):
         if tag and (not isinstance(tag, str) or not _IMAGE_TAG.match(tag)):
             problems.append(_problem(variable, tag, "expected an image tag such as 3.5.35-0 or v1.12.1"))
@@ -252,6 +265,7 @@ def cluster_settings(
         image_repository=image_repository or "",
         etcd_image_tag=etcd_image_tag or "",
         coredns_image_tag=coredns_image_tag or "",
+        conntrack_max_per_core=conntrack_max_per_core,
     )
 
 
@@ -359,7 +373,18 @@ def init_documents(machine: Machine, settings: ClusterSettings, self_labels: dic
         cluster["etcd"]["local"]["imageTag"] = settings.etcd_image_tag
     if settings.coredns_image_tag:
         cluster["dns"] = {"imageTag": settings.coredns_image_tag}
-    return [init, cluster, kubelet_configuration(settings.cgroup_driver)]
+    documents = [init, cluster, kubelet_configuration(settings.cgroup_driver)]
+    if settings.conntrack_max_per_core is not None:
+        # kube-proxy raises the host-wide nf_conntrack_max at start; a node whose network namespace cannot write it
+        # (nested in a container) needs 0: leave the host's limit as it is.
+        documents.append(
+            {
+                "apiVersion": KUBE_PROXY_API_VERSION,
+                "kind": "KubeProxyConfiguration",
+                "conntrack": {"maxPerCore": settings.conntrack_max_per_core},
+            }
+        )
+    return documents
 
 
 def join_documents(

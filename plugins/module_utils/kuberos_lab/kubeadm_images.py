@@ -240,6 +240,37 @@ def _rename_archive(source: str, reference: str, destination: str, images: str) 
         li._remove(work)
 
 
+TOOLBOX_IMAGE = "kuberos.local/toolbox"
+BUSYBOX = "/bin/busybox"  # Debian's busybox-static: one static program with sh, wget, nc, httpd, ping ...
+
+
+def build_toolbox(cache_dir: str, log=print) -> tuple[str, str]:
+    """A tools image for the lab's network checks (a server and clients in pods): Debian's static busybox as
+    ``/bin/busybox`` and ``/bin/sh``; tagged with busybox's version. (reference, archive)."""
+    if not os.path.exists(BUSYBOX) or "statically linked" not in li._run(["file", "-L", BUSYBOX]):
+        raise li.ImageBuildError(f"the toolbox image needs a static {BUSYBOX} (Debian: apt-get install busybox-static)")
+    version = re.search(r"v(\d+\.\d+\.\d+)", li._run([BUSYBOX]) or "")
+    reference = f"{TOOLBOX_IMAGE}:busybox-{version.group(1) if version else 'unknown'}"
+    images = os.path.join(os.path.abspath(os.path.expanduser(cache_dir)), "images")
+    folder = os.path.join(images, "kubeadm")
+    os.makedirs(os.path.join(folder, "tmp"), exist_ok=True)
+    files = [("/bin/busybox", BUSYBOX)]
+    links = {"/bin/sh": "busybox"}
+    key = _content_key(reference, json.dumps(links), _file_digest(BUSYBOX))
+    archive = os.path.join(folder, f"toolbox-{key}.tar")
+    with li._locked(images, log):
+        if not os.path.exists(archive):
+            work = os.path.join(images, "tmp", f"toolbox-{os.getpid()}")
+            li._remove(work)
+            os.makedirs(work)
+            try:
+                _build_one(work, reference, files, links, ["--config.cmd", "/bin/sh"], archive)
+            finally:
+                li._remove(work)
+        li._prune(folder, r"toolbox-[0-9a-f]{12}\.tar", li.KEEP_ARCHIVES, archive, log)
+    return reference, archive
+
+
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 VERSIONS_FILE = os.path.join(REPO_ROOT, "roles", "local_cluster", "defaults", "main.yml")
 

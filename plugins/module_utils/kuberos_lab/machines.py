@@ -627,12 +627,16 @@ def site_vars(cache_dir: str, log=print) -> dict:
     """The lab's choices for the cluster setup roles, as inventory variables (each a documented role variable a real
     site may set too): the cgroupfs driver (systemd in a machine does not own the cgroup controllers the lab mounts),
     kubelet and kubeadm from the programs built here instead of the package repository, the images kubeadm runs
-    preloaded from archives built here, and the etcd and CoreDNS versions the project builds."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import kubeadm_images
+    preloaded from archives built here (with Calico's, built from its Go module, and a busybox image for network
+    checks), and the etcd and CoreDNS versions the project builds."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import calico_images, kubeadm_images
 
     versions = kubeadm_images.pinned_versions()
     cache = os.path.abspath(os.path.expanduser(cache_dir))
     images = kubeadm_images.build_all(cache, log=log)
+    images.update(calico_images.build(cache, log=log))
+    toolbox, archive = kubeadm_images.build_toolbox(cache, log=log)
+    images[toolbox] = archive
     binaries = {name: os.path.join(cache, "bin", f"{name}-{versions['kubernetes']}") for name in ("kubelet", "kubeadm")}
     missing = [path for path in binaries.values() if not os.path.exists(path)]
     if missing:
@@ -642,6 +646,10 @@ def site_vars(cache_dir: str, log=print) -> dict:
         "kuberos_cgroup_driver": "cgroupfs",
         "kuberos_etcd_image_tag": kubeadm_images.etcd_tag(versions["etcd"]),
         "kuberos_coredns_image_tag": versions["coredns"],
+        # nf_conntrack_max is the host's, read-only in a machine's network namespace: kube-proxy must leave it alone
+        "kuberos_kube_proxy_conntrack_max_per_core": 0,
+        "calico_version": calico_images.DEFAULT_VERSION,  # Calico built here from its Go module (build-calico.sh)
+        "kuberos_lab_toolbox_image": toolbox,  # the lab's network checks (a busybox image)
         "node_prereqs_kubernetes_binaries": binaries,
         "node_prereqs_image_archives": sorted(images.values()),
         # this machine's root lacks CAP_SYS_RESOURCE, so the machines' root does too: runc may not lower OOM scores
