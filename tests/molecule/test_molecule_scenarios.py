@@ -19,6 +19,7 @@ from helpers import ROOT, VENV_BIN
 from sshlab import missing_requirements
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines
+from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import snapshot_host
 
 pytestmark = pytest.mark.molecule
 
@@ -71,6 +72,7 @@ def test_scenario(scenario):
         if os.environ.get("CI"):
             pytest.fail("molecule scenarios need SSH lab hosts in CI; missing: " + ", ".join(problems))
         pytest.skip("molecule scenarios need: " + ", ".join(problems))
+    before = snapshot_host() if uses_machines(scenario) else None
     try:
         done = molecule("test", "-s", scenario, "--destroy", "never")
         output = done.stdout + done.stderr
@@ -81,3 +83,6 @@ def test_scenario(scenario):
             assert secret not in output, f"a private key made by scenario {scenario} appears in molecule's output"
     finally:
         molecule("destroy", "-s", scenario, timeout=300)
+    if before is not None:  # the machines' teardown leaves the host as it was: mounts, cgroups, links, sysctls, ...
+        after = snapshot_host()
+        assert after == before, {key: (before[key], after[key]) for key in before if before[key] != after[key]}

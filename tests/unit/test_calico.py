@@ -294,3 +294,11 @@ def test_manifest_yaml_reads_back_as_the_objects():
     assert text.startswith("---\n") and text.count("\n---\n") == len(objects) - 1
     assert list(yaml.safe_load_all(text)) == objects
     assert "cni_network_config: |-" in text  # the embedded JSON stays readable
+
+
+def test_kube_controllers_run_only_the_controllers_their_release_knows():
+    """Calico 3.28 exits on the load-balancer controller, added in 3.29 (seen on the lab machines' real Calico)."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.calico import _controllers
+
+    assert _controllers("v3.31.3") == "node,loadbalancer"
+    assert _controllers("v3.28.4-11-ga0db560f05") == "node"

@@ -58,3 +58,20 @@ def test_the_inventory_reaches_machines_as_a_non_root_user_with_become(tmp_path)
 def test_the_machine_image_is_keyed_by_its_recipe():
     assert len(machines.image_key()) == 12 and machines.image_key() == machines.image_key()
     assert "containerd" in machines.PACKAGES and "python3-apt" in machines.PACKAGES
+
+
+def test_image_files_never_land_outside_the_image(tmp_path):
+    """An absolute symlink in a base root (Debian's /etc/service -> runit's) resolves against this machine: refused."""
+    import pytest
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.local_images import ImageBuildError
+
+    rootfs = tmp_path / "rootfs"
+    (rootfs / "etc" / "runit").mkdir(parents=True)
+    (rootfs / "etc" / "runit" / "current").symlink_to(tmp_path / "outside")
+    (rootfs / "etc" / "service").symlink_to("runit/current")
+    (rootfs / "usr" / "bin").mkdir(parents=True)
+    (rootfs / "bin").symlink_to("usr/bin")  # merged /usr: relative, stays inside
+    assert kubeadm_images.inside(str(rootfs), "/bin/calico-node") == str(rootfs / "bin" / "calico-node")
+    with pytest.raises(ImageBuildError, match="outside the image"):
+        kubeadm_images.inside(str(rootfs), "/etc/service/available/felix/run")

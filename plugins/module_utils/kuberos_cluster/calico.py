@@ -439,6 +439,9 @@ def _node_rules() -> list[dict]:
         _rule("networking.k8s.io", ["networkpolicies"], ["list", "watch"]),
         _rule(POLICY_GROUP, [p for _k, p in POLICY_KINDS] + ["clusternetworkpolicies"], ["list", "watch"]),
         _rule(GROUP, _CALICO_READS, _READ),
+        # Kinds of Calico's old datastore, which calico-node's start-up reads to know whether to migrate (there are no
+        # such CRDs, so it finds none; without the permission, releases up to 3.28 at least refuse to start).
+        _rule(GROUP, ["globalfelixconfigs", "globalbgpconfigs"], _READ),
         _rule(
             GROUP,
             ["ippools", "felixconfigurations", "bgpconfigurations", "bgppeers", "clusterinformations"],
@@ -459,6 +462,13 @@ def _cni_rules() -> list[dict]:
         _rule("", ["pods/status"], ["patch"]),
         _rule(GROUP, [*_IPAM, "clusterinformations", "ippools", "ipreservations", "ipamconfigs"], _WRITE),
     ]
+
+
+def _controllers(version: str) -> str:
+    """kube-controllers' controllers: the node controller (IPAM garbage collection), and the load-balancer IPAM
+    controller from Calico 3.29 on (3.28 and older exit on a controller they do not know)."""
+    major, minor = (int(part) for part in re.match(r"v(\d+)\.(\d+)", version).groups())
+    return "node,loadbalancer" if (major, minor) >= (3, 29) else "node"
 
 
 def _kube_controllers_rules() -> list[dict]:
@@ -698,7 +708,7 @@ def _kube_controllers_deployment(checked: _Checked, labels: dict) -> dict:
                             "name": KUBE_CONTROLLERS,
                             "image": f"{s.image_registry}/kube-controllers:{s.version}",
                             "imagePullPolicy": "IfNotPresent",
-                            "env": [_env("ENABLED_CONTROLLERS", "node,loadbalancer"), _env("DATASTORE_TYPE", "kubernetes")],
+                            "env": [_env("ENABLED_CONTROLLERS", _controllers(s.version)), _env("DATASTORE_TYPE", "kubernetes")],
                             "livenessProbe": {
                                 "exec": {"command": ["/usr/bin/check-status", "-l"]},
                                 "periodSeconds": 10,

@@ -17,7 +17,8 @@ them into the lab machines' containerd (``node_prereqs_image_archives``) with th
     its name), and the reference plugins Calico's image ships (portmap, loopback, host-local, bandwidth, tuning);
     command ``/opt/cni/bin/install``.
 ``<registry>/kube-controllers:<version>``
-    ``/usr/bin/kube-controllers`` (the entrypoint) and ``/usr/bin/check-status`` (its probes), ``/status``.
+    ``/usr/bin/kube-controllers`` (the entrypoint) and ``/usr/bin/check-status`` (its probes), ``/status/status.json``
+    and ``/profiles`` owned by user 999, which it runs as (upstream's ``USER 999``).
 
 Cached under ``<cache_dir>/images/calico/`` keyed by the recipe and the bytes; the node image's Debian root under
 ``<cache_dir>/images/calico/node-base-<key>/`` (a minute of debootstrap, once).
@@ -36,7 +37,8 @@ import time
 from ansible_collections.kuberos.platform.plugins.module_utils import local_images as li
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import kubeadm_images as ki
 
-RECIPE_VERSION = "1"
+RECIPE_VERSION = "3"
+NODE_BASE_VERSION = "1"  # the node image's Debian root: its own key, so that image recipe changes do not rebuild it
 DEFAULT_REGISTRY = "quay.io/calico"
 DEFAULT_VERSION = "v3.28.4-11-ga0db560f05"  # build-calico.sh's label: the module proxy's one Calico commit
 CNI_PLUGINS = ("portmap", "loopback", "host-local", "bandwidth", "tuning")
@@ -65,7 +67,7 @@ def source_tree(cache_dir: str, version: str = DEFAULT_VERSION) -> str:
 
 def _node_base(folder: str, log) -> str:
     """A Debian minbase root with what calico-node runs besides itself (debootstrap, cached by its recipe)."""
-    key = hashlib.sha256("\0".join([RECIPE_VERSION, li.DEBIAN_SUITE, *NODE_PACKAGES]).encode()).hexdigest()[:12]
+    key = hashlib.sha256("\0".join([NODE_BASE_VERSION, li.DEBIAN_SUITE, *NODE_PACKAGES]).encode()).hexdigest()[:12]
     base = os.path.join(folder, f"node-base-{key}")
     if os.path.exists(os.path.join(base, "done")):
         return os.path.join(base, "rootfs")
@@ -100,8 +102,18 @@ def _tree_files(top: str, inside: str) -> list[tuple[str, str]]:
     return sorted(found)
 
 
+def _executable(path: str, inside: str = "") -> bool:
+    """A program or a script. Go's module cache keeps no execute bits, so Calico's scripts are known by their #! line
+    or, as git marks them executable in Calico's tree, by where they go: /etc/rc.local (which start_runit runs and has
+    no #!), /usr/sbin/*, and the runit services' run files."""
+    if os.access(path, os.X_OK) or inside == "/etc/rc.local" or inside.startswith("/usr/sbin/") or inside.endswith("/run"):
+        return True
+    with open(path, "rb") as handle:
+        return handle.read(2) == b"#!"
+
+
 def _digests(files: list[tuple[str, str]]) -> list[str]:
-    return [f"{inside}:{ki._file_digest(source)}:{os.access(source, os.X_OK)}" for inside, source in files]
+    return [f"{inside}:{ki._file_digest(source)}:{_executable(source, inside)}" for inside, source in files]
 
 
 def build(cache_dir: str, registry: str = DEFAULT_REGISTRY, version: str = DEFAULT_VERSION, log=print) -> dict[str, str]:
@@ -134,7 +146,7 @@ def build(cache_dir: str, registry: str = DEFAULT_REGISTRY, version: str = DEFAU
         ),
         "kube-controllers": (
             [("/usr/bin/kube-controllers", built["kube-controllers"]), ("/usr/bin/check-status", built["check-status"])],
-            ["--config.entrypoint", "/usr/bin/kube-controllers"],
+            ["--config.entrypoint", "/usr/bin/kube-controllers", "--config.user", "999"],
         ),
     }  # fmt: skip
     found = {}
@@ -171,14 +183,22 @@ def _build(work: str, reference: str, base: str | None, files, config: list[str]
     rootfs = os.path.join(bundle, "rootfs")
     if base:
         subprocess.run(["cp", "-a", f"{base}/.", rootfs], check=True, capture_output=True)
+    if base:  # Debian's runit links /etc/service into /etc/runit; Calico's image has it as a directory of its own
+        service = os.path.join(rootfs, "etc", "service")
+        if os.path.islink(service):
+            os.unlink(service)
     for inside, source in files:
-        target = os.path.join(rootfs, inside.lstrip("/"))
+        target = ki.inside(rootfs, inside)
         os.makedirs(os.path.dirname(target), exist_ok=True)
         shutil.copyfile(source, target)
-        os.chmod(target, 0o755 if os.access(source, os.X_OK) else 0o644)
-    for directory in ("tmp", "status", "var/lib/calico", "var/run/calico", "var/log/calico"):
+        os.chmod(target, 0o755 if _executable(source, inside) else 0o644)
+    for directory in ("tmp", "status", "profiles", "var/lib/calico", "var/run/calico", "var/log/calico"):
         os.makedirs(os.path.join(rootfs, directory), exist_ok=True)
     os.chmod(os.path.join(rootfs, "tmp"), 0o1777)
+    for path in ("status/status.json", "profiles/mem.pprof", "profiles/cpu.pprof"):  # kube-controllers runs as 999
+        with open(os.path.join(rootfs, path), "w", encoding="utf-8"):
+            pass
+        os.chown(os.path.join(rootfs, path), 999, 0)
     li._normalise(rootfs, 0)
     history = ("--history.created_by", f"kuberos calico_images {reference}")
     li._run(["umoci", "repack", "--image", f"{layout}:image", *li.CREATED, *history, bundle])

@@ -138,6 +138,17 @@ def _file_digest(path: str) -> str:
     return digest.hexdigest()
 
 
+def inside(rootfs: str, path: str) -> str:
+    """``path`` of the image under ``rootfs``, refusing a path whose directories lead out of it (an absolute symlink in
+    the image resolves against this machine's root)."""
+    target = os.path.join(rootfs, path.lstrip("/"))
+    parent = os.path.realpath(os.path.dirname(target))
+    root = os.path.realpath(rootfs)
+    if parent != root and not parent.startswith(root + os.sep):
+        raise li.ImageBuildError(f"{path} would be written outside the image ({parent}): a symlink in its path leads out")
+    return target
+
+
 def _build_one(work: str, reference: str, files: list[tuple[str, str]], links: dict[str, str], config: list[str], archive: str):
     """An image from scratch: ``files`` (image path, source) copied, ``links`` (image path: target) made, one layer."""
     layout, bundle = os.path.join(work, "layout"), os.path.join(work, "bundle")
@@ -145,13 +156,13 @@ def _build_one(work: str, reference: str, files: list[tuple[str, str]], links: d
     li._run(["umoci", "new", "--image", f"{layout}:image"])
     li._run(["umoci", "unpack", "--image", f"{layout}:image", bundle])
     rootfs = os.path.join(bundle, "rootfs")
-    for inside, source in files:
-        target = os.path.join(rootfs, inside.lstrip("/"))
+    for path, source in files:
+        target = inside(rootfs, path)
         os.makedirs(os.path.dirname(target), exist_ok=True)
         shutil.copyfile(source, target)
         os.chmod(target, 0o755 if os.access(source, os.X_OK) else 0o644)
-    for inside, pointing in links.items():
-        target = os.path.join(rootfs, inside.lstrip("/"))
+    for path, pointing in links.items():
+        target = inside(rootfs, path)
         os.makedirs(os.path.dirname(target), exist_ok=True)
         os.symlink(pointing, target)
     os.makedirs(os.path.join(rootfs, "tmp"), exist_ok=True)

@@ -124,7 +124,7 @@ binary_ok() {
           want="${KWOK_VERSION}" ;;
     coredns) out=$(timeout 60 "$file" -version 2>&1) || return 1
              # a build with another plugin set is stale too
-             [[ $(timeout 60 "$file" -plugins 2>&1) == *bind* ]] || return 1
+             [[ $(timeout 60 "$file" -plugins 2>&1) == *loadbalance* ]] || return 1
              want="CoreDNS-${COREDNS_VERSION#v}" ;;
     *) out=$(timeout 60 "$file" --version 2>&1) || return 1
        want="Kubernetes $KUBERNETES_VERSION" ;;
@@ -403,7 +403,8 @@ build_coredns() {
     "$go_line" "$mod" "$COREDNS_VERSION" >"$wrap/go.mod.new"
   mv -f "$wrap/go.mod.new" "$wrap/go.mod"
   cat >"$wrap/main.go" <<'GO'
-// CoreDNS with the plugins of a cluster's Corefile only.
+// CoreDNS with the plugins of a cluster's Corefile only: the real-node tier's and kubeadm's (prometheus, forward,
+// loop, reload, loadbalance), in the order of CoreDNS's own plugin.cfg.
 package main
 
 import (
@@ -411,16 +412,24 @@ import (
 	_ "github.com/coredns/coredns/plugin/bind"
 	_ "github.com/coredns/coredns/plugin/cache"
 	_ "github.com/coredns/coredns/plugin/errors"
+	_ "github.com/coredns/coredns/plugin/forward"
 	_ "github.com/coredns/coredns/plugin/health"
 	_ "github.com/coredns/coredns/plugin/hosts"
 	_ "github.com/coredns/coredns/plugin/kubernetes"
+	_ "github.com/coredns/coredns/plugin/loadbalance"
 	_ "github.com/coredns/coredns/plugin/log"
+	_ "github.com/coredns/coredns/plugin/loop"
+	_ "github.com/coredns/coredns/plugin/metrics"
 	_ "github.com/coredns/coredns/plugin/ready"
+	_ "github.com/coredns/coredns/plugin/reload"
 	"github.com/coredns/coredns/coremain"
 )
 
 func init() {
-	dnsserver.Directives = []string{"bind", "errors", "log", "health", "ready", "hosts", "kubernetes", "cache"}
+	dnsserver.Directives = []string{
+		"reload", "bind", "ready", "health", "prometheus", "errors", "log", "loadbalance", "cache", "hosts", "kubernetes",
+		"loop", "forward",
+	}
 }
 
 func main() { coremain.Run() }
