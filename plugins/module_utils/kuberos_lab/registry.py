@@ -320,14 +320,16 @@ class LocalRegistry:
         self._files()
         if self.pid() is not None:
             return False
-        bg.start([PROGRAM, "serve", self.path("config.yml")], self.path("registry.pid"), self.path("registry.log"))
+        process = bg.start([PROGRAM, "serve", self.path("config.yml")], self.path("registry.pid"), self.path("registry.log"))
         deadline = time.monotonic() + START_TIMEOUT
         while True:
             try:
                 self.client().check()
                 return True
             except RegistryError as error:
-                if self.pid() is None or time.monotonic() > deadline:
+                # The child itself, not the pid file's check of its command line: until it has exec'd the registry,
+                # its command line is still this program's, and a busy machine showed that as "not running".
+                if process.poll() is not None or time.monotonic() > deadline:
                     raise RegistryError(
                         f"the lab registry did not answer on {self.address} ({error}); {self.path('registry.log')}:\n"
                         + bg.tail(self.path("registry.log"))
