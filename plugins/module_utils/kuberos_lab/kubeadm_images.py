@@ -38,6 +38,7 @@ import json
 import os
 import re
 import shutil
+import subprocess
 import sys
 import time
 
@@ -258,7 +259,8 @@ BUSYBOX = "/bin/busybox"  # Debian's busybox-static: one static program with sh,
 def build_toolbox(cache_dir: str, log=print) -> tuple[str, str]:
     """A tools image for the lab's network checks (a server and clients in pods): Debian's static busybox as
     ``/bin/busybox`` and ``/bin/sh``; tagged with busybox's version. (reference, archive)."""
-    if not os.path.exists(BUSYBOX) or "statically linked" not in li._run(["file", "-L", BUSYBOX]):
+    linked = subprocess.run(["ldd", BUSYBOX], capture_output=True, text=True, check=False) if os.path.exists(BUSYBOX) else None
+    if linked is None or "not a dynamic executable" not in linked.stdout + linked.stderr:
         raise li.ImageBuildError(f"the toolbox image needs a static {BUSYBOX} (Debian: apt-get install busybox-static)")
     version = re.search(r"v(\d+\.\d+\.\d+)", li._run([BUSYBOX]) or "")
     reference = f"{TOOLBOX_IMAGE}:busybox-{version.group(1) if version else 'unknown'}"
