@@ -47,7 +47,6 @@ import contextlib
 import fcntl
 import json
 import os
-import re
 import shutil
 import signal
 import socket
@@ -57,6 +56,9 @@ import time
 import uuid
 import zlib
 from dataclasses import asdict, dataclass, field
+
+from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
+from ansible_collections.kuberos.platform.plugins.module_utils import local_images as li
 
 RECIPE_VERSION = "1"
 SUITE = "bookworm"
@@ -403,7 +405,7 @@ class MachineLab:
                             _write(os.path.join(path, setting), _read(os.path.join(os.path.dirname(path), setting)))
 
     def _unmount(self, name: str) -> None:
-        for point in _mounts_under(self.home(name)):
+        for point in li._mounts_under(self.home(name)):
             if run("umount", point, check=False).returncode != 0:
                 run("umount", "-l", point, check=False)
 
@@ -563,33 +565,15 @@ def _walk_procs(top: str):
             yield [int(p) for p in _read(os.path.join(directory, "cgroup.procs")).split() if p.isdigit()]
 
 
-def _mounts_under(path: str) -> list[str]:
-    path = os.path.realpath(path)
-    found = []
-    for line in _read("/proc/self/mountinfo").splitlines():
-        point = re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), line.split()[4])
-        if point == path or point.startswith(path + "/"):
-            found.append(point)
-    return sorted(set(found), key=len, reverse=True)
-
-
 def _remove_tree(path: str) -> None:
-    for point in _mounts_under(path):
+    for point in li._mounts_under(path):
         if run("umount", point, check=False).returncode != 0:
             run("umount", "-l", point, check=False)
     shutil.rmtree(path, ignore_errors=True)
 
 
-def _cmdline(pid: int) -> list[str]:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as handle:
-            return [part.decode(errors="replace") for part in handle.read().split(b"\0") if part]
-    except OSError:
-        return []
-
-
 def _is_nspawn(pid: int, rootfs: str) -> bool:
-    argv = _cmdline(pid)
+    argv = bg.cmdline(pid)
     return bool(argv) and "systemd-nspawn" in " ".join(argv[:3]) and rootfs in argv
 
 
@@ -607,14 +591,14 @@ def _leader(launcher: int) -> int:
     """The machine's PID 1 (as this machine numbers it): the child of systemd-nspawn that runs systemd (``unshare``
     execs nspawn, so the launcher's pid is nspawn's)."""
     for child in _children(launcher):
-        argv = _cmdline(child)
+        argv = bg.cmdline(child)
         if argv and ("systemd" in argv[0] or argv[0] == "/sbin/init"):
             return child
     return 0
 
 
 def _alive_leader(pid: int, name: str) -> bool:
-    return bool(_cmdline(pid)) and _read(f"/proc/{pid}/root/etc/hostname") == name
+    return bool(bg.cmdline(pid)) and _read(f"/proc/{pid}/root/etc/hostname") == name
 
 
 def _port_open(address: str, port: int) -> bool:
