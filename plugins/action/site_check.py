@@ -5,6 +5,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import ipaddress
+
 from ansible.plugins.action import ActionBase
 
 from ansible_collections.kuberos.platform.plugins.filter.fleet_inventory import fleet_inventory
@@ -17,6 +20,7 @@ ARGUMENT_SPEC = {
     "pod_cidr": {"type": "str", "default": "10.244.0.0/16"},
     "service_cidr": {"type": "str", "default": "10.96.0.0/12"},
     "control_plane_endpoint": {"type": "str", "default": ""},
+    "control_plane_vip": {"type": "str", "default": ""},
 }
 MACHINE_GROUPS = ("robots", "edge", "cloud")
 
@@ -25,6 +29,10 @@ def site_problems(groups: dict, hostvars, settings: dict) -> list[str]:
     """Every problem of the inventory as a site, each once: the resource model, each machine's kubeadm settings
     (control planes, networks, endpoint, addresses), and the VPN's hosts and tunnel addresses."""
     found: list[str] = []
+    settings = dict(settings)
+    vip = str(settings.pop("control_plane_vip", "") or "")
+    if vip and not settings.get("control_plane_endpoint"):
+        settings["control_plane_endpoint"] = f"{vip}:6443"  # as the kubeadm roles default it
 
     def add(exc: SpecError) -> None:
         found.extend(str(problem) for problem in exc.problems)
@@ -41,6 +49,7 @@ def site_problems(groups: dict, hostvars, settings: dict) -> list[str]:
             kubeadm_config.__wrapped__(raw, hostvars, host, control_planes, **settings)
         except SpecError as exc:
             add(exc)
+    found.extend(vip_problems(vip, control_planes, hostvars, settings["control_plane_endpoint"]))
     gateways, clouds = list(groups.get("vpn_gateway", [])), list(groups.get("cloud", []))
     if clouds and len(gateways) != 1:
         found.append(f"inventory: groups.vpn_gateway: has {len(gateways)} hosts; the VPN to the cloud VMs needs exactly one")
@@ -58,6 +67,35 @@ def site_problems(groups: dict, hostvars, settings: dict) -> list[str]:
         else:
             seen[str(address)] = host
     return list(dict.fromkeys(found))
+
+
+def vip_problems(vip: str, control_planes: list[str], hostvars, endpoint: str) -> list[str]:
+    """The API server's virtual IP (kuberos_control_plane_vip): an IPv4 address no host has, which the endpoint
+    names when it names an address, on control planes that each have an IPv4 kuberos_address (VRRP's peers)."""
+    if not vip:
+        return []
+    where = "inventory: vars.kuberos_control_plane_vip"
+    try:
+        address = ipaddress.ip_address(vip)
+    except ValueError:
+        return [f"{where}: '{vip}' is not an IP address; expected the API server's virtual IPv4 address"]
+    if address.version != 4:
+        return [f"{where}: '{vip}': keepalived's virtual IP is IPv4 here; use a load balancer for an IPv6 endpoint"]
+    problems = []
+    for host in control_planes:
+        own = str(plain(hostvars[host].get("kuberos_address", "")) or "")
+        if own == vip:
+            problems.append(f"{where}: {vip} is also hosts.{host}.kuberos_address; the virtual IP must be free")
+    host_part = endpoint.rsplit(":", 1)[0].strip("[]") if endpoint else ""
+    with contextlib.suppress(ValueError):
+        if host_part and ipaddress.ip_address(host_part) != address:
+            problems.append(
+                f"inventory: vars.kuberos_control_plane_endpoint: '{endpoint}' names {host_part}, not the virtual IP "
+                f"{vip}; the endpoint must reach the API servers through it (or name a DNS name that resolves to it)"
+            )
+    if not control_planes:
+        problems.append(f"{where}: is set but groups.control_plane is empty; the control planes share the address")
+    return problems
 
 
 class ActionModule(ActionBase):

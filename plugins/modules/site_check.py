@@ -42,7 +42,14 @@ options:
   control_plane_endpoint:
     description:
       - C(host:port) of the API servers' virtual IP or load balancer (C(kuberos_control_plane_endpoint)).
-      - Empty for the first control plane's address.
+      - Empty for the first control plane's address, or the virtual IP's and port 6443 when C(control_plane_vip) is set.
+    type: str
+    default: ""
+  control_plane_vip:
+    description:
+      - The API servers' virtual IP (C(kuberos_control_plane_vip)), held by keepalived among the control planes (role
+        C(kuberos.platform.control_plane_vip)). It must be an IPv4 address no control plane has, and the endpoint must
+        name it (or a DNS name).
     type: str
     default: ""
 extends_documentation_fragment:
@@ -57,6 +64,7 @@ EXAMPLES = r"""
   kuberos.platform.site_check:
     pod_cidr: "{{ kuberos_pod_cidr | default('10.244.0.0/16') }}"
     control_plane_endpoint: "{{ kuberos_control_plane_endpoint | default('') }}"
+    control_plane_vip: "{{ kuberos_control_plane_vip | default('') }}"
 """
 
 RETURN = r"""

@@ -22,18 +22,22 @@ HARDWARE_IMAGE = "ghcr.io/kuberos/pnp-robot-sim:0.1"
 HARDWARE_LABEL = "kuberos-sim/robot-hardware"
 FLEET_ENV = ("ROS_DISCOVERY_SERVER", "ROS_DOMAIN_ID", "RMW_IMPLEMENTATION", "KUBEROS_FLEET")
 ROBOT_TAINT = "kuberos.io/robot"
+ROBOT_LABEL = "robot.kuberos.io/name"
 
 
-def hardware_pod(robot: str, namespace: str, env: dict[str, str], seed: int, objects: int, image: str = HARDWARE_IMAGE) -> dict:
-    """The robot's simulated hardware: a pod on the robot's own node (it tolerates only that robot's taint)."""
-    variables = {**env, "KUBEROS_ROBOT_NAME": robot, "KUBEROS_NODE_NAME": robot}
+def hardware_pod(
+    robot: str, namespace: str, env: dict[str, str], seed: int, objects: int, image: str = HARDWARE_IMAGE, node: str = ""
+) -> dict:
+    """The robot's simulated hardware: a pod on the robot's own node, found by its robot label (the node's name may
+    be a host name), tolerating only that robot's taint."""
+    variables = {**env, "KUBEROS_ROBOT_NAME": robot, "KUBEROS_NODE_NAME": node or robot}
     parameters = ["-p", f"seed:={seed}", "-p", f"objects:={objects}"]
     return {
         "apiVersion": "v1",
         "kind": "Pod",
         "metadata": {"name": f"hardware-{robot}", "namespace": namespace, "labels": {HARDWARE_LABEL: robot}},
         "spec": {
-            "nodeSelector": {"kubernetes.io/hostname": robot},
+            "nodeSelector": {ROBOT_LABEL: robot},
             "tolerations": [{"key": ROBOT_TAINT, "operator": "Equal", "value": robot, "effect": "NoSchedule"}],
             "restartPolicy": "Never",
             "containers": [
@@ -101,7 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     robots = [r for r in args.robots.split(",") if r]
     started = time.monotonic()
     for robot in robots:
-        pod = hardware_pod(robot, namespace, env, args.seed, args.cycles)
+        nodes = core.list_node(label_selector=f"{ROBOT_LABEL}={robot}").items
+        if not nodes:
+            raise SystemExit(f"no node carries {ROBOT_LABEL}={robot}: is {robot} a robot of the cluster?")
+        pod = hardware_pod(robot, namespace, env, args.seed, args.cycles, node=nodes[0].metadata.name)
         core.create_namespaced_pod(namespace, pod)
         print(f"started the hardware of {robot} in {namespace}", flush=True)
     counts: dict = {}

@@ -50,7 +50,7 @@ def test_calico_check_apply_idempotent_and_bad_cidr(cluster, tmp_path):
         pool = pools.get(name="default-ipv4-ippool").to_dict()
         assert pool["spec"]["cidr"] == POD_CIDR and pool["spec"]["vxlanMode"] == "Always"
         config_map = core.read_namespaced_config_map("calico-config", "kube-system")
-        assert config_map.data["veth_mtu"] == "1390"  # the local inventory has cloud VMs: VXLAN over the VPN
+        assert config_map.data["veth_mtu"] == "1370"  # the local inventory has cloud VMs: VXLAN over the VPN
         daemonset = apps.read_namespaced_daemon_set("calico-node", "kube-system")
         env = {e.name: e.value for e in daemonset.spec.template.spec.containers[0].env}
         assert env["CALICO_IPV4POOL_CIDR"] == POD_CIDR

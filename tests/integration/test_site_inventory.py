@@ -48,3 +48,28 @@ def test_each_problem_is_reported_once(tmp_path):
     assert output.count(address) == 1, output
     assert output.count("hosts.gpu-vm-2.kuberos_vpn_address: 10.99.0.11 is also gpu-vm-1's") == 1, output
     assert "fetch-01" not in output  # no machine's name in a loop label: one task, one report
+
+
+def test_a_virtual_ip_that_is_taken_or_not_the_endpoint_is_refused(tmp_path):
+    inventory = tmp_path / "sample"
+    shutil.copytree(os.path.join(ROOT, "inventories", "sample"), inventory)
+    site = (inventory / "group_vars" / "all.yml").read_text()
+    site = site.replace("kuberos_control_plane_vip: 192.168.40.10", "kuberos_control_plane_vip: 192.168.40.12")
+    site = site.replace("k8s-api.site.example.internal:6443", "192.168.40.10:6443")
+    (inventory / "group_vars" / "all.yml").write_text(site)
+    done = first_play(tmp_path, str(inventory))
+    output = done.stdout + done.stderr
+    assert done.returncode != 0
+    assert "the inventory cannot make a site (2 problems; nothing was touched)" in output, output[-3000:]
+    assert output.count("192.168.40.12 is also hosts.edge-b.site.example.internal.kuberos_address") == 1, output
+    assert output.count("'192.168.40.10:6443' names 192.168.40.10, not the virtual IP 192.168.40.12") == 1, output
+
+
+def test_a_virtual_ip_that_is_no_address_is_refused(tmp_path):
+    inventory = tmp_path / "sample"
+    shutil.copytree(os.path.join(ROOT, "inventories", "sample"), inventory)
+    site = (inventory / "group_vars" / "all.yml").read_text()
+    (inventory / "group_vars" / "all.yml").write_text(site.replace("vip: 192.168.40.10", "vip: k8s-vip"))
+    done = first_play(tmp_path, str(inventory))
+    assert done.returncode != 0
+    assert "vars.kuberos_control_plane_vip: 'k8s-vip' is not an IP address" in done.stdout + done.stderr

@@ -34,13 +34,13 @@ REQUIRED_KINDS = {
         (1500, "none", False, 4, 1500),
         (1500, "ipip", False, 4, 1480),
         (1500, "vxlan", False, 4, 1450),
-        (1500, "none", True, 4, 1440),
-        (1500, "ipip", True, 4, 1420),
-        (1500, "vxlan", True, 4, 1390),
+        (1500, "none", True, 4, 1420),
+        (1500, "ipip", True, 4, 1400),
+        (1500, "vxlan", True, 4, 1370),
         (9000, "vxlan", False, 4, 8950),
-        (9000, "ipip", True, 4, 8920),
+        (9000, "ipip", True, 4, 1400),  # the tunnel is the narrowest
         (1500, "vxlan", False, 6, 1430),
-        (1500, "vxlan", True, 6, 1370),
+        (1500, "vxlan", True, 6, 1350),
         (1460, "vxlan", False, 4, 1410),  # a cloud network with a smaller MTU (GCE)
     ],
 )
@@ -67,8 +67,8 @@ def env_of(daemonset):
     ("settings", "veth_mtu"),
     [
         (CalicoSettings("10.244.0.0/16"), "1450"),
-        (CalicoSettings("10.244.0.0/16", vpn=True), "1390"),
-        (CalicoSettings("10.244.0.0/16", encapsulation="ipip", vpn=True), "1420"),
+        (CalicoSettings("10.244.0.0/16", vpn=True), "1370"),
+        (CalicoSettings("10.244.0.0/16", encapsulation="ipip", vpn=True), "1400"),
         (CalicoSettings("192.168.0.0/16", encapsulation="none", base_mtu=9000), "9000"),
     ],
 )
@@ -100,7 +100,7 @@ def test_mtu_reaches_the_config_map(settings, veth_mtu):
         ({"encapsulation_mode": "crosssubnet"}, "calico_encapsulation_mode", ["did you mean 'CrossSubnet'"]),
         ({"base_mtu": 70000}, "calico_base_mtu", ["70000", "from 576 to 9216"]),
         ({"base_mtu": True}, "calico_base_mtu", ["True (bool)"]),
-        ({"base_mtu": 600, "vpn": True}, "calico_base_mtu", ["MTU of 490", "WireGuard", "minimum of 576"]),
+        ({"base_mtu": 600, "vpn": True}, "calico_base_mtu", ["MTU of 550", "WireGuard", "minimum of 576"]),
         ({"vpn": "yes"}, "calico_vpn", ["'yes'", "not a boolean"]),
         ({"ip_autodetection_method": "iface=eth0"}, "calico_ip_autodetection_method", ["'iface=eth0'", "can-reach="]),
         ({"ip_autodetection_method": "cidr=10.0.0.0/33"}, "calico_ip_autodetection_method", ["'10.0.0.0/33'"]),

@@ -46,7 +46,7 @@ ENCAPSULATION_OVERHEAD = {
     ("none", 6): 0,
 }
 # WireGuard over an IPv4 underlay: outer IPv4 (20) + UDP (8) + WireGuard header and tag (32).
-WIREGUARD_OVERHEAD = 60
+DEFAULT_VPN_MTU = 1420  # the wireguard role's wireguard_mtu (wg-quick's default)
 BASE_MTU_RANGE = (576, 9216)
 MIN_POD_MTU = {4: 576, 6: 1280}
 BLOCK_SIZE_RANGE = {4: (20, 32), 6: (116, 128)}
@@ -109,10 +109,12 @@ class CalicoSettings:
     encapsulation_mode: str = "Always"
     base_mtu: int = 1500
     vpn: bool = False
+    vpn_mtu: int = DEFAULT_VPN_MTU  # the WireGuard interface's MTU, which the VPN's traffic must fit
     ip_autodetection_method: str = "first-found"
     nat_outgoing: bool = True
     admin_network_policy_crds: bool = True
     namespace: str = "kube-system"
+    node_cpu_request: str = "250m"  # calico-node's CPU request, upstream's; "0" for none
 
 
 def settings_from(pod_cidr, options: dict, prefix: str = "calico_") -> CalicoSettings:
@@ -143,10 +145,11 @@ class _Checked:
         return self.network.version
 
 
-def pod_mtu(base_mtu: int, encapsulation: str, vpn: bool, ip_version: int = 4) -> int:
-    """MTU of the pods' interfaces and Calico's tunnel: the network's MTU less every header added on the way."""
+def pod_mtu(base_mtu: int, encapsulation: str, vpn: bool, ip_version: int = 4, vpn_mtu: int = DEFAULT_VPN_MTU) -> int:
+    """MTU of the pods' interfaces and Calico's tunnel: the smallest MTU on the way (the network's, or the WireGuard
+    interface's when pod traffic crosses the VPN) less the encapsulation's headers."""
     overhead = ENCAPSULATION_OVERHEAD[(encapsulation, ip_version)]
-    return base_mtu - overhead - (WIREGUARD_OVERHEAD if vpn else 0)
+    return (min(base_mtu, vpn_mtu) if vpn else base_mtu) - overhead
 
 
 def check_settings(settings: CalicoSettings, prefix: str = "calico_") -> _Checked:
@@ -211,7 +214,11 @@ def check_settings(settings: CalicoSettings, prefix: str = "calico_") -> _Checke
     if base_mtu is None or not BASE_MTU_RANGE[0] <= base_mtu <= BASE_MTU_RANGE[1]:
         problem("base_mtu", f"{describe(s.base_mtu)} is not an MTU: an integer from {BASE_MTU_RANGE[0]} to {BASE_MTU_RANGE[1]}")
     elif s.encapsulation in ENCAPSULATIONS and (s.encapsulation, family) in ENCAPSULATION_OVERHEAD and isinstance(s.vpn, bool):
-        veth_mtu = pod_mtu(base_mtu, s.encapsulation, s.vpn, family)
+        vpn_mtu = _integer(s.vpn_mtu)
+        if vpn_mtu is None or not 1280 <= vpn_mtu <= 9000:
+            problem("vpn_mtu", f"{describe(s.vpn_mtu)} is not the VPN interface's MTU: an integer from 1280 to 9000")
+            vpn_mtu = DEFAULT_VPN_MTU
+        veth_mtu = pod_mtu(base_mtu, s.encapsulation, s.vpn, family, vpn_mtu)
         if veth_mtu < MIN_POD_MTU[family]:
             problem(
                 "base_mtu",
@@ -226,6 +233,9 @@ def check_settings(settings: CalicoSettings, prefix: str = "calico_") -> _Checke
     _check_autodetection(s.ip_autodetection_method, problem)
     if not isinstance(s.namespace, str) or not re.fullmatch(r"[a-z0-9]([a-z0-9-]{0,61}[a-z0-9])?", s.namespace):
         problem("namespace", f"{describe(s.namespace)} is not a namespace name (a DNS label)")
+
+    if not isinstance(s.node_cpu_request, str) or not re.fullmatch(r"(0|[1-9][0-9]*m|[0-9]+(\.[0-9]+)?)", s.node_cpu_request):
+        problem("node_cpu_request", f"{describe(s.node_cpu_request)} is not a CPU quantity such as 250m, 1 or 0")
 
     if problems:
         raise SpecError(problems, title="invalid Calico settings")
@@ -618,7 +628,7 @@ def _node_daemonset(checked: _Checked, labels: dict, config: dict) -> dict:
         "imagePullPolicy": "IfNotPresent",
         "env": _node_env(checked),
         "securityContext": {"privileged": True},
-        "resources": {"requests": {"cpu": "250m"}},
+        "resources": {"requests": {"cpu": s.node_cpu_request}} if s.node_cpu_request != "0" else {},
         "lifecycle": {"preStop": {"exec": {"command": ["/bin/calico-node", "-shutdown"]}}},
         "livenessProbe": {
             "exec": {"command": ["/bin/calico-node", *probes]},

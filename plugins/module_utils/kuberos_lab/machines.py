@@ -11,7 +11,10 @@ kubelet, and with ``kubeadm init`` and ``join`` for real. A machine has:
   (``/var/lib/containerd``) is a directory of its own bound in, because its overlayfs snapshots cannot live on an
   overlay;
 - its own network stack: a network namespace with ``host0`` on the lab's bridge (an address in a subnet that exists
-  only in the lab; ``/proc/sys/net`` is the machine's own);
+  only in the lab; ``/proc/sys/net`` is the machine's own). A machine is on the site's network (``site``, with a
+  default route through this machine), on the lab's stand-in for the internet (``wan``: a second /24 on the same
+  bridge with no route to the site, as a cloud VM is), or on both (``site+wan``: a VPN gateway with a public
+  address). This machine routes the networks given to ``--route`` through a machine, as a site's router would;
 - its own cgroup subtree: ``/sys/fs/cgroup/<controller>/kuberos-lab-<tag>/<name>`` in every v1 hierarchy, entered
   before the machine boots in a cgroup namespace of its own. A unit of the lab's root (``kuberos-lab-cgroups``)
   mounts the v1 controllers afresh and writable inside, where the namespace makes the subtree its root: the
@@ -21,10 +24,11 @@ kubelet, and with ``kubeadm init`` and ``join`` for real. A machine has:
 - the lab's user ``kuberos`` with the lab's SSH key and password-less sudo (what Ansible's ``become`` needs).
 
 What the machines share with this machine: the kernel (no WireGuard module, no IPIP; VXLAN and netfilter work),
-``/dev/kmsg`` (the kubelet reads it), ``/lib/modules`` (read-only), and the kernel settings outside a network
-namespace. The kubelet sets some of those (``kernel.panic``, ``vm.overcommit_memory``, ...): their values from
-before the lab started are saved and restored by `MachineLab.down`, which also removes every mount, cgroup,
-namespace and link the lab made, leaving the host as it was.
+``/dev/kmsg`` (the kubelet reads it), ``/dev/net/tun`` (wireguard-go's), ``/lib/modules`` (read-only), and the
+kernel settings outside a network namespace. The kubelet sets some of those (``kernel.panic``,
+``vm.overcommit_memory``, ...): their values from before the lab started are saved and restored by
+`MachineLab.down`, which also removes every mount, cgroup, namespace, link and route the lab made, leaving the host
+as it was.
 
 Why systemd-nspawn: this machine runs no systemd, and the roles need one (their units, ``systemctl``, kubeadm's
 ``kubelet.service`` drop-in). nspawn boots a real systemd as the machine's PID 1 from a plain root directory, with
@@ -36,7 +40,8 @@ Used by the molecule scenarios (``python -m ...kuberos_lab.machines up|down``) a
 debootstrap, systemd-nspawn (Debian's systemd-container), iproute2, util-linux and ssh-keygen.
 
     python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.machines up --state DIR \\
-        --machine cp-1:edge,control_plane --machine fetch-1:robots
+        --machine cp-1:edge,control_plane:site+wan --machine fetch-1:robots --machine vm-1:cloud:wan \
+        --route 10.99.0.0/24:cp-1
     python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.machines down --state DIR
 """
 
@@ -68,15 +73,20 @@ MIRROR = os.environ.get("KUBEROS_DEBIAN_MIRROR", "http://deb.debian.org/debian")
 PACKAGES = (
     "systemd", "systemd-sysv", "dbus", "openssh-server", "sudo", "python3", "python3-apt", "iproute2", "iptables",
     "kmod", "procps", "ca-certificates", "gpg", "containerd", "runc", "conntrack", "ethtool", "socat", "ebtables",
-    "util-linux", "mount",
+    "util-linux", "mount", "keepalived", "wireguard-tools", "wireguard-go",
 )  # fmt: skip
 USER = "kuberos"
+NETWORKS = ("site", "wan", "site+wan")
 CGROUP_ROOT = "/sys/fs/cgroup"
 # Kernel settings outside a network namespace that a kubelet or kube-proxy in a machine writes.
 HOST_SYSCTLS = (
     "kernel/panic", "kernel/panic_on_oops", "vm/overcommit_memory", "vm/panic_on_oom", "kernel/keys/root_maxkeys",
-    "kernel/keys/root_maxbytes", "net/netfilter/nf_conntrack_max",
+    "kernel/keys/root_maxbytes", "net/netfilter/nf_conntrack_max", "fs/inotify/max_user_instances",
+    "fs/inotify/max_user_watches",
 )  # fmt: skip
+# Every machine's root is this machine's root user: inotify's per-user limits are shared by all their kubelets,
+# kube-proxies and containerds. Raised while the lab runs (kind's nodes need the same), restored by ``down``.
+INOTIFY_LIMITS = {"fs/inotify/max_user_instances": 8192, "fs/inotify/max_user_watches": 524288}
 BOOT_TIMEOUT = 90.0
 CGROUPS_SCRIPT = """#!/bin/sh
 # Lab machines only (kuberos_lab.machines): mount every cgroup v1 controller afresh and writable. This machine runs
@@ -218,6 +228,8 @@ class Machine:
     host_key: str = ""
     uuid: str = ""
     leader: int = 0  # the machine's PID 1 as this machine sees it
+    networks: str = "site"  # site, wan or site+wan
+    wan_address: str = ""  # its address on the lab's stand-in for the internet (networks wan and site+wan)
 
     @property
     def unit(self) -> str:
@@ -229,6 +241,8 @@ class MachineLab:
     state: str
     tag: str = "kl"
     subnet: str = "10.213.0"  # a /24 of the lab only: .1 is this machine on the bridge, machines from .11
+    wan_subnet: str = ""  # the stand-in for the internet, another /24 on the bridge; empty: the subnet's next /24
+    routes: dict[str, str] = field(default_factory=dict)  # network -> machine this machine routes it through
     cache_dir: str = ""
     machines: dict[str, Machine] = field(default_factory=dict)
     sysctls: dict[str, str] = field(default_factory=dict)
@@ -241,6 +255,13 @@ class MachineLab:
     @property
     def gateway(self) -> str:
         return f"{self.subnet}.1"
+
+    @property
+    def wan(self) -> str:
+        if self.wan_subnet:
+            return self.wan_subnet
+        first, second, third = self.subnet.split(".")
+        return f"{first}.{second}.{int(third) + 1}"
 
     @property
     def admin_key(self) -> str:
@@ -274,8 +295,8 @@ class MachineLab:
         return f"{self.tag}-{name}"
 
     # -- lifecycle -----------------------------------------------------------------------------------------------
-    def up(self, specs: list[tuple[str, list[str]]], log=print) -> MachineLab:
-        """Make and boot every machine ``(name, groups)``; write the inventory and known_hosts."""
+    def up(self, specs: list[tuple[str, list[str]] | tuple[str, list[str], str]], log=print) -> MachineLab:
+        """Make and boot every machine ``(name, groups[, networks])``; write the inventory and known_hosts."""
         problems = missing_requirements()
         if problems:
             raise MachineError("lab machines need: " + ", ".join(problems))
@@ -285,12 +306,27 @@ class MachineLab:
             run("ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-C", "kuberos-lab-admin", "-f", self.admin_key)
         self._save_sysctls()
         self._bridge()
-        for index, (name, groups) in enumerate(specs):
+        for name, groups, *rest in specs:
+            networks = rest[0] if rest else "site"
+            if networks not in NETWORKS:
+                raise MachineError(f"{name}: networks must be one of {', '.join(NETWORKS)}, got {networks!r}")
             if name not in self.machines:
-                self.machines[name] = Machine(name, list(groups), f"{self.subnet}.{11 + index}", uuid=uuid.uuid4().hex)
+                host = 11 + len(self.machines)  # never reused while the lab stands: machines join later too
+                self.machines[name] = Machine(
+                    name,
+                    list(groups),
+                    f"{self.subnet}.{host}" if "site" in networks else f"{self.wan}.{host}",
+                    uuid=uuid.uuid4().hex,
+                    networks=networks,
+                    wan_address=f"{self.wan}.{host}" if "wan" in networks else "",
+                )
+        for network, through in self.routes.items():
+            if through not in self.machines or "site" not in self.machines[through].networks:
+                raise MachineError(f"--route {network}:{through}: {through} is not a machine on the site's network")
         self.save()
         for machine in self.machines.values():
             self._prepare(machine, image)
+        self._routes()
         self.save()
         for machine in self.machines.values():
             self._boot(machine)
@@ -338,6 +374,9 @@ class MachineLab:
     def _save_sysctls(self) -> None:
         if not self.sysctls:  # the values from before the first machine booted, never the kubelet's
             self.sysctls = {key: _read(f"/proc/sys/{key}") for key in HOST_SYSCTLS if os.path.exists(f"/proc/sys/{key}")}
+        for key, least in INOTIFY_LIMITS.items():
+            if os.path.exists(f"/proc/sys/{key}") and int(_read(f"/proc/sys/{key}") or 0) < least:
+                _write(f"/proc/sys/{key}", str(least))
 
     def _restore_sysctls(self) -> None:
         for key, value in self.sysctls.items():
@@ -350,7 +389,12 @@ class MachineLab:
         if not os.path.exists(f"/sys/class/net/{self.bridge}"):
             run("ip", "link", "add", self.bridge, "type", "bridge")
             run("ip", "addr", "add", f"{self.gateway}/24", "dev", self.bridge)
+            run("ip", "addr", "add", f"{self.wan}.1/24", "dev", self.bridge)
         run("ip", "link", "set", self.bridge, "up")
+
+    def _routes(self) -> None:  # after the bridge is up; they go with it
+        for network, through in self.routes.items():
+            run("ip", "route", "replace", network, "via", self.machines[through].address, "dev", self.bridge)
 
     def _netns(self, machine: Machine) -> None:
         netns, veth = self.netns(machine.name), self.veth(machine.name)
@@ -360,11 +404,15 @@ class MachineLab:
             run("ip", "link", "add", veth, "type", "veth", "peer", "name", "host0", "netns", netns)
         run("ip", "link", "set", veth, "master", self.bridge, "up")
         inside = ["ip", "-n", netns]
-        if machine.address not in run(*inside, "-4", "addr", "show", "dev", "host0").stdout:
-            run(*inside, "addr", "add", f"{machine.address}/24", "dev", "host0")
+        have = run(*inside, "-4", "addr", "show", "dev", "host0").stdout
+        for address in {machine.address, machine.wan_address} - {""}:
+            if f"inet {address}/" not in have:
+                run(*inside, "addr", "add", f"{address}/24", "dev", "host0")
         run(*inside, "link", "set", "host0", "up")
         run(*inside, "link", "set", "lo", "up")
-        run(*inside, "route", "replace", "default", "via", self.gateway)
+        # The default route: the site's router for a site machine; for a wan machine (a cloud VM) the internet's
+        # gateway, as its provider gives it: the site's network is reached only through the VPN's routes.
+        run(*inside, "route", "replace", "default", "via", self.gateway if "site" in machine.networks else f"{self.wan}.1")
 
     # -- file system ---------------------------------------------------------------------------------------------
     def _prepare(self, machine: Machine, image: str) -> None:
@@ -433,7 +481,7 @@ class MachineLab:
             f"--network-namespace-path=/var/run/netns/{self.netns(machine.name)}",
             "--capability=all", "--system-call-filter=@keyring bpf",
             f"--bind={self.home(machine.name, 'containerd')}:/var/lib/containerd",
-            "--bind-ro=/lib/modules", "--bind=/dev/kmsg", "--console=passive",
+            "--bind-ro=/lib/modules", "--bind=/dev/kmsg", "--bind=/dev/net/tun", "--console=passive",
         ]  # fmt: skip
 
     def _boot(self, machine: Machine) -> None:
@@ -496,6 +544,15 @@ class MachineLab:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(nspawn, signal.SIGKILL)
         machine.leader = 0
+
+    def power_off(self, name: str) -> None:
+        """Cut one machine's power, as a host that fails: its PID 1 killed, nothing shut down cleanly (its files
+        stay; ``down`` removes them)."""
+        machine = self.machines[name]
+        if machine.leader and _alive_leader(machine.leader, machine.name):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(machine.leader, signal.SIGKILL)  # the machine's PID namespace ends with its PID 1
+        self._stop(machine)
 
     def exec(self, name: str, *command: str, check: bool = True, timeout: float = 60) -> subprocess.CompletedProcess:
         """Run a command inside a machine (all its namespaces), as root."""
@@ -648,7 +705,21 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     up = sub.add_parser("up", help="make and boot the machines; write DIR/inventory.yml and DIR/known_hosts")
     up.add_argument("--state", required=True)
-    up.add_argument("--machine", action="append", default=[], metavar="NAME:GROUP[,GROUP...]")
+    up.add_argument(
+        "--machine",
+        action="append",
+        default=[],
+        metavar="NAME:GROUP[,GROUP...][:NETWORKS]",
+        help="NETWORKS: site (default), wan (the lab's internet only: a cloud VM) or site+wan",
+    )
+    up.add_argument(
+        "--route",
+        action="append",
+        default=[],
+        metavar="NETWORK:MACHINE",
+        help="this machine routes NETWORK through MACHINE, as the site's router would (a VPN's network)",
+    )
+    up.add_argument("--wan-subnet", default="", help="the lab's internet, as three octets (default: the subnet's next)")
     up.add_argument("--tag", default="kl", help="prefix of the lab's links, namespaces and cgroups (two letters)")
     up.add_argument("--subnet", default="10.213.0", help="the lab's /24, as its first three octets")
     up.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
@@ -661,11 +732,15 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "up":
             specs = []
             for text in args.machine:
-                name, _sep, groups = text.partition(":")
-                specs.append((name, [g for g in groups.split(",") if g]))
+                name, _sep, rest = text.partition(":")
+                groups, _sep, networks = rest.partition(":")
+                specs.append((name, [g for g in groups.split(",") if g], networks or "site"))
             state = os.path.abspath(args.state)
             lab = MachineLab.load(state) if os.path.exists(os.path.join(state, "lab.json")) else MachineLab(
-                state, tag=args.tag, subnet=args.subnet, cache_dir=args.cache_dir)  # fmt: skip
+                state, tag=args.tag, subnet=args.subnet, wan_subnet=args.wan_subnet, cache_dir=args.cache_dir)  # fmt: skip
+            for route in args.route:
+                network, _sep, through = route.partition(":")
+                lab.routes[network] = through
             lab.up(specs)
             if args.site_vars:
                 import yaml

@@ -175,6 +175,14 @@ class RegistryClient:
         status, _headers, _body = self._request("HEAD", f"/v2/{repository}/blobs/{digest}", image, ok=(200, 404))
         return status == 200
 
+    def _mount_blob(self, repository: str, digest: str, source: str, image: str) -> bool:
+        """Link a blob the registry holds under ``source`` into ``repository`` without sending it again."""
+        query = urllib.parse.urlencode({"mount": digest, "from": source})
+        status, _headers, _body = self._request(
+            "POST", f"/v2/{repository}/blobs/uploads/?{query}", image, body=b"", ok=(201, 202)
+        )
+        return status == 201
+
     def _upload_blob(self, repository: str, digest: str, size: int, stream, image: str) -> None:
         _status, headers, _body = self._request("POST", f"/v2/{repository}/blobs/uploads/", image, body=b"", ok=(202,))
         location = headers.get("Location", "")
@@ -187,9 +195,12 @@ class RegistryClient:
             headers={"Content-Type": "application/octet-stream", "Content-Length": str(size)},
         )  # fmt: skip
 
-    def push_archive(self, archive: str, repository: str, tag: str | None = None) -> tuple[str, dict]:
+    def push_archive(
+        self, archive: str, repository: str, tag: str | None = None, mount_from: str | None = None
+    ) -> tuple[str, dict]:
         """Push the one image of an OCI archive to ``repository`` (its blobs, then its manifest under ``tag``, or
-        under its digest). Returns the manifest digest and what was done: blobs uploaded and skipped, bytes."""
+        under its digest). Returns the manifest digest and what was done: blobs uploaded and skipped, bytes.
+        ``mount_from``: a repository of this registry that may hold the blobs already (linked, not sent again)."""
         with tarfile.open(archive, "r:") as tar:
             members = {m.name.lstrip("./"): m for m in tar.getmembers()}
 
@@ -208,7 +219,9 @@ class RegistryClient:
             manifest = json.loads(manifest_bytes)
             done = {"uploaded": 0, "skipped": 0, "bytes": 0}
             for blob in [manifest["config"], *manifest["layers"]]:
-                if self._has_blob(repository, blob["digest"], image):
+                if self._has_blob(repository, blob["digest"], image) or (
+                    mount_from and self._mount_blob(repository, blob["digest"], mount_from, image)
+                ):
                     done["skipped"] += 1
                     continue
                 member = members[f"blobs/{blob['digest'].replace(':', '/')}"]
@@ -234,6 +247,7 @@ class LocalRegistry:
     host: str
     port: int = 5443
     username: str = "kuberos"
+    auth: bool = True  # False: pulls need no credentials, as from a site's internal mirror (pushes neither)
 
     @property
     def address(self) -> str:
@@ -308,8 +322,9 @@ class LocalRegistry:
                 "tls": {"certificate": self.path("registry.crt"), "key": self.path("registry.key")},
                 "headers": {"X-Content-Type-Options": ["nosniff"]},
             },
-            "auth": {"htpasswd": {"realm": "kuberos-lab", "path": self.path("htpasswd")}},
         }
+        if self.auth:
+            config["auth"] = {"htpasswd": {"realm": "kuberos-lab", "path": self.path("htpasswd")}}
         _write_secret(self.path("config.yml"), json.dumps(config, indent=1) + "\n")  # JSON is YAML
 
     def start(self) -> bool:

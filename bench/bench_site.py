@@ -1,0 +1,97 @@
+#!/usr/bin/env python3
+"""Site benchmark: from bare machines to a running fleet, on the sample site as lab machines (docs/cluster-setup.md).
+
+The same chain as ``tests/site/test_site_chain.py`` (``kuberos_lab.site_lab.SiteChain``), each step timed from the
+start of its command to its end, on seven lab machines (three control planes behind a keepalived virtual IP, an edge
+worker, two robots, a cloud VM behind the WireGuard tunnel):
+
+- ``bare_to_ready_s``: ``site.yml`` on machines just booted (nothing of Kubernetes on them) until every node is
+  Ready; ``second_run_s`` and ``second_run_changed`` (must be 0): ``site.yml`` again;
+- ``cross_node_pod_traffic``, ``cloud_pod_traffic_over_vpn``, ``policy_denied``: a robot's pod fetching a 256 KiB
+  file from pods on the edge worker and on the cloud VM, and a pod the NetworkPolicy does not admit;
+- ``ready_to_app_running_s``: ``controller.yml`` (in the cluster) and ``deploy.yml`` of the example until every pod
+  is Ready where placed; ``pick_cycles_completed``: the robot's simulated hardware with the real pods;
+- ``register_robot_s``, ``undeploy_s``; ``api_back_after_losing_the_vip_holder_s``: the power of the control
+  plane holding the virtual IP cut, until the API answers again through it.
+
+Writes ``bench/results/site.json`` with ``--json``. As root; after ``make test``'s builds.
+
+    .venv/bin/python bench/bench_site.py --json bench/results/site.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench_deploy import REPO, log, machine
+
+sys.path[:0] = [str(REPO / ".collections")]
+import yaml  # noqa: E402
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import site_lab  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import snapshot_host  # noqa: E402
+
+
+def step(what: str, result) -> None:
+    """Stop the benchmark at a step that failed, with its output's tail."""
+    if getattr(result, "returncode", 0) != 0:
+        raise SystemExit(f"bench: {what} failed:\n{result.stdout[-4000:]}{result.stderr[-2000:]}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--json", help="write the figures here")
+    parser.add_argument("--cycles", type=int, default=1)
+    args = parser.parse_args()
+    before = snapshot_host()
+    folder = Path(tempfile.mkdtemp(prefix="bench-site-"))
+    documents = list(yaml.safe_load_all((REPO / "examples" / "pick-and-place.yml").read_text()))
+    for document in documents:
+        document["metadata"]["targetFleet"] = "picking"
+    (folder / "pick-and-place.yml").write_text(yaml.safe_dump_all(documents, sort_keys=False))
+    lab = site_lab.SiteLab(str(folder / "state"), str(REPO), log=log)
+    chain = site_lab.SiteChain(lab, str(folder / "pick-and-place.yml"), log=log)
+    started = time.monotonic()
+    try:
+        site_vars = lab.up()
+        chain.figures["machines_up_s"] = round(time.monotonic() - started, 1)
+        step("site.yml", chain.site())
+        found = site_lab.nodes(chain.core)
+        cloud = found.get("gpu-vm-1", {})
+        chain.figures.update(hosts=len(found), control_planes=3)
+        chain.figures["cloud_node_joined_over_vpn"] = bool(cloud.get("ready")) and cloud.get("internal_ip") == "10.99.0.11"
+        chain.network(site_vars["kuberos_lab_toolbox_image"], "fetch-01", "edge-d", "edge-b", "gpu-vm-1")
+        step("site.yml again", chain.second_site())
+        app_started = time.monotonic()
+        step("controller.yml", chain.controller())
+        step("deploy.yml", chain.deploy(str(folder / "rendered")))
+        chain.figures["ready_to_app_running_s"] = round(time.monotonic() - app_started, 1)
+        chain.pick_cycles("fetch-01", "picking", cycles=args.cycles)
+        step("register_robot.yml", chain.register_robot())
+        step("deploy.yml with the new robot", chain.deploy(str(folder / "rendered"), key="redeploy_s"))
+        step("undeploy.yml", chain.undeploy())
+        holder = site_lab.vip_holder(lab.machines, ("edge-a", "edge-b", "edge-c"))
+        cut = time.monotonic()
+        lab.machines.power_off(holder)
+        site_lab.wait_for("the API through the virtual IP", lambda: chain.core.list_node(_request_timeout=3).items, 120, 1)
+        chain.figures["api_back_after_losing_the_vip_holder_s"] = round(time.monotonic() - cut, 1)
+    finally:
+        lab.down(remove=True)
+    chain.figures["host_as_before"] = snapshot_host() == before
+    chain.figures["total_s"] = round(time.monotonic() - started, 1)
+    figures = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), **chain.figures}
+    print(json.dumps(figures, indent=1))
+    if args.json:
+        Path(args.json).write_text(json.dumps(figures, indent=1) + "\n")
+    return 0 if chain.figures.get("second_run_changed") == 0 else 1
+
+
+if __name__ == "__main__":
+    os.umask(0o022)
+    sys.exit(main())

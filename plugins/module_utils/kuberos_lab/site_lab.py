@@ -1,0 +1,571 @@
+"""The sample site on lab machines: ``inventories/sample`` with its addresses filled in, as separate hosts.
+
+What the site chain (``tests/site``) and its benchmark (``bench/bench_site.py``) start from. Every host of the sample
+inventory that this machine can be is booted as a lab machine (`kuberos_lab.machines`: Debian under systemd-nspawn,
+its own network stack, systemd, containerd and cgroup subtree, reached over SSH as a non-root user with sudo):
+
+- ``edge-a``, ``edge-b``, ``edge-c``: the three control planes (stacked etcd) sharing the API server's virtual IP
+  (``<subnet>.10``, keepalived); ``edge-a`` is also the VPN's hub, with a second, public address on the lab's
+  stand-in for the internet;
+- ``edge-d``: an edge worker;
+- ``fetch-01`` and ``fetch-02``: the picking fleet's robots;
+- ``gpu-vm-1``: a cloud VM on the lab's internet only. It reaches the site through the WireGuard tunnel to the hub
+  (wireguard-go: this kernel has no WireGuard module) and joins with its tunnel address as node IP.
+
+Left out, each for a reason of this machine: ``scanner-01`` (an arm64 computer; this machine runs amd64 only) and
+``gpu-vm-2`` (one cloud VM shows the path through the tunnel; a second costs the two cores' time only).
+``fetch-03`` is the robot the chain registers later (``register_robot.yml``, the join switched on).
+
+The inventory the playbooks get is the sample's own, group variables unchanged, with what a site fills in per host
+(``ansible_host``, ``kuberos_address``, the hub's public endpoint) and what the lab's machines really have (2 cores
+shared by all, no GPU: ``kuberos_cpu`` is what is left for modules after the control plane and the add-ons, so the
+placement and the kubelets agree). The lab's choices for the roles are in ``group_vars/all/10-lab.yml``: the
+machines' (`machines.site_vars`), the endpoint as the virtual IP's address (the sample's DNS name exists on no
+resolver here), the site network behind the hub, and the site's registry mirror: the lab registry on this machine
+(`kuberos_lab.registry`, TLS, pulls without credentials as from a site's internal mirror) serving the images the
+specs name (``ghcr.io/kuberos/...``, ``ros:jazzy-ros-base``) for ``ghcr.io`` and ``docker.io``.
+
+    python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.site_lab up --state DIR
+    ansible-playbook playbooks/site.yml -i DIR/inventory
+    python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.site_lab down --state DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+
+from ansible_collections.kuberos.platform.plugins.module_utils import local_images
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines as lab_machines
+
+TAG = "ks"
+SUBNET = "10.215.0"
+VIP = f"{SUBNET}.10"
+REGISTRY_PORT = 5445
+SAMPLE = os.path.join("inventories", "sample")
+# sample inventory host -> (machine name, networks, cores left for modules)
+MACHINES = {
+    "edge-a.site.example.internal": ("edge-a", "site+wan", "1"),
+    "edge-b.site.example.internal": ("edge-b", "site", "1"),
+    "edge-c.site.example.internal": ("edge-c", "site", "1"),
+    "edge-d.site.example.internal": ("edge-d", "site", "1500m"),
+    "fetch-01.robots.example.internal": ("fetch-01", "site", "1500m"),
+    "fetch-02.robots.example.internal": ("fetch-02", "site", "1500m"),
+    "gpu-vm-1": ("gpu-vm-1", "wan", "2"),  # the example's motion planner asks for 2 cores: all of a machine
+}
+LEFT_OUT = {
+    "scanner-01.robots.example.internal": "an arm64 onboard computer; this machine runs amd64 only",
+    "gpu-vm-2": "one cloud VM shows the path through the tunnel",
+}
+NEW_ROBOT = ("fetch-03.robots.example.internal", "fetch-03", "fleet_picking")
+RECAP = re.compile(r"^(\S+)\s+: ok=(\d+)\s+changed=(\d+)\s+unreachable=(\d+)\s+failed=(\d+)", re.MULTILINE)
+
+
+class SiteLabError(RuntimeError):
+    """The lab site could not be made; the message says what and why."""
+
+
+def recap(stdout: str) -> dict[str, dict[str, int]]:
+    """The PLAY RECAP of an ansible-playbook run: host -> ok, changed, unreachable, failed."""
+    return {
+        host: dict(zip(("ok", "changed", "unreachable", "failed"), map(int, counts), strict=True))
+        for host, *counts in RECAP.findall(stdout)
+    }
+
+
+def _prune(group: dict, keep: set[str]) -> None:
+    """Drop the hosts not kept from an inventory group and its children, in place."""
+    hosts = group.get("hosts") or {}
+    for host in list(hosts):
+        if host not in keep:
+            del hosts[host]
+    for child in (group.get("children") or {}).values():
+        if isinstance(child, dict):
+            _prune(child, keep)
+
+
+def _host_entries(group: dict):
+    """Every (host, its variables dict) of a group and its children (a host may appear in several groups)."""
+    yield from (group.get("hosts") or {}).items()
+    for child in (group.get("children") or {}).values():
+        if isinstance(child, dict):
+            yield from _host_entries(child)
+
+
+class SiteLab:
+    """The sample site as lab machines, its inventory, and the registry mirror."""
+
+    def __init__(self, state: str, repo_root: str, cache_dir: str = "~/.cache/kuberos", log=print):
+        self.state = os.path.abspath(state)
+        self.root = os.path.abspath(repo_root)
+        self.cache_dir = os.path.abspath(os.path.expanduser(cache_dir))
+        self.log = log
+        self.machines = self._machine_lab()
+
+    # -- names ---------------------------------------------------------------------------------------------------
+    def path(self, *parts: str) -> str:
+        return os.path.join(self.state, *parts)
+
+    @property
+    def inventory(self) -> str:
+        return self.path("inventory")
+
+    @property
+    def kubeconfig(self) -> str:
+        return self.path("admin.conf")
+
+    def _machine_lab(self) -> lab_machines.MachineLab:
+        if os.path.exists(self.path("lab", "lab.json")):
+            return lab_machines.MachineLab.load(self.path("lab"))
+        return lab_machines.MachineLab(self.path("lab"), tag=TAG, subnet=SUBNET, cache_dir=self.cache_dir)
+
+    def _registry(self):
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import LocalRegistry
+
+        return LocalRegistry(self.path("registry"), self.machines.gateway, REGISTRY_PORT, auth=False)
+
+    def _sample(self) -> dict:
+        import yaml
+
+        with open(os.path.join(self.root, SAMPLE, "hosts.yml"), encoding="utf-8") as handle:
+            return yaml.safe_load(handle)
+
+    # -- lifecycle -----------------------------------------------------------------------------------------------
+    def up(self, with_new_robot: bool = False) -> dict:
+        """Boot the machines (and the robot registered later, when asked), start the registry mirror and push the
+        images, write the inventory. Returns the lab's site variables."""
+        sample = self._sample()
+        groups = _groups_of(sample["all"])
+        specs = [(name, groups.get(host, []), networks) for host, (name, networks, _cpu) in MACHINES.items()]
+        if with_new_robot:
+            specs.append((NEW_ROBOT[1], ["robots"], "site"))
+        hub = next(h for h in MACHINES if "vpn_gateway" in groups.get(h, []))
+        vpn_network = self._sample_var("wireguard_network")
+        self.machines.routes[vpn_network] = MACHINES[hub][0]  # this machine is the site's router
+        self.machines.up(specs, log=self.log)
+        site_vars = lab_machines.site_vars(self.cache_dir, log=self.log)
+        # The site pulls what each node runs from its mirror, instead of every archive copied to every machine.
+        archives = site_vars.pop("node_prereqs_image_archives")
+        lab_vars = {"site_vars": site_vars, "mirrors": self._mirror(archives)}
+        with open(self.path("lab_vars.json"), "w", encoding="utf-8") as handle:
+            json.dump(lab_vars, handle)
+        self.write_inventory(with_new_robot=with_new_robot)
+        return lab_vars["site_vars"]
+
+    def add_new_robot(self) -> str:
+        """Boot the robot that register_robot.yml adds; returns its address."""
+        self.machines.up([(NEW_ROBOT[1], ["robots"], "site")], log=self.log)
+        return self.machines.machines[NEW_ROBOT[1]].address
+
+    def down(self, remove: bool = False) -> None:
+        self._registry().stop(remove=remove)
+        self.machines.down(remove=remove)
+        if remove:
+            shutil.rmtree(self.state, ignore_errors=True)
+
+    # -- the registry mirror -------------------------------------------------------------------------------------
+    def _mirror(self, archives: list[str]) -> dict:
+        """Start the registry and push every image the site runs under the name its specs, kubeadm and the calico
+        role use (``registry.k8s.io/...``, ``quay.io/calico/...``, ``ghcr.io/kuberos/...``, ``ros:jazzy-ros-base``);
+        returns node_prereqs_registry_mirrors: the registry as the mirror of each of those registries."""
+        images = local_images.build_images(self.root, self.cache_dir, log=self.log)
+        names = {
+            alias: images.get(ref) or images[_unqualified(ref, images)]
+            for alias, ref in local_images.image_aliases(images).items()
+        }
+        names = {alias: archive for alias, archive in names.items() if not alias.startswith("kuberos.local/prometheus")}
+        names.update({_archive_name(archive): archive for archive in archives})
+        registry = self._registry()
+        registry.start()
+        client = registry.client()
+        hosts, first_repository = set(), {}
+        started = time.monotonic()
+        for name, archive in sorted(names.items()):
+            host, repository, tag = _split(name)
+            _digest, done = client.push_archive(archive, repository, tag, mount_from=first_repository.get(archive))
+            first_repository.setdefault(archive, repository)
+            hosts.add(host)
+            if done["uploaded"]:
+                self.log(f"site lab: pushed {name} ({done['bytes'] / 2**20:.1f} MiB)")
+        self.log(f"site lab: the registry mirror serves {len(names)} images ({time.monotonic() - started:.1f} s)")
+        with open(registry.ca_file, encoding="utf-8") as handle:
+            ca = handle.read()
+        return {host: [{"url": f"https://{registry.address}", "ca": ca}] for host in sorted(hosts)}
+
+    # -- inventory -----------------------------------------------------------------------------------------------
+    def _sample_var(self, name: str):
+        import yaml
+
+        with open(os.path.join(self.root, SAMPLE, "group_vars", "all.yml"), encoding="utf-8") as handle:
+            return yaml.safe_load(handle)[name]
+
+    def write_inventory(self, with_new_robot: bool = False) -> str:
+        """The sample inventory with its addresses filled in (hosts.yml) and the lab's choices (group_vars/all)."""
+        import yaml
+
+        with open(self.path("lab_vars.json"), encoding="utf-8") as handle:
+            lab_vars = json.load(handle)
+        site_vars, mirrors = lab_vars["site_vars"], lab_vars["mirrors"]
+        sample = self._sample()
+        keep = set(MACHINES) | ({NEW_ROBOT[0]} if with_new_robot else set())
+        _prune(sample["all"], keep)
+        if with_new_robot:
+            fleet = sample["all"]["children"]["robots"]["children"][NEW_ROBOT[2]]
+            fleet["hosts"][NEW_ROBOT[0]] = {"kuberos_robot": NEW_ROBOT[1], "kuberos_devices": ["camera", "gripper"]}
+        connection = self.machines.connection_vars()
+        cores = {host: cpu for host, (_name, _networks, cpu) in MACHINES.items()} | {NEW_ROBOT[0]: "1500m"}
+        names = {host: name for host, (name, _networks, _cpu) in MACHINES.items()} | {NEW_ROBOT[0]: NEW_ROBOT[1]}
+        for host, variables in _host_entries(sample["all"]):
+            if variables is None or host not in keep:
+                continue
+            machine = self.machines.machines[names[host]]
+            variables.update(connection)
+            variables["ansible_host"] = machine.address
+            if "site" in machine.networks:
+                variables["kuberos_address"] = machine.address
+            variables.update(kuberos_cpu=cores[host], kuberos_memory="8Gi", kuberos_gpu=0)
+            if machine.wan_address and "wireguard_hub_endpoint" in variables:
+                variables["wireguard_hub_endpoint"] = f"{machine.wan_address}:51820"  # its public address
+        os.makedirs(self.inventory, exist_ok=True)
+        shutil.rmtree(self.path("inventory", "group_vars"), ignore_errors=True)
+        shutil.copytree(os.path.join(self.root, SAMPLE, "group_vars"), self.path("inventory", "group_vars"))
+        all_dir = self.path("inventory", "group_vars", "all")
+        os.makedirs(all_dir)
+        os.rename(self.path("inventory", "group_vars", "all.yml"), os.path.join(all_dir, "00-sample.yml"))
+        lab = {
+            **site_vars,
+            "kuberos_control_plane_vip": VIP,
+            "kuberos_control_plane_endpoint": f"{VIP}:6443",  # no resolver here knows the sample's DNS name
+            "wireguard_hub_routed_networks": [f"{SUBNET}.0/24"],  # the site network behind the hub
+            "node_prereqs_registry_mirrors": mirrors,
+            "calico_node_cpu_request": "0",  # every core of the lab's machines is the modules'
+            "kuberos_kubeconfig": self.kubeconfig,
+            "calico_render_dir": self.path("rendered", "calico"),
+        }
+        with open(os.path.join(all_dir, "10-lab.yml"), "w", encoding="utf-8") as handle:
+            handle.write("# The lab's choices (kuberos_lab.site_lab): each a documented variable a site may set too.\n")
+            yaml.safe_dump(lab, handle, sort_keys=False)
+        with open(self.path("inventory", "hosts.yml"), "w", encoding="utf-8") as handle:
+            handle.write("# inventories/sample with the lab's addresses and hardware filled in (kuberos_lab.site_lab).\n")
+            yaml.safe_dump(sample, handle, sort_keys=False)
+        return self.inventory
+
+    # -- playbooks -----------------------------------------------------------------------------------------------
+    def playbook(self, name: str, *extra: str, timeout: float = 1800) -> subprocess.CompletedProcess:
+        """Run playbooks/<name> against the lab's inventory; ``result.recap`` has the per-host counts."""
+        env = {
+            **os.environ,
+            "ANSIBLE_CONFIG": os.path.join(self.root, "ansible.cfg"),
+            "ANSIBLE_NOCOLOR": "1",
+            "ANSIBLE_FORCE_COLOR": "0",
+        }
+        binary = os.path.join(os.path.dirname(sys.executable), "ansible-playbook")
+        command = [binary, os.path.join("playbooks", name), "-i", self.inventory, *extra]
+        result = subprocess.run(command, cwd=self.root, env=env, capture_output=True, text=True, timeout=timeout)
+        result.recap = recap(result.stdout)
+        with open(self.path(f"{name.replace('/', '_')}-{int(time.time())}.log"), "w", encoding="utf-8") as handle:
+            handle.write(result.stdout + "\n--- stderr ---\n" + result.stderr)
+        return result
+
+
+CHECK_NAMESPACE = "kuberos-site-check"
+BIG_FILE_KIB = 256  # larger than any window: the TCP stream fills packets to the path's MTU
+
+
+def kube(kubeconfig: str):
+    """(core, apps) clients of the site's cluster."""
+    from kubernetes import client, config
+
+    api = config.new_client_from_config(config_file=kubeconfig)
+    return client.CoreV1Api(api), client.AppsV1Api(api)
+
+
+def wait_for(what: str, check, timeout: float, interval: float = 2.0):
+    """Call ``check`` until it returns something true; raise with ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        try:
+            last = check()
+        except Exception as error:  # an API server between leaders answers with errors: ask again
+            last = error
+        else:
+            if last:
+                return last
+        time.sleep(interval)
+    raise SiteLabError(f"{what}: not within {timeout:.0f} s (last: {last!r})")
+
+
+def nodes(core) -> dict[str, dict]:
+    """node -> Ready, its InternalIP, labels and taints."""
+    found = {}
+    for node in core.list_node().items:
+        ready = any(c.type == "Ready" and c.status == "True" for c in node.status.conditions or [])
+        internal = [a.address for a in node.status.addresses or [] if a.type == "InternalIP"]
+        found[node.metadata.name] = {
+            "ready": ready,
+            "internal_ip": internal[0] if internal else "",
+            "labels": dict(node.metadata.labels or {}),
+            "taints": [f"{t.key}={t.value or ''}:{t.effect}" for t in node.spec.taints or []],
+        }
+    return found
+
+
+def pod_network_check(core, toolbox: str, servers: dict[str, str], clients: list[tuple[str, str, str, bool]]) -> dict:
+    """Web servers (name -> node) that admit only pods labelled access=granted (a NetworkPolicy), and clients
+    (name, node, server, admitted) that each fetch a file of BIG_FILE_KIB KiB from a server's pod IP. Returns
+    client -> {"phase", "bytes"} (the reply's, headers included): an admitted client reads the whole file through
+    the pod network (Calico's VXLAN, and the VPN for a cloud node, at the MTU the role set); a refused one reads
+    nothing."""
+    from kubernetes.client.rest import ApiException
+
+    with contextlib.suppress(ApiException):
+        core.delete_namespace(CHECK_NAMESPACE)
+    wait_for("the check's old namespace is gone", lambda: CHECK_NAMESPACE not in _namespaces(core), 120)
+    core.create_namespace({"metadata": {"name": CHECK_NAMESPACE}})
+    from kubernetes import client as k8s
+
+    k8s.NetworkingV1Api(core.api_client).create_namespaced_network_policy(CHECK_NAMESPACE, {
+        "metadata": {"name": "servers-admit-granted"},
+        "spec": {
+            "podSelector": {"matchLabels": {"app": "server"}}, "policyTypes": ["Ingress"],
+            "ingress": [{"from": [{"podSelector": {"matchLabels": {"access": "granted"}}}], "ports": [{"port": 8080}]}],
+        },
+    })  # fmt: skip
+    toleration = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}]
+    serve = (
+        f"mkdir -p /www && busybox dd if=/dev/zero of=/www/big bs=1024 count={BIG_FILE_KIB} 2>/dev/null "
+        "&& exec busybox httpd -f -p 8080 -h /www"
+    )
+    for name, node in servers.items():
+        core.create_namespaced_pod(CHECK_NAMESPACE, {
+            "metadata": {"name": name, "labels": {"app": "server"}},
+            "spec": {"nodeName": node, "tolerations": toleration, "containers": [{
+                "name": "httpd", "image": toolbox, "command": ["/bin/sh", "-c", serve],
+                "readinessProbe": {"tcpSocket": {"port": 8080}, "periodSeconds": 1}}]},
+        })  # fmt: skip
+
+    def server_ips():
+        pods = {p.metadata.name: p for p in core.list_namespaced_pod(CHECK_NAMESPACE, label_selector="app=server").items}
+        ready = {
+            name: pod.status.pod_ip
+            for name, pod in pods.items()
+            if pod.status.pod_ip and any(c.type == "Ready" and c.status == "True" for c in pod.status.conditions or [])
+        }
+        return ready if len(ready) == len(servers) else None
+
+    ips = wait_for("the check's web servers are Ready", server_ips, 180)
+    for name, node, server, admitted in clients:
+        fetch = (
+            f"printf 'GET /big HTTP/1.0\\r\\n\\r\\n' | busybox nc -w 10 {ips[server]} 8080 > /tmp/reply; "
+            "busybox wc -c < /tmp/reply; busybox head -n 1 /tmp/reply | busybox grep -q ' 200 '"
+        )
+        core.create_namespaced_pod(CHECK_NAMESPACE, {
+            "metadata": {"name": name, "labels": {"access": "granted" if admitted else "none", "role": "client"}},
+            "spec": {"nodeName": node, "tolerations": toleration, "restartPolicy": "Never", "containers": [{
+                "name": "fetch", "image": toolbox, "command": ["/bin/sh", "-c", fetch]}]},
+        })  # fmt: skip
+
+    def ended():
+        pods = core.list_namespaced_pod(CHECK_NAMESPACE, label_selector="role=client").items
+        phases = {p.metadata.name: p.status.phase for p in pods}
+        return phases if all(phase in ("Succeeded", "Failed") for phase in phases.values()) else None
+
+    phases = wait_for("the check's clients ended", ended, 180)
+    results = {}
+    for name, phase in phases.items():
+        log = core.read_namespaced_pod_log(name, CHECK_NAMESPACE) or ""
+        numbers = [int(line) for line in log.split() if line.isdigit()]
+        results[name] = {"phase": phase, "bytes": numbers[-1] if numbers else 0}
+    core.delete_namespace(CHECK_NAMESPACE)
+    return results
+
+
+def vip_holder(machines, control_planes) -> str:
+    """The control plane that holds the virtual IP now (empty when none does)."""
+    for name in control_planes:
+        if f"inet {VIP}/" in machines.exec(name, "ip", "-4", "-o", "addr", check=False).stdout:
+            return name
+    return ""
+
+
+def _namespaces(core) -> set[str]:
+    return {n.metadata.name for n in core.list_namespace().items}
+
+
+class SiteChain:
+    """The infrastructure engineer's and the developer's days chained on the lab site, one step per method; each
+    step records its figures in ``figures`` (the benchmark's keys) and returns what the test asserts on."""
+
+    def __init__(self, lab: SiteLab, spec: str, log=print):
+        self.lab = lab
+        self.spec = spec  # the example, aimed at the sample site's picking fleet
+        self.log = log
+        self.figures: dict = {}
+        self.core = self.apps = None
+
+    def _play(self, name: str, *extra: str, timeout: float = 1800) -> subprocess.CompletedProcess:
+        started = time.monotonic()
+        result = self.lab.playbook(name, *extra, timeout=timeout)
+        result.seconds = time.monotonic() - started
+        self.log(f"site chain: {name} {' '.join(extra)} -> rc {result.returncode} in {result.seconds:.0f} s")
+        return result
+
+    def connect(self):
+        self.core, self.apps = kube(self.lab.kubeconfig)
+        return self
+
+    def site(self, key: str = "bare_to_ready_s") -> subprocess.CompletedProcess:
+        """site.yml; the first run's figure is from bare machines to every node Ready."""
+        result = self._play("site.yml")
+        if result.returncode == 0:
+            self.connect()
+            expected = len(self.lab.machines.machines)
+            wait_for("every node Ready", lambda: len([n for n in nodes(self.core).values() if n["ready"]]) == expected, 300)
+        self.figures[key] = round(result.seconds, 1)
+        return result
+
+    def network(self, toolbox: str, robot: str, edge: str, other_edge: str, cloud: str) -> dict:
+        """Pod to pod across nodes (robot to edge worker, robot to cloud VM through the VPN) and a refusal."""
+        results = pod_network_check(
+            self.core, toolbox, {"server-edge": edge, "server-cloud": cloud},
+            [("robot-to-edge", robot, "server-edge", True), ("robot-to-cloud", robot, "server-cloud", True),
+             ("edge-refused", other_edge, "server-edge", False)],
+        )  # fmt: skip
+        whole = BIG_FILE_KIB * 1024
+
+        def reached(name: str) -> bool:
+            return results[name]["phase"] == "Succeeded" and results[name]["bytes"] >= whole
+
+        self.figures["cross_node_pod_traffic"] = reached("robot-to-edge")
+        self.figures["cloud_pod_traffic_over_vpn"] = reached("robot-to-cloud")
+        self.figures["policy_denied"] = results["edge-refused"]["phase"] == "Failed" and results["edge-refused"]["bytes"] == 0
+        return results
+
+    def second_site(self) -> subprocess.CompletedProcess:
+        result = self._play("site.yml")
+        self.figures["second_run_s"] = round(result.seconds, 1)
+        self.figures["second_run_changed"] = sum(counts["changed"] for counts in result.recap.values())
+        return result
+
+    def controller(self) -> subprocess.CompletedProcess:
+        return self._play("controller.yml", "-e", "controller_mode=in_cluster")
+
+    def deploy(self, render_dir: str, key: str = "ready_to_app_running_s") -> subprocess.CompletedProcess:
+        result = self._play("deploy.yml", "-e", f"rosdeployment_file={self.spec}", "-e", f"kuberos_render_dir={render_dir}")
+        self.figures.setdefault(key, round(result.seconds, 1))
+        return result
+
+    def pick_cycles(self, robot: str, fleet: str, cycles: int = 1, time_limit: float = 600) -> dict:
+        """The robot's simulated hardware as a pod on its node, until the deployed modules complete ``cycles``."""
+        paths = [os.path.join(self.lab.root, "sim"), os.environ.get("PYTHONPATH", "")]
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+        command = [
+            sys.executable, "-m", "kuberos_sim.real_pods", "--kubeconfig", self.lab.kubeconfig, "--robots", robot,
+            "--fleet", fleet, "--cycles", str(cycles), "--time-limit", str(time_limit),
+        ]  # fmt: skip
+        started = time.monotonic()
+        done = subprocess.run(command, cwd=self.lab.root, env=env, capture_output=True, text=True, timeout=time_limit + 120)
+        summary = {}
+        with contextlib.suppress(ValueError):
+            summary = json.loads(done.stdout[done.stdout.index("{\n") :])
+        succeeded = sum(c.get("succeeded", 0) for c in summary.get("cycles", {}).values())
+        self.figures["pick_cycles_completed"] = succeeded
+        self.figures["pick_cycles_s"] = round(time.monotonic() - started, 1)
+        return {"returncode": done.returncode, "summary": summary, "output": done.stdout[-3000:] + done.stderr[-2000:]}
+
+    def undeploy(self) -> subprocess.CompletedProcess:
+        result = self._play("undeploy.yml", "-e", f"rosdeployment_file={self.spec}")
+        self.figures["undeploy_s"] = round(result.seconds, 1)
+        return result
+
+    def register_robot(self) -> subprocess.CompletedProcess:
+        """Boot the new robot, then register_robot.yml with the join on (its default)."""
+        address = self.lab.add_new_robot()
+        self.lab.write_inventory(with_new_robot=False)
+        connection = self.lab.machines.connection_vars()
+        extra = {
+            "robot_register_name": NEW_ROBOT[1],
+            "robot_register_address": address,
+            "robot_register_fleet": "picking",
+            "robot_register_user": connection["ansible_user"],
+            "robot_register_admin_key": connection["ansible_ssh_private_key_file"],
+            "robot_register_cluster_key": connection["ansible_ssh_private_key_file"] + ".pub",
+            "robot_register_extra_devices": ["gripper"],
+        }
+        with open(self.lab.path("register.json"), "w", encoding="utf-8") as handle:
+            json.dump(extra, handle)
+        result = self._play("register_robot.yml", "-e", f"@{self.lab.path('register.json')}")
+        self.figures["register_robot_s"] = round(result.seconds, 1)
+        return result
+
+
+def _groups_of(group: dict, name: str = "all", parents: tuple[str, ...] = ()) -> dict[str, list[str]]:
+    """host -> every group it is in (its own and the ancestors), from an inventory's YAML."""
+    found: dict[str, list[str]] = {}
+    chain = (*parents, name) if name != "all" else parents
+    for host in group.get("hosts") or {}:
+        found.setdefault(host, [])
+        found[host] += [g for g in chain if g not in found[host]]
+    for child, body in (group.get("children") or {}).items():
+        for host, groups in _groups_of(body or {}, child, chain).items():
+            found.setdefault(host, [])
+            found[host] += [g for g in groups if g not in found[host]]
+    return found
+
+
+def _split(reference: str) -> tuple[str, str, str]:
+    """``ghcr.io/kuberos/pnp-planner:0.1`` -> (``ghcr.io``, ``kuberos/pnp-planner``, ``0.1``)."""
+    host, _sep, rest = reference.partition("/")
+    name, _sep, tag = rest.rpartition(":")
+    return host, name, tag
+
+
+def _archive_name(archive: str) -> str:
+    """The name an OCI archive of the lab's builds gives its image (containerd's annotation)."""
+    import tarfile
+
+    with tarfile.open(archive, "r:") as tar:
+        (descriptor,) = json.load(tar.extractfile("index.json"))["manifests"]
+    return local_images._qualified(descriptor["annotations"]["io.containerd.image.name"])
+
+
+def _unqualified(reference: str, images: dict) -> str:
+    for built in images:
+        if reference.endswith("/" + built) or reference.endswith(built):
+            return built
+    raise SiteLabError(f"{reference}: no built image of that name")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="The sample site on lab machines (kuberos_lab.site_lab).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    up = sub.add_parser("up", help="boot the machines, start the registry mirror, write DIR/inventory")
+    up.add_argument("--state", required=True)
+    up.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
+    down = sub.add_parser("down", help="power off and remove what the lab made on this machine")
+    down.add_argument("--state", required=True)
+    down.add_argument("--remove", action="store_true", help="also delete the machines' files and the state")
+    args = parser.parse_args(argv)
+    root = os.path.abspath(os.path.join(os.path.dirname(__file__), *[os.pardir] * 3))
+    try:
+        if args.command == "up":
+            SiteLab(args.state, root, args.cache_dir).up()
+            print(os.path.join(os.path.abspath(args.state), "inventory"))
+        else:
+            SiteLab(args.state, root).down(remove=args.remove)
+    except (SiteLabError, lab_machines.MachineError) as error:
+        print(f"site lab: {error}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

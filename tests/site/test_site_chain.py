@@ -1,0 +1,182 @@
+"""From bare machines to a running fleet: the sample site on lab machines, as an infrastructure engineer and then a
+developer would run it (plugins/module_utils/kuberos_lab/site_lab.py).
+
+Seven lab machines (Debian under systemd-nspawn, each its own network stack, systemd, containerd and cgroup
+subtree, reached over SSH as a non-root user with sudo) stand for the sample inventory's hosts: three control planes
+behind a keepalived virtual IP, an edge worker, two robots, and a cloud VM that reaches the site only through the
+WireGuard tunnel. In order:
+
+1. ``site.yml`` for real: every node Ready with its labels and taints, three etcd members, the virtual IP held by
+   one control plane, the cloud VM's node IP its tunnel address;
+2. Calico for real: a robot's pod reaches pods on the edge worker and on the cloud VM (through the tunnel, a file
+   larger than any window: the MTU holds), and a NetworkPolicy refuses another pod;
+3. a second ``site.yml`` changes nothing;
+4. ``controller.yml`` (in the cluster) and ``deploy.yml`` of ``examples/pick-and-place.yml`` (aimed at the picking
+   fleet): pods Running where placed, onboard modules on the robots, ROS 2 between a robot and the edge through
+   the fleet's discovery servers: a pick cycle completes;
+5. ``register_robot.yml`` with the join adds a robot, which gets its onboard module on the next deploy;
+6. undeploy removes every pod of the app;
+7. the control plane that holds the virtual IP is powered off: the API answers through the same endpoint;
+8. teardown leaves this machine as it was.
+
+Needs root, systemd-nspawn, debootstrap, and the programs ``make test`` builds (skipped locally without them, a
+failure in CI). Bounded: every playbook and wait has a timeout; about 20 minutes here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import pytest
+import yaml
+from helpers import ROOT
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines as lab_machines
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import site_lab
+from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import snapshot_host
+
+pytestmark = pytest.mark.site
+
+ROBOT, OTHER_ROBOT, EDGE_WORKER, CLOUD = "fetch-01", "fetch-02", "edge-d", "gpu-vm-1"
+CONTROL_PLANES = ("edge-a", "edge-b", "edge-c")
+
+
+def _missing() -> list[str]:
+    problems = lab_machines.missing_requirements()
+    cache = os.path.expanduser(os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
+    built = os.listdir(os.path.join(cache, "bin")) if os.path.isdir(os.path.join(cache, "bin")) else []
+    if not any(name.startswith("kubeadm-") for name in built):
+        problems.append("kubeadm (make binaries WITH_KUBEADM=1 WITH_NODES=1)")
+    return problems
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory):
+    problems = _missing()
+    if problems:
+        if os.environ.get("CI"):
+            pytest.fail("the site chain needs: " + ", ".join(problems))
+        pytest.skip("the site chain needs: " + ", ".join(problems))
+    folder = tmp_path_factory.mktemp("site")
+    with open(os.path.join(ROOT, "examples", "pick-and-place.yml"), encoding="utf-8") as handle:
+        documents = list(yaml.safe_load_all(handle))
+    for document in documents:
+        document["metadata"]["targetFleet"] = "picking"  # the sample site's fleet of mobile manipulators
+    spec = folder / "pick-and-place.yml"
+    spec.write_text(yaml.safe_dump_all(documents, sort_keys=False))
+    before = snapshot_host()
+    lab = site_lab.SiteLab(str(folder / "state"), ROOT)
+    chain = site_lab.SiteChain(lab, str(spec))
+    chain.before = before
+    chain.render = str(folder / "rendered")
+    try:
+        chain.site_vars = lab.up()
+        yield chain
+    finally:
+        lab.down(remove=True)
+        print(json.dumps(chain.figures, indent=1))
+
+
+def _tail(result) -> str:
+    return result.stdout[-6000:] + result.stderr[-2000:]
+
+
+def test_site_yml_builds_an_ha_cluster_with_the_cloud_vm_over_the_vpn(chain):
+    result = chain.site()
+    assert result.returncode == 0, _tail(result)
+    found = site_lab.nodes(chain.core)
+    assert set(found) == {m for m in chain.lab.machines.machines}, found
+    assert all(node["ready"] for node in found.values()), found
+    assert found[ROBOT]["labels"]["robot.kuberos.io/name"] == ROBOT
+    assert f"kuberos.io/robot={ROBOT}:NoSchedule" in found[ROBOT]["taints"]
+    assert found[CLOUD]["labels"]["kuberos.io/role"] == "cloud"
+    assert found[CLOUD]["internal_ip"] == "10.99.0.11", found[CLOUD]  # its address inside the tunnel
+    assert all("node-role.kubernetes.io/control-plane" in found[cp]["labels"] for cp in CONTROL_PLANES)
+    holders = [cp for cp in CONTROL_PLANES if site_lab.VIP in chain.lab.machines.exec(cp, "ip", "-4", "addr").stdout]
+    assert holders == [site_lab.vip_holder(chain.lab.machines, CONTROL_PLANES)], holders
+    members = chain.lab.machines.exec(
+        "edge-a", "sh", "-c",
+        "crictl --runtime-endpoint unix:///run/containerd/containerd.sock exec $(crictl --runtime-endpoint "
+        "unix:///run/containerd/containerd.sock ps -q --name etcd) etcdctl --cacert /etc/kubernetes/pki/etcd/ca.crt "
+        "--cert /etc/kubernetes/pki/etcd/server.crt --key /etc/kubernetes/pki/etcd/server.key member list",
+        check=False,
+    )  # fmt: skip
+    chain.figures.update(hosts=len(found), control_planes=len(CONTROL_PLANES))
+    chain.figures["cloud_node_joined_over_vpn"] = found[CLOUD]["ready"] and found[CLOUD]["internal_ip"] == "10.99.0.11"
+    assert members.stdout.count("started") == 3, members.stdout + members.stderr
+
+
+def test_pods_reach_each_other_across_nodes_and_the_vpn_and_a_policy_refuses(chain):
+    results = chain.network(chain.site_vars["kuberos_lab_toolbox_image"], ROBOT, EDGE_WORKER, "edge-b", CLOUD)
+    assert chain.figures["cross_node_pod_traffic"], results
+    assert chain.figures["cloud_pod_traffic_over_vpn"], results
+    assert chain.figures["policy_denied"], results
+
+
+def test_a_second_site_yml_changes_nothing(chain):
+    result = chain.second_site()
+    assert result.returncode == 0, _tail(result)
+    changed = {host: counts["changed"] for host, counts in result.recap.items() if counts["changed"]}
+    assert not changed, changed
+
+
+def test_the_controller_and_the_example_run_where_placed_and_complete_a_pick_cycle(chain):
+    started = time.monotonic()
+    result = chain.controller()
+    assert result.returncode == 0, _tail(result)
+    result = chain.deploy(chain.render)
+    assert result.returncode == 0, _tail(result)
+    chain.figures["ready_to_app_running_s"] = round(time.monotonic() - started, 1)
+    with open(os.path.join(chain.render, "placement.json"), encoding="utf-8") as handle:
+        placement = json.load(handle)
+    wanted = {i["name"]: i["node"] for i in placement["instances"]}
+    running = {
+        p.metadata.labels.get("kuberos.io/instance"): p.spec.node_name
+        for p in chain.core.list_pod_for_all_namespaces(label_selector="kuberos.io/instance").items
+        if p.status.phase == "Running"
+    }
+    assert {k: running.get(k) for k in wanted} == wanted, (wanted, running)
+    onboard = {name: node for name, node in wanted.items() if name.startswith("controller")}
+    assert set(onboard.values()) == {ROBOT, OTHER_ROBOT}, onboard
+    cycles = chain.pick_cycles(ROBOT, "picking", cycles=1)
+    assert cycles["returncode"] == 0 and chain.figures["pick_cycles_completed"] >= 1, cycles["output"]
+
+
+def test_a_registered_robot_joins_and_gets_its_onboard_module(chain):
+    result = chain.register_robot()
+    assert result.returncode == 0, _tail(result)
+    new = site_lab.NEW_ROBOT[1]
+    site_lab.wait_for(f"{new} Ready", lambda: site_lab.nodes(chain.core).get(new, {}).get("ready"), 300)
+    result = chain.deploy(chain.render, key="redeploy_s")
+    assert result.returncode == 0, _tail(result)
+    pods = chain.core.list_pod_for_all_namespaces(label_selector="kuberos.io/instance").items
+    assert any(p.spec.node_name == new and p.status.phase == "Running" for p in pods), [
+        (p.metadata.name, p.spec.node_name, p.status.phase) for p in pods
+    ]
+
+
+def test_undeploy_removes_every_pod_of_the_app(chain):
+    result = chain.undeploy()
+    assert result.returncode == 0, _tail(result)
+    site_lab.wait_for(
+        "no pod of the app", lambda: not chain.core.list_pod_for_all_namespaces(label_selector="kuberos.io/instance").items, 180
+    )
+
+
+def test_the_api_answers_through_the_virtual_ip_after_losing_its_control_plane(chain):
+    holder = site_lab.vip_holder(chain.lab.machines, CONTROL_PLANES)
+    started = time.monotonic()
+    chain.lab.machines.power_off(holder)
+    site_lab.wait_for("the API through the virtual IP", lambda: chain.core.list_node(_request_timeout=3).items, 120, 1)
+    chain.figures["api_back_after_losing_the_vip_holder_s"] = round(time.monotonic() - started, 1)
+    others = [cp for cp in CONTROL_PLANES if cp != holder]
+    assert any(site_lab.VIP in chain.lab.machines.exec(cp, "ip", "-4", "addr").stdout for cp in others)
+
+
+def test_teardown_leaves_the_host_as_it_was(chain):
+    chain.lab.down(remove=True)
+    after = snapshot_host()
+    changed = {key: (chain.before[key], after[key]) for key in chain.before if chain.before[key] != after[key]}
+    assert not changed, changed
