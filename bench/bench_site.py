@@ -32,8 +32,6 @@ from pathlib import Path
 from bench_deploy import REPO, log, machine
 
 sys.path[:0] = [str(REPO / ".collections")]
-import yaml  # noqa: E402
-
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import site_lab  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import snapshot_host  # noqa: E402
 
@@ -51,12 +49,9 @@ def main() -> int:
     args = parser.parse_args()
     before = snapshot_host()
     folder = Path(tempfile.mkdtemp(prefix="bench-site-"))
-    documents = list(yaml.safe_load_all((REPO / "examples" / "pick-and-place.yml").read_text()))
-    for document in documents:
-        document["metadata"]["targetFleet"] = "picking"
-    (folder / "pick-and-place.yml").write_text(yaml.safe_dump_all(documents, sort_keys=False))
+    spec = site_lab.lab_example(str(REPO / "examples" / "pick-and-place.yml"), str(folder / "pick-and-place.yml"))
     lab = site_lab.SiteLab(str(folder / "state"), str(REPO), log=log)
-    chain = site_lab.SiteChain(lab, str(folder / "pick-and-place.yml"), log=log)
+    chain = site_lab.SiteChain(lab, spec, log=log)
     started = time.monotonic()
     try:
         site_vars = lab.up()

@@ -12,8 +12,9 @@ WireGuard tunnel. In order:
    larger than any window: the MTU holds), and a NetworkPolicy refuses another pod;
 3. a second ``site.yml`` changes nothing;
 4. ``controller.yml`` (in the cluster) and ``deploy.yml`` of ``examples/pick-and-place.yml`` (aimed at the picking
-   fleet): pods Running where placed, onboard modules on the robots, ROS 2 between a robot and the edge through
-   the fleet's discovery servers: a pick cycle completes;
+   fleet, its CPU requests divided by four for the lab's two cores: ``site_lab.lab_example``): pods Running where
+   placed, onboard modules on the robots, ROS 2 between a robot, the edge and the cloud VM through the fleet's
+   discovery servers: a pick cycle completes;
 5. ``register_robot.yml`` with the join adds a robot, which gets its onboard module on the next deploy;
 6. undeploy removes every pod of the app;
 7. the control plane that holds the virtual IP is powered off: the API answers through the same endpoint;
@@ -30,7 +31,6 @@ import os
 import time
 
 import pytest
-import yaml
 from helpers import ROOT
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines as lab_machines
@@ -60,15 +60,10 @@ def chain(tmp_path_factory):
             pytest.fail("the site chain needs: " + ", ".join(problems))
         pytest.skip("the site chain needs: " + ", ".join(problems))
     folder = tmp_path_factory.mktemp("site")
-    with open(os.path.join(ROOT, "examples", "pick-and-place.yml"), encoding="utf-8") as handle:
-        documents = list(yaml.safe_load_all(handle))
-    for document in documents:
-        document["metadata"]["targetFleet"] = "picking"  # the sample site's fleet of mobile manipulators
-    spec = folder / "pick-and-place.yml"
-    spec.write_text(yaml.safe_dump_all(documents, sort_keys=False))
+    spec = site_lab.lab_example(os.path.join(ROOT, "examples", "pick-and-place.yml"), str(folder / "pick-and-place.yml"))
     before = snapshot_host()
     lab = site_lab.SiteLab(str(folder / "state"), ROOT)
-    chain = site_lab.SiteChain(lab, str(spec))
+    chain = site_lab.SiteChain(lab, spec)
     chain.before = before
     chain.render = str(folder / "rendered")
     try:
@@ -147,7 +142,7 @@ def test_the_controller_and_the_example_run_where_placed_and_complete_a_pick_cyc
 def test_a_registered_robot_joins_and_gets_its_onboard_module(chain):
     result = chain.register_robot()
     assert result.returncode == 0, _tail(result)
-    new = site_lab.NEW_ROBOT[1]
+    new = site_lab.NEW_ROBOT
     site_lab.wait_for(f"{new} Ready", lambda: site_lab.nodes(chain.core).get(new, {}).get("ready"), 300)
     result = chain.deploy(chain.render, key="redeploy_s")
     assert result.returncode == 0, _tail(result)

@@ -69,6 +69,6 @@ def test_sample_inventory_is_a_valid_site():
 
     inv = load_inventory(inventory_raw("inventories/sample"))
     assert inv.fleets == {"inventory": ("scanner-01",), "picking": ("fetch-01", "fetch-02")}
-    assert sorted(n for n, node in inv.nodes.items() if node.tier == "edge") == ["edge-a", "edge-b", "edge-c"]
+    assert sorted(n for n, node in inv.nodes.items() if node.tier == "edge") == ["edge-a", "edge-b", "edge-c", "edge-d"]
     assert inv.latency_ms("fetch-02", "gpu-vm-1") == 85.0 and inv.latency_ms("fetch-01", "gpu-vm-1") == 40.0
     assert inv.nodes["scanner-01.robots.example.internal"].arch == "arm64"

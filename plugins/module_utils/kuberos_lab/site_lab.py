@@ -14,7 +14,7 @@ its own network stack, systemd, containerd and cgroup subtree, reached over SSH 
 
 Left out, each for a reason of this machine: ``scanner-01`` (an arm64 computer; this machine runs amd64 only) and
 ``gpu-vm-2`` (one cloud VM shows the path through the tunnel; a second costs the two cores' time only).
-``fetch-03`` is the robot the chain registers later (``register_robot.yml``, the join switched on).
+``fetch-03`` is the robot the chain boots and registers later (``register_robot.yml``, the join switched on).
 
 The inventory the playbooks get is the sample's own, group variables unchanged, with what a site fills in per host
 (``ansible_host``, ``kuberos_address``, the hub's public endpoint) and what the lab's machines really have (2 cores
@@ -64,7 +64,7 @@ LEFT_OUT = {
     "scanner-01.robots.example.internal": "an arm64 onboard computer; this machine runs amd64 only",
     "gpu-vm-2": "one cloud VM shows the path through the tunnel",
 }
-NEW_ROBOT = ("fetch-03.robots.example.internal", "fetch-03", "fleet_picking")
+NEW_ROBOT = "fetch-03"  # its inventory name, machine and node name: register_robot.yml adds it to the inventory
 RECAP = re.compile(r"^(\S+)\s+: ok=(\d+)\s+changed=(\d+)\s+unreachable=(\d+)\s+failed=(\d+)", re.MULTILINE)
 
 
@@ -138,14 +138,12 @@ class SiteLab:
             return yaml.safe_load(handle)
 
     # -- lifecycle -----------------------------------------------------------------------------------------------
-    def up(self, with_new_robot: bool = False) -> dict:
-        """Boot the machines (and the robot registered later, when asked), start the registry mirror and push the
-        images, write the inventory. Returns the lab's site variables."""
+    def up(self) -> dict:
+        """Boot the machines, start the registry mirror and push the images, write the inventory. Returns the lab's
+        site variables."""
         sample = self._sample()
         groups = _groups_of(sample["all"])
         specs = [(name, groups.get(host, []), networks) for host, (name, networks, _cpu) in MACHINES.items()]
-        if with_new_robot:
-            specs.append((NEW_ROBOT[1], ["robots"], "site"))
         hub = next(h for h in MACHINES if "vpn_gateway" in groups.get(h, []))
         vpn_network = self._sample_var("wireguard_network")
         self.machines.routes[vpn_network] = MACHINES[hub][0]  # this machine is the site's router
@@ -156,13 +154,13 @@ class SiteLab:
         lab_vars = {"site_vars": site_vars, "mirrors": self._mirror(archives)}
         with open(self.path("lab_vars.json"), "w", encoding="utf-8") as handle:
             json.dump(lab_vars, handle)
-        self.write_inventory(with_new_robot=with_new_robot)
+        self.write_inventory()
         return lab_vars["site_vars"]
 
     def add_new_robot(self) -> str:
         """Boot the robot that register_robot.yml adds; returns its address."""
-        self.machines.up([(NEW_ROBOT[1], ["robots"], "site")], log=self.log)
-        return self.machines.machines[NEW_ROBOT[1]].address
+        self.machines.up([(NEW_ROBOT, ["robots"], "site")], log=self.log)
+        return self.machines.machines[NEW_ROBOT].address
 
     def down(self, remove: bool = False) -> None:
         self._registry().stop(remove=remove)
@@ -206,7 +204,7 @@ class SiteLab:
         with open(os.path.join(self.root, SAMPLE, "group_vars", "all.yml"), encoding="utf-8") as handle:
             return yaml.safe_load(handle)[name]
 
-    def write_inventory(self, with_new_robot: bool = False) -> str:
+    def write_inventory(self) -> str:
         """The sample inventory with its addresses filled in (hosts.yml) and the lab's choices (group_vars/all)."""
         import yaml
 
@@ -214,14 +212,11 @@ class SiteLab:
             lab_vars = json.load(handle)
         site_vars, mirrors = lab_vars["site_vars"], lab_vars["mirrors"]
         sample = self._sample()
-        keep = set(MACHINES) | ({NEW_ROBOT[0]} if with_new_robot else set())
+        keep = set(MACHINES)
         _prune(sample["all"], keep)
-        if with_new_robot:
-            fleet = sample["all"]["children"]["robots"]["children"][NEW_ROBOT[2]]
-            fleet["hosts"][NEW_ROBOT[0]] = {"kuberos_robot": NEW_ROBOT[1], "kuberos_devices": ["camera", "gripper"]}
         connection = self.machines.connection_vars()
-        cores = {host: cpu for host, (_name, _networks, cpu) in MACHINES.items()} | {NEW_ROBOT[0]: "1500m"}
-        names = {host: name for host, (name, _networks, _cpu) in MACHINES.items()} | {NEW_ROBOT[0]: NEW_ROBOT[1]}
+        cores = {host: cpu for host, (_name, _networks, cpu) in MACHINES.items()}
+        names = {host: name for host, (name, _networks, _cpu) in MACHINES.items()}
         for host, variables in _host_entries(sample["all"]):
             if variables is None or host not in keep:
                 continue
@@ -400,6 +395,31 @@ def _namespaces(core) -> set[str]:
     return {n.metadata.name for n in core.list_namespace().items}
 
 
+FLEET = "picking"
+CPU_SCALE = 4  # the lab's seven machines share 2 cores: every module asks a quarter of the example's CPU
+
+
+def lab_example(source: str, destination: str) -> str:
+    """``examples/pick-and-place.yml`` for the lab site: aimed at the sample site's picking fleet, each module's CPU
+    request divided by CPU_SCALE (three robots' motion planners at 2 cores each would need six; each machine's kubelet
+    has the two this machine has). Everything else, images and launch commands included, is the example's."""
+    import yaml
+
+    with open(source, encoding="utf-8") as handle:
+        documents = list(yaml.safe_load_all(handle))
+    for document in documents:
+        document["metadata"]["targetFleet"] = FLEET
+        for module in document.get("rosModules", []):
+            resources = module.get("resources") or {}
+            if "cpu" in resources:
+                text = str(resources["cpu"])
+                millis = int(text[:-1]) if text.endswith("m") else round(float(text) * 1000)
+                resources["cpu"] = f"{max(1, millis // CPU_SCALE)}m"
+    with open(destination, "w", encoding="utf-8") as handle:
+        yaml.safe_dump_all(documents, handle, sort_keys=False)
+    return destination
+
+
 class SiteChain:
     """The infrastructure engineer's and the developer's days chained on the lab site, one step per method; each
     step records its figures in ``figures`` (the benchmark's keys) and returns what the test asserts on."""
@@ -489,10 +509,12 @@ class SiteChain:
     def register_robot(self) -> subprocess.CompletedProcess:
         """Boot the new robot, then register_robot.yml with the join on (its default)."""
         address = self.lab.add_new_robot()
-        self.lab.write_inventory(with_new_robot=False)
         connection = self.lab.machines.connection_vars()
         extra = {
-            "robot_register_name": NEW_ROBOT[1],
+            # how this machine reaches every lab machine (the SSH user and become come from the role and the play)
+            "ansible_ssh_private_key_file": connection["ansible_ssh_private_key_file"],
+            "ansible_ssh_common_args": connection["ansible_ssh_common_args"],
+            "robot_register_name": NEW_ROBOT,
             "robot_register_address": address,
             "robot_register_fleet": "picking",
             "robot_register_user": connection["ansible_user"],
