@@ -39,7 +39,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import
 
 pytestmark = pytest.mark.site
 
-ROBOT, OTHER_ROBOT, EDGE_WORKER, CLOUD = "fetch-01", "fetch-02", "edge-d", "gpu-vm-1"
+# Node names: the inventory's host names, or kuberos_node_name where the sample gives one.
+ROBOT, OTHER_ROBOT = "fetch-01.robots.example.internal", "fetch-02.robots.example.internal"
+EDGE_WORKER, CLOUD = "edge-d", "gpu-vm-1"
 CONTROL_PLANES = ("edge-a", "edge-b", "edge-c")
 
 
@@ -82,10 +84,10 @@ def test_site_yml_builds_an_ha_cluster_with_the_cloud_vm_over_the_vpn(chain):
     result = chain.site()
     assert result.returncode == 0, _tail(result)
     found = site_lab.nodes(chain.core)
-    assert set(found) == {m for m in chain.lab.machines.machines}, found
+    assert set(found) == {ROBOT, OTHER_ROBOT, EDGE_WORKER, CLOUD, *CONTROL_PLANES}, found
     assert all(node["ready"] for node in found.values()), found
-    assert found[ROBOT]["labels"]["robot.kuberos.io/name"] == ROBOT
-    assert f"kuberos.io/robot={ROBOT}:NoSchedule" in found[ROBOT]["taints"]
+    assert found[ROBOT]["labels"]["robot.kuberos.io/name"] == "fetch-01"
+    assert "kuberos.io/robot=fetch-01:NoSchedule" in found[ROBOT]["taints"], found[ROBOT]
     assert found[CLOUD]["labels"]["kuberos.io/role"] == "cloud"
     assert found[CLOUD]["internal_ip"] == "10.99.0.11", found[CLOUD]  # its address inside the tunnel
     assert all("node-role.kubernetes.io/control-plane" in found[cp]["labels"] for cp in CONTROL_PLANES)
@@ -127,15 +129,15 @@ def test_the_controller_and_the_example_run_where_placed_and_complete_a_pick_cyc
     with open(os.path.join(chain.render, "placement.json"), encoding="utf-8") as handle:
         placement = json.load(handle)
     wanted = {i["name"]: i["node"] for i in placement["instances"]}
+    onboard = {i["name"]: i["node"] for i in placement["instances"] if i["module"] == "controller"}
     running = {
         p.metadata.labels.get("kuberos.io/instance"): p.spec.node_name
         for p in chain.core.list_pod_for_all_namespaces(label_selector="kuberos.io/instance").items
         if p.status.phase == "Running"
     }
     assert {k: running.get(k) for k in wanted} == wanted, (wanted, running)
-    onboard = {name: node for name, node in wanted.items() if name.startswith("controller")}
     assert set(onboard.values()) == {ROBOT, OTHER_ROBOT}, onboard
-    cycles = chain.pick_cycles(ROBOT, "picking", cycles=1)
+    cycles = chain.pick_cycles("fetch-01", site_lab.FLEET, cycles=1)
     assert cycles["returncode"] == 0 and chain.figures["pick_cycles_completed"] >= 1, cycles["output"]
 
 

@@ -87,7 +87,7 @@ HOST_SYSCTLS = (
 # Every machine's root is this machine's root user: inotify's per-user limits are shared by all their kubelets,
 # kube-proxies and containerds. Raised while the lab runs (kind's nodes need the same), restored by ``down``.
 INOTIFY_LIMITS = {"fs/inotify/max_user_instances": 8192, "fs/inotify/max_user_watches": 524288}
-BOOT_TIMEOUT = 90.0
+BOOT_TIMEOUT = 180.0  # for all the machines of one call, booting side by side on a busy machine
 CGROUPS_SCRIPT = """#!/bin/sh
 # Lab machines only (kuberos_lab.machines): mount every cgroup v1 controller afresh and writable. This machine runs
 # in a cgroup namespace of its own, so each fresh mount shows the machine's own subtree as its root.
@@ -333,7 +333,14 @@ class MachineLab:
         self.save()
         deadline = time.monotonic() + BOOT_TIMEOUT
         for machine in self.machines.values():
-            self._wait_booted(machine, deadline)
+            try:
+                self._wait_booted(machine, deadline)
+            except MachineError as error:  # seen rarely, on a busy machine: power it off and boot it once more
+                log(f"lab machines: {error}; booting {machine.name} again")
+                self._stop(machine)
+                self._boot(machine)
+                self.save()
+                self._wait_booted(machine, time.monotonic() + BOOT_TIMEOUT)
         self.write_known_hosts()
         self.write_inventory()
         return self
@@ -517,11 +524,13 @@ class MachineLab:
     def _wait_booted(self, machine: Machine, deadline: float) -> None:
         state = ""
         while time.monotonic() < deadline:
-            state = self.exec(machine.name, "systemctl", "is-system-running", check=False).stdout.strip()
+            asked = self.exec(machine.name, "systemctl", "is-system-running", check=False)
+            state = asked.stdout.strip() or f"not answering: {asked.stderr.strip()[-200:]}"
             if state in ("running", "degraded") and _port_open(machine.address, 22):
                 if state == "degraded":
                     failed = self.exec(machine.name, "systemctl", "--failed", "--plain", "--no-legend", check=False).stdout
-                    raise MachineError(f"{machine.name} booted degraded, failed units:\n{failed}")
+                    journal = self.exec(machine.name, "journalctl", "-b", "-p", "warning", "-n", "15", "--no-pager", check=False)
+                    raise MachineError(f"{machine.name} booted degraded, failed units:\n{failed}{journal.stdout}")
                 return
             time.sleep(0.3)
         raise MachineError(f"{machine.name} did not finish booting in {BOOT_TIMEOUT:.0f}s (state {state or 'unknown'}): "
