@@ -93,16 +93,10 @@ def test_site_yml_builds_an_ha_cluster_with_the_cloud_vm_over_the_vpn(chain):
     assert all("node-role.kubernetes.io/control-plane" in found[cp]["labels"] for cp in CONTROL_PLANES)
     holders = [cp for cp in CONTROL_PLANES if site_lab.VIP in chain.lab.machines.exec(cp, "ip", "-4", "addr").stdout]
     assert holders == [site_lab.vip_holder(chain.lab.machines, CONTROL_PLANES)], holders
-    members = chain.lab.machines.exec(
-        "edge-a", "sh", "-c",
-        "crictl --runtime-endpoint unix:///run/containerd/containerd.sock exec $(crictl --runtime-endpoint "
-        "unix:///run/containerd/containerd.sock ps -q --name etcd) etcdctl --cacert /etc/kubernetes/pki/etcd/ca.crt "
-        "--cert /etc/kubernetes/pki/etcd/server.crt --key /etc/kubernetes/pki/etcd/server.key member list",
-        check=False,
-    )  # fmt: skip
+    members = site_lab.etcd_members(chain.lab.machines, "edge-a")
     chain.figures.update(hosts=len(found), control_planes=len(CONTROL_PLANES))
     chain.figures["cloud_node_joined_over_vpn"] = found[CLOUD]["ready"] and found[CLOUD]["internal_ip"] == "10.99.0.11"
-    assert members.stdout.count("started") == 3, members.stdout + members.stderr
+    assert members == sorted(CONTROL_PLANES), members
 
 
 def test_pods_reach_each_other_across_nodes_and_the_vpn_and_a_policy_refuses(chain):

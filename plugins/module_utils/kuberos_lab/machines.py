@@ -77,6 +77,7 @@ PACKAGES = (
 )  # fmt: skip
 USER = "kuberos"
 NETWORKS = ("site", "wan", "site+wan")
+MIRROR_PORT = 5445  # the lab registry's port on the bridge (--mirror)
 CGROUP_ROOT = "/sys/fs/cgroup"
 # Kernel settings outside a network namespace that a kubelet or kube-proxy in a machine writes.
 HOST_SYSCTLS = (
@@ -103,7 +104,9 @@ done
 CGROUPS_UNIT = """[Unit]
 Description=Lab machine: writable cgroup v1 controllers (kuberos_lab.machines)
 DefaultDependencies=no
-After=local-fs.target
+# First of all: a unit whose cgroup systemd makes while the controllers are mounted afresh fails to start.
+Before=sysinit.target systemd-modules-load.service systemd-tmpfiles-setup.service systemd-tmpfiles-setup-dev.service
+Before=systemd-sysctl.service systemd-journal-flush.service systemd-update-utmp.service dbus.service ssh.service
 Before=containerd.service kubelet.service
 
 [Service]
@@ -112,7 +115,7 @@ RemainAfterExit=yes
 ExecStart=/usr/local/sbin/kuberos-lab-cgroups
 
 [Install]
-WantedBy=multi-user.target
+WantedBy=sysinit.target
 """
 
 
@@ -197,7 +200,7 @@ def _customise(root: str) -> None:
 
     write("usr/local/sbin/kuberos-lab-cgroups", CGROUPS_SCRIPT, 0o755)
     write("etc/systemd/system/kuberos-lab-cgroups.service", CGROUPS_UNIT)
-    wants = os.path.join(root, "etc/systemd/system/multi-user.target.wants")
+    wants = os.path.join(root, "etc/systemd/system/sysinit.target.wants")
     os.makedirs(wants, exist_ok=True)
     with contextlib.suppress(FileExistsError):
         os.symlink("/etc/systemd/system/kuberos-lab-cgroups.service", os.path.join(wants, "kuberos-lab-cgroups.service"))
@@ -345,9 +348,17 @@ class MachineLab:
         self.write_inventory()
         return self
 
+    def registry(self):
+        """The lab's registry (``--mirror``): on the bridge, TLS, pulls without credentials, state under DIR/registry."""
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import LocalRegistry
+
+        return LocalRegistry(os.path.join(self.state, "registry"), self.gateway, MIRROR_PORT, auth=False)
+
     def down(self, remove: bool = False) -> None:
         """Power every machine off (and kill what is left), unmount, remove cgroups, namespaces, links; restore the
-        kernel settings the machines changed."""
+        kernel settings the machines changed; stop the lab's registry if it runs."""
+        if os.path.isdir(os.path.join(self.state, "registry")):
+            self.registry().stop(remove=remove)
         for machine in self.machines.values():
             self._stop(machine)
         for machine in self.machines.values():
@@ -733,6 +744,11 @@ def main(argv: list[str] | None = None) -> int:
     up.add_argument("--subnet", default="10.213.0", help="the lab's /24, as its first three octets")
     up.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
     up.add_argument("--site-vars", action="store_true", help="also build the images kubeadm runs and write DIR/site_vars.yml")
+    up.add_argument(
+        "--mirror", action="store_true",
+        help="with --site-vars: serve those images from a registry on the lab's bridge, the machines' mirror, instead of "
+        "copying every archive to every machine",
+    )  # fmt: skip
     down = sub.add_parser("down", help="power off, remove mounts, cgroups, namespaces and links")
     down.add_argument("--state", required=True)
     down.add_argument("--remove", action="store_true", help="also delete the machines' files and the state")
@@ -754,8 +770,16 @@ def main(argv: list[str] | None = None) -> int:
             if args.site_vars:
                 import yaml
 
+                chosen = site_vars(args.cache_dir)
+                if args.mirror:
+                    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import site_lab
+
+                    archives = chosen.pop("node_prereqs_image_archives")
+                    chosen["node_prereqs_registry_mirrors"] = site_lab.serve_images(
+                        lab.registry(), archives, "", args.cache_dir, app_images=False
+                    )
                 with open(os.path.join(state, "site_vars.yml"), "w", encoding="utf-8") as handle:
-                    yaml.safe_dump(site_vars(args.cache_dir), handle, sort_keys=False)
+                    yaml.safe_dump(chosen, handle, sort_keys=False)
             print(json.dumps({name: m.address for name, m in lab.machines.items()}))
         else:
             if not os.path.exists(os.path.join(args.state, "lab.json")):

@@ -48,7 +48,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab impor
 TAG = "ks"
 SUBNET = "10.215.0"
 VIP = f"{SUBNET}.10"
-REGISTRY_PORT = 5445
 SAMPLE = os.path.join("inventories", "sample")
 # sample inventory host -> (machine name, networks, cores left for modules)
 MACHINES = {
@@ -127,9 +126,7 @@ class SiteLab:
         return lab_machines.MachineLab(self.path("lab"), tag=TAG, subnet=SUBNET, cache_dir=self.cache_dir)
 
     def _registry(self):
-        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import LocalRegistry
-
-        return LocalRegistry(self.path("registry"), self.machines.gateway, REGISTRY_PORT, auth=False)
+        return self.machines.registry()
 
     def _sample(self) -> dict:
         import yaml
@@ -163,39 +160,13 @@ class SiteLab:
         return self.machines.machines[NEW_ROBOT].address
 
     def down(self, remove: bool = False) -> None:
-        self._registry().stop(remove=remove)
-        self.machines.down(remove=remove)
+        self.machines.down(remove=remove)  # the registry too
         if remove:
             shutil.rmtree(self.state, ignore_errors=True)
 
     # -- the registry mirror -------------------------------------------------------------------------------------
     def _mirror(self, archives: list[str]) -> dict:
-        """Start the registry and push every image the site runs under the name its specs, kubeadm and the calico
-        role use (``registry.k8s.io/...``, ``quay.io/calico/...``, ``ghcr.io/kuberos/...``, ``ros:jazzy-ros-base``);
-        returns node_prereqs_registry_mirrors: the registry as the mirror of each of those registries."""
-        images = local_images.build_images(self.root, self.cache_dir, log=self.log)
-        names = {
-            alias: images.get(ref) or images[_unqualified(ref, images)]
-            for alias, ref in local_images.image_aliases(images).items()
-        }
-        names = {alias: archive for alias, archive in names.items() if not alias.startswith("kuberos.local/prometheus")}
-        names.update({_archive_name(archive): archive for archive in archives})
-        registry = self._registry()
-        registry.start()
-        client = registry.client()
-        hosts, first_repository = set(), {}
-        started = time.monotonic()
-        for name, archive in sorted(names.items()):
-            host, repository, tag = _split(name)
-            _digest, done = client.push_archive(archive, repository, tag, mount_from=first_repository.get(archive))
-            first_repository.setdefault(archive, repository)
-            hosts.add(host)
-            if done["uploaded"]:
-                self.log(f"site lab: pushed {name} ({done['bytes'] / 2**20:.1f} MiB)")
-        self.log(f"site lab: the registry mirror serves {len(names)} images ({time.monotonic() - started:.1f} s)")
-        with open(registry.ca_file, encoding="utf-8") as handle:
-            ca = handle.read()
-        return {host: [{"url": f"https://{registry.address}", "ca": ca}] for host in sorted(hosts)}
+        return serve_images(self._registry(), archives, self.root, self.cache_dir, app_images=True, log=self.log)
 
     # -- inventory -----------------------------------------------------------------------------------------------
     def _sample_var(self, name: str):
@@ -383,6 +354,21 @@ def pod_network_check(core, toolbox: str, servers: dict[str, str], clients: list
     return results
 
 
+def etcd_members(machines, name: str) -> list[str]:
+    """etcd's member names as one control plane's etcd lists them (its v3 HTTP gateway, with the health-check
+    client certificate kubeadm made on that machine)."""
+    import ssl
+    import urllib.request
+
+    pki = os.path.join(machines.rootfs(name), "etc", "kubernetes", "pki", "etcd")
+    context = ssl.create_default_context(cafile=os.path.join(pki, "ca.crt"))
+    context.load_cert_chain(os.path.join(pki, "healthcheck-client.crt"), os.path.join(pki, "healthcheck-client.key"))
+    address = machines.machines[name].address
+    request = urllib.request.Request(f"https://{address}:2379/v3/cluster/member/list", data=b"{}", method="POST")
+    with urllib.request.urlopen(request, context=context, timeout=10) as response:
+        return sorted(member.get("name", "") for member in json.load(response).get("members", []))
+
+
 def vip_holder(machines, control_planes) -> str:
     """The control plane that holds the virtual IP now (empty when none does)."""
     for name in control_planes:
@@ -527,6 +513,34 @@ class SiteChain:
         result = self._play("register_robot.yml", "-e", f"@{self.lab.path('register.json')}")
         self.figures["register_robot_s"] = round(result.seconds, 1)
         return result
+
+
+def serve_images(registry, archives: list[str], repo_root: str, cache_dir: str, app_images: bool, log=print) -> dict:
+    """Start ``registry`` (a `registry.LocalRegistry`) and push every image a site runs under the name its specs,
+    kubeadm and the calico role use: the ``archives`` (``registry.k8s.io/...``, ``quay.io/calico/...``, the lab's
+    toolbox) and, with ``app_images``, the collection's images (``ghcr.io/kuberos/...``, ``ros:jazzy-ros-base``).
+    Returns node_prereqs_registry_mirrors: the registry as the mirror of each of those registries."""
+    names = {_archive_name(archive): archive for archive in archives}
+    if app_images:
+        images = local_images.build_images(repo_root, cache_dir, log=log)
+        for alias, reference in local_images.image_aliases(images).items():
+            if not alias.startswith("kuberos.local/prometheus"):  # no site runs the lab's Prometheus image
+                names[alias] = images.get(reference) or images[_unqualified(reference, images)]
+    registry.start()
+    client = registry.client()
+    hosts, first_repository = set(), {}
+    started = time.monotonic()
+    for name, archive in sorted(names.items()):
+        host, repository, tag = _split(name)
+        _digest, done = client.push_archive(archive, repository, tag, mount_from=first_repository.get(archive))
+        first_repository.setdefault(archive, repository)
+        hosts.add(host)
+        if done["uploaded"]:
+            log(f"lab mirror: pushed {name} ({done['bytes'] / 2**20:.1f} MiB)")
+    log(f"lab mirror: {registry.address} serves {len(names)} images ({time.monotonic() - started:.1f} s)")
+    with open(registry.ca_file, encoding="utf-8") as handle:
+        ca = handle.read()
+    return {host: [{"url": f"https://{registry.address}", "ca": ca}] for host in sorted(hosts)}
 
 
 def _groups_of(group: dict, name: str = "all", parents: tuple[str, ...] = ()) -> dict[str, list[str]]:
