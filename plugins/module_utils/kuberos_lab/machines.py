@@ -344,6 +344,7 @@ class MachineLab:
                 self._boot(machine)
                 self.save()
                 self._wait_booted(machine, time.monotonic() + BOOT_TIMEOUT)
+        self.save()  # the leaders as found once booted
         self.write_known_hosts()
         self.write_inventory()
         return self
@@ -535,6 +536,9 @@ class MachineLab:
     def _wait_booted(self, machine: Machine, deadline: float) -> None:
         state = ""
         while time.monotonic() < deadline:
+            if not _alive_leader(machine.leader, machine.name):  # found before nspawn had exec'd the machine's init
+                launcher = _read(self.home(machine.name, "nspawn.pid"))
+                machine.leader = (_leader(int(launcher)) if launcher.isdigit() else 0) or machine.leader
             asked = self.exec(machine.name, "systemctl", "is-system-running", check=False)
             state = asked.stdout.strip() or f"not answering: {asked.stderr.strip()[-200:]}"
             if state in ("running", "degraded") and _port_open(machine.address, 22):
@@ -669,7 +673,8 @@ def _leader(launcher: int) -> int:
     execs nspawn, so the launcher's pid is nspawn's)."""
     for child in _children(launcher):
         argv = bg.cmdline(child)
-        if argv and ("systemd" in argv[0] or argv[0] == "/sbin/init"):
+        # not nspawn's own child before it execs the machine's init: its argv[0] is still systemd-nspawn
+        if argv and os.path.basename(argv[0]) in ("systemd", "init"):
             return child
     return 0
 
