@@ -139,7 +139,7 @@ def test_a_registered_robot_joins_and_gets_its_onboard_module(chain):
     result = chain.register_robot()
     assert result.returncode == 0, _tail(result)
     new = site_lab.NEW_ROBOT
-    site_lab.wait_for(f"{new} Ready", lambda: site_lab.nodes(chain.core).get(new, {}).get("ready"), 300)
+    assert site_lab.nodes(chain.core)[new]["ready"]
     result = chain.deploy(chain.render, key="redeploy_s")
     assert result.returncode == 0, _tail(result)
     pods = chain.core.list_pod_for_all_namespaces(label_selector="kuberos.io/instance").items

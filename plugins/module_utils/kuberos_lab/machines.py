@@ -360,8 +360,7 @@ class MachineLab:
         kernel settings the machines changed; stop the lab's registry if it runs."""
         if os.path.isdir(os.path.join(self.state, "registry")):
             self.registry().stop(remove=remove)
-        for machine in self.machines.values():
-            self._stop(machine)
+        self._stop_all(list(self.machines.values()))
         for machine in self.machines.values():
             self._unmount(machine.name)
             self._remove_cgroups(machine.name)
@@ -552,22 +551,30 @@ class MachineLab:
                            f"{self._console_tail(machine.name)}")  # fmt: skip
 
     def _stop(self, machine: Machine, timeout: float = 30.0) -> None:
-        pid = _read(self.home(machine.name, "nspawn.pid"))
-        nspawn = int(pid) if pid.isdigit() and _is_nspawn(int(pid), self.rootfs(machine.name)) else None
-        if nspawn is None:
-            return
-        if machine.leader and _alive_leader(machine.leader, machine.name):
-            self.exec(machine.name, "systemctl", "poweroff", "--no-block", check=False)
-        else:
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(nspawn, signal.SIGTERM)
+        self._stop_all([machine], timeout)
+
+    def _stop_all(self, machines: list[Machine], timeout: float = 30.0) -> None:
+        """Power the machines off side by side (systemctl poweroff, or SIGTERM to nspawn), then wait for each;
+        kill what is left after ``timeout``."""
+        running = {}
+        for machine in machines:
+            pid = _read(self.home(machine.name, "nspawn.pid"))
+            if pid.isdigit() and _is_nspawn(int(pid), self.rootfs(machine.name)):
+                running[machine.name] = int(pid)
+                if machine.leader and _alive_leader(machine.leader, machine.name):
+                    self.exec(machine.name, "systemctl", "poweroff", "--no-block", check=False)
+                else:
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(int(pid), signal.SIGTERM)
         deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and _is_nspawn(nspawn, self.rootfs(machine.name)):
-            time.sleep(0.2)
-        if _is_nspawn(nspawn, self.rootfs(machine.name)):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(nspawn, signal.SIGKILL)
-        machine.leader = 0
+        for machine in machines:
+            nspawn = running.get(machine.name)
+            while nspawn and time.monotonic() < deadline and _is_nspawn(nspawn, self.rootfs(machine.name)):
+                time.sleep(0.2)
+            if nspawn and _is_nspawn(nspawn, self.rootfs(machine.name)):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(nspawn, signal.SIGKILL)
+            machine.leader = 0
 
     def power_off(self, name: str) -> None:
         """Cut one machine's power, as a host that fails: its PID 1 killed, nothing shut down cleanly (its files
