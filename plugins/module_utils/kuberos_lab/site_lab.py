@@ -234,7 +234,7 @@ class SiteLab:
         }
         binary = os.path.join(os.path.dirname(sys.executable), "ansible-playbook")
         command = [binary, os.path.join("playbooks", name), "-i", self.inventory, *extra]
-        result = subprocess.run(command, cwd=self.root, env=env, capture_output=True, text=True, timeout=timeout)
+        result = subprocess.run(command, cwd=self.root, env=env, capture_output=True, text=True, timeout=timeout, check=False)
         result.recap = recap(result.stdout)
         with open(self.path(f"{name.replace('/', '_')}-{int(time.time())}.log"), "w", encoding="utf-8") as handle:
             handle.write(result.stdout + "\n--- stderr ---\n" + result.stderr)
@@ -357,16 +357,19 @@ def pod_network_check(core, toolbox: str, servers: dict[str, str], clients: list
 def etcd_members(machines, name: str) -> list[str]:
     """etcd's member names as one control plane's etcd lists them (its v3 HTTP gateway, with the health-check
     client certificate kubeadm made on that machine)."""
+    import http.client
     import ssl
-    import urllib.request
 
     pki = os.path.join(machines.rootfs(name), "etc", "kubernetes", "pki", "etcd")
     context = ssl.create_default_context(cafile=os.path.join(pki, "ca.crt"))
     context.load_cert_chain(os.path.join(pki, "healthcheck-client.crt"), os.path.join(pki, "healthcheck-client.key"))
-    address = machines.machines[name].address
-    request = urllib.request.Request(f"https://{address}:2379/v3/cluster/member/list", data=b"{}", method="POST")
-    with urllib.request.urlopen(request, context=context, timeout=10) as response:
+    connection = http.client.HTTPSConnection(machines.machines[name].address, 2379, context=context, timeout=10)
+    try:
+        connection.request("POST", "/v3/cluster/member/list", body=b"{}")
+        response = connection.getresponse()
         return sorted(member.get("name", "") for member in json.load(response).get("members", []))
+    finally:
+        connection.close()
 
 
 def vip_holder(machines, control_planes) -> str:
@@ -478,7 +481,9 @@ class SiteChain:
             "--fleet", fleet, "--cycles", str(cycles), "--time-limit", str(time_limit),
         ]  # fmt: skip
         started = time.monotonic()
-        done = subprocess.run(command, cwd=self.lab.root, env=env, capture_output=True, text=True, timeout=time_limit + 120)
+        done = subprocess.run(
+            command, cwd=self.lab.root, env=env, capture_output=True, text=True, timeout=time_limit + 120, check=False
+        )
         summary = {}
         with contextlib.suppress(ValueError):
             summary = json.loads(done.stdout[done.stdout.index("{\n") :])
