@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -109,6 +109,13 @@ bench-rollout: binaries
 bench-real-pods:
 	$(MAKE) binaries WITH_NODES=1
 	cd bench && ../$(VENV)/python bench_real_pods.py --cold-images --json results/real-pods.json
+
+## Site benchmark (as root): the sample site on seven lab machines from bare machines to a running fleet, and back
+## (docs/cluster-setup.md).
+bench-site: setup
+	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1
+	@roles/local_cluster/files/build-calico.sh
+	$(VENV)/python bench/bench_site.py --json bench/results/site.json
 
 ## Images benchmark (as root): every image built cold and warm, rebuilt for the same digests, pushed to the lab
 ## registry and pulled cold by digest into fresh containerds (docs/real-nodes.md).
