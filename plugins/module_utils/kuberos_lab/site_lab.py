@@ -148,11 +148,8 @@ class SiteLab:
         site_vars = lab_machines.site_vars(self.cache_dir, log=self.log)
         # The site pulls what each node runs from its mirror, instead of every archive copied to every machine.
         archives = site_vars.pop("node_prereqs_image_archives")
-        lab_vars = {"site_vars": site_vars, "mirrors": self._mirror(archives)}
-        with open(self.path("lab_vars.json"), "w", encoding="utf-8") as handle:
-            json.dump(lab_vars, handle)
-        self.write_inventory()
-        return lab_vars["site_vars"]
+        self.write_inventory(site_vars, self._mirror(archives))
+        return site_vars
 
     def add_new_robot(self) -> str:
         """Boot the robot that register_robot.yml adds; returns its address."""
@@ -175,13 +172,10 @@ class SiteLab:
         with open(os.path.join(self.root, SAMPLE, "group_vars", "all.yml"), encoding="utf-8") as handle:
             return yaml.safe_load(handle)[name]
 
-    def write_inventory(self) -> str:
+    def write_inventory(self, site_vars: dict, mirrors: dict) -> str:
         """The sample inventory with its addresses filled in (hosts.yml) and the lab's choices (group_vars/all)."""
         import yaml
 
-        with open(self.path("lab_vars.json"), encoding="utf-8") as handle:
-            lab_vars = json.load(handle)
-        site_vars, mirrors = lab_vars["site_vars"], lab_vars["mirrors"]
         sample = self._sample()
         keep = set(MACHINES)
         _prune(sample["all"], keep)
