@@ -63,6 +63,8 @@ LEFT_OUT = {
     "scanner-01.robots.example.internal": "an arm64 onboard computer; this machine runs amd64 only",
     "gpu-vm-2": "one cloud VM shows the path through the tunnel",
 }
+CONTROL_PLANES = ("edge-a", "edge-b", "edge-c")  # machine and node names
+CLOUD_VM = "gpu-vm-1"  # joins with its address inside the WireGuard tunnel as node IP (SiteLab.vpn_address)
 NEW_ROBOT = "fetch-03"  # its inventory name, machine and node name: register_robot.yml adds it to the inventory
 RECAP = re.compile(r"^(\S+)\s+: ok=(\d+)\s+changed=(\d+)\s+unreachable=(\d+)\s+failed=(\d+)", re.MULTILINE)
 
@@ -133,6 +135,12 @@ class SiteLab:
 
         with open(os.path.join(self.root, SAMPLE, "hosts.yml"), encoding="utf-8") as handle:
             return yaml.safe_load(handle)
+
+    def vpn_address(self, machine: str) -> str:
+        """A machine's address inside the WireGuard VPN, as the sample inventory gives it (empty: none)."""
+        host = next(h for h, (name, _networks, _cpu) in MACHINES.items() if name == machine)
+        found = [v.get("kuberos_vpn_address") for h, v in _host_entries(self._sample()["all"]) if h == host and v]
+        return next((address for address in found if address), "")
 
     # -- lifecycle -----------------------------------------------------------------------------------------------
     def up(self) -> dict:
@@ -366,12 +374,14 @@ def etcd_members(machines, name: str) -> list[str]:
         connection.close()
 
 
+def vip_holders(machines, control_planes) -> list[str]:
+    """The control planes that hold the virtual IP now: exactly one while keepalived works."""
+    return [n for n in control_planes if f"inet {VIP}/" in machines.exec(n, "ip", "-4", "-o", "addr", check=False).stdout]
+
+
 def vip_holder(machines, control_planes) -> str:
     """The control plane that holds the virtual IP now (empty when none does)."""
-    for name in control_planes:
-        if f"inet {VIP}/" in machines.exec(name, "ip", "-4", "-o", "addr", check=False).stdout:
-            return name
-    return ""
+    return next(iter(vip_holders(machines, control_planes)), "")
 
 
 def _namespaces(core) -> set[str]:
@@ -426,12 +436,19 @@ class SiteChain:
         return self
 
     def site(self, key: str = "bare_to_ready_s") -> subprocess.CompletedProcess:
-        """site.yml; the first run's figure is from bare machines to every node Ready."""
+        """site.yml; the first run's figure is from bare machines to every node Ready. Records the nodes' figures
+        (``hosts``, ``control_planes``, ``cloud_node_joined_over_vpn``: the cloud VM Ready with its tunnel address)."""
         result = self._play("site.yml")
         if result.returncode == 0:
             self.connect()
             expected = len(self.lab.machines.machines)
             wait_for("every node Ready", lambda: len([n for n in nodes(self.core).values() if n["ready"]]) == expected, 300)
+            found = nodes(self.core)
+            cloud = found.get(CLOUD_VM, {})
+            self.figures.update(hosts=len(found), control_planes=len(CONTROL_PLANES))
+            self.figures["cloud_node_joined_over_vpn"] = bool(cloud.get("ready")) and cloud.get(
+                "internal_ip"
+            ) == self.lab.vpn_address(CLOUD_VM)
         self.figures[key] = round(result.seconds, 1)
         return result
 
@@ -461,9 +478,19 @@ class SiteChain:
     def controller(self) -> subprocess.CompletedProcess:
         return self._play("controller.yml", "-e", "controller_mode=in_cluster")
 
-    def deploy(self, render_dir: str, key: str = "ready_to_app_running_s") -> subprocess.CompletedProcess:
+    def deploy(self, render_dir: str, key: str = "redeploy_s") -> subprocess.CompletedProcess:
         result = self._play("deploy.yml", "-e", f"rosdeployment_file={self.spec}", "-e", f"kuberos_render_dir={render_dir}")
-        self.figures.setdefault(key, round(result.seconds, 1))
+        self.figures[key] = round(result.seconds, 1)
+        return result
+
+    def app(self, render_dir: str) -> subprocess.CompletedProcess:
+        """controller.yml (in the cluster), then deploy.yml of the example until every pod is Ready where placed;
+        records ``ready_to_app_running_s`` for both. Returns the first that failed, or the deploy."""
+        started = time.monotonic()
+        result = self.controller()
+        if result.returncode == 0:
+            result = self.deploy(render_dir, key="deploy_s")
+        self.figures["ready_to_app_running_s"] = round(time.monotonic() - started, 1)
         return result
 
     def pick_cycles(self, robot: str, fleet: str, cycles: int = 1, time_limit: float = 600) -> dict:
@@ -515,6 +542,19 @@ class SiteChain:
             wait_for(f"{NEW_ROBOT} Ready", lambda: nodes(self.core).get(NEW_ROBOT, {}).get("ready"), 300)
         self.figures["register_robot_s"] = round(time.monotonic() - started, 1)
         return result
+
+    def lose_vip_holder(self, timeout: float = 120) -> str:
+        """Cut the power of the control plane holding the virtual IP (its PID 1 killed) and wait until the API
+        answers through the same endpoint; records ``api_back_after_losing_the_vip_holder_s`` (to the first answer)
+        and returns the lost control plane."""
+        holder = vip_holder(self.lab.machines, CONTROL_PLANES)
+        if not holder:
+            raise SiteLabError(f"no control plane holds the virtual IP {VIP}")
+        started = time.monotonic()
+        self.lab.machines.power_off(holder)
+        wait_for("the API through the virtual IP", lambda: self.core.list_node(_request_timeout=3).items, timeout, 1)
+        self.figures["api_back_after_losing_the_vip_holder_s"] = round(time.monotonic() - started, 1)
+        return holder
 
 
 def serve_images(registry, archives: list[str], repo_root: str, cache_dir: str, app_images: bool, log=print) -> dict:
