@@ -57,7 +57,8 @@ def main() -> int:
         site_vars = lab.up()
         chain.figures["machines_up_s"] = round(time.monotonic() - started, 1)
         step("site.yml", chain.site())
-        chain.network(site_vars["kuberos_lab_toolbox_image"], "fetch-01.robots.example.internal", "edge-d", "edge-b", "gpu-vm-1")
+        robot = "fetch-01.robots.example.internal"  # the node name the sample gives fetch-01
+        chain.network(site_vars["kuberos_lab_toolbox_image"], robot, "edge-d", "edge-b", site_lab.CLOUD_VM)
         step("site.yml again", chain.second_site())
         step("controller.yml and deploy.yml", chain.app(str(folder / "rendered")))
         chain.pick_cycles("fetch-01", site_lab.FLEET, cycles=args.cycles)

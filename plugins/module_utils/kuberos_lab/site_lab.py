@@ -446,9 +446,8 @@ class SiteChain:
             found = nodes(self.core)
             cloud = found.get(CLOUD_VM, {})
             self.figures.update(hosts=len(found), control_planes=len(CONTROL_PLANES))
-            self.figures["cloud_node_joined_over_vpn"] = bool(cloud.get("ready")) and cloud.get(
-                "internal_ip"
-            ) == self.lab.vpn_address(CLOUD_VM)
+            tunnel_ip = self.lab.vpn_address(CLOUD_VM)
+            self.figures["cloud_node_joined_over_vpn"] = bool(cloud.get("ready")) and cloud.get("internal_ip") == tunnel_ip
         self.figures[key] = round(result.seconds, 1)
         return result
 
