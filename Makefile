@@ -66,11 +66,20 @@ status: setup
 
 ## Lint and every test (the cluster tests start their own control plane; the cluster setup roles' tests need kubeadm,
 ## and Calico's programs, built from Calico's Go module and ../shared/third_party's api/ tree).
+## The collection's images and the lab machines' Debian root are built beside the Go programs (downloads and disk
+## more than CPU; their log: $(PREBUILD_LOG)); a build that fails there fails again in the test that needs it, which
+## says why. Then pytest in two lanes side by side (docs/testing.md).
+PREBUILD_LOG := $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/prebuild.log
 test: setup
-	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1
-	@roles/local_cluster/files/build-calico.sh  # Calico from its Go module, for the lab machines' tests (cached)
-	@scripts/operator-crds.sh >/dev/null  # the Prometheus Operator's CRDs, from its Go module (a monitoring test)
-	$(VENV)/python -m pytest
+	@mkdir -p "$${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}"; \
+	{ PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.local_images build \
+	  && PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.machines root; \
+	} >"$(PREBUILD_LOG)" 2>&1 & prebuild=$$!; \
+	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1 \
+	  && roles/local_cluster/files/build-calico.sh \
+	  && scripts/operator-crds.sh >/dev/null; built=$$?; \
+	wait $$prebuild || echo "make test: the images or the machines' root did not build here ($(PREBUILD_LOG)); the tests that need them build them again"; \
+	[ $$built -eq 0 ] && $(VENV)/python -m pytest -n 2 --dist loadgroup
 
 unit: setup
 	$(VENV)/python -m pytest tests/unit

@@ -99,7 +99,9 @@ def built_kubeadm() -> str:
 # (another checkout, a developer's second terminal) can run beside the first on its own ports. Pick a shift that
 # keeps clear of the other session's ports: kwok sits 10 below the controller-manager and the scheduler 2 above it,
 # so shifts of 2, 10 and 12 between two sessions collide (3, 37 or 100 do not).
-PORT_SHIFT = int(os.environ.get("KUBEROS_TEST_PORT_SHIFT", "0"))
+# Each pytest-xdist worker (make test's two lanes) gets ports of its own too: 100 apart (gw0, gw1, ...).
+WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:] or 0)
+PORT_SHIFT = int(os.environ.get("KUBEROS_TEST_PORT_SHIFT", "0")) + 100 * WORKER
 
 
 def _shifted(ports: dict) -> dict:

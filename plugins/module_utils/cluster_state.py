@@ -159,6 +159,9 @@ def _image_problem(clients, pod: dict) -> str:
                 )
             )
             failed = [e for e in events if "pull" in (e.get("message") or "").lower()]
+            # The kubelet also records "Error: ErrImagePull" and "Error: ImagePullBackOff" as Failed events, often
+            # in the same second as the one that says why ("Failed to pull image ...: <cause>"): that one wins.
+            failed = [e for e in failed if not e["message"].startswith("Error: ")] or failed
             if failed:
                 latest = max(failed, key=lambda e: e.get("lastTimestamp") or e.get("eventTime") or "")
                 message = latest["message"]

@@ -64,6 +64,7 @@ NODE_COMPONENTS = ("containerd", "kubelet", "kube-proxy")
 SHARED_COMPONENTS = ("fabric", "apiserver-relay", "coredns")
 CLUSTER_DOMAIN = "cluster.local"
 DEVICE_PLUGIN_SOCKET = "/var/lib/kubelet/device-plugins/kubelet.sock"  # fixed in the kubelet, whatever --root-dir is
+SUN_PATH_MAX = 104  # what containerd accepts for a Unix socket path (sun_path, less its terminating NUL and margin)
 
 
 def host_address(base: int) -> str:
@@ -221,6 +222,12 @@ class RealNodes:
             found.append("/dev/net/tun is missing (the delay fabric needs TUN devices)")
         if not os.path.isdir(os.path.join(CGROUP_ROOT, "cpu")):
             found.append("cgroup v1 controllers are not mounted under /sys/fs/cgroup (the kubelets use cgroupfs v1)")
+        longest = max((self.socket(node) + ".ttrpc" for node in self.nets), key=len, default="")
+        if len(longest) > SUN_PATH_MAX:
+            found.append(
+                f"the state folder is too deep for containerd's sockets: {longest} has {len(longest)} characters, "
+                f"a Unix socket path at most {SUN_PATH_MAX} (choose a shorter state folder)"
+            )
         if self.registry is not None:
             found += self.registry.problems()
         return found

@@ -20,7 +20,7 @@ import yaml
 from helpers import playbook
 from sshlab import run
 
-pytestmark = pytest.mark.cluster
+pytestmark = [pytest.mark.cluster, pytest.mark.host]
 
 SUBNET = "10.213.8"  # exists only inside the two namespaces this module creates
 ROBOT_ADDRESS, EDGE_ADDRESS, NOBODY_ADDRESS = f"{SUBNET}.1", f"{SUBNET}.2", f"{SUBNET}.3"

@@ -22,10 +22,13 @@ import pytest
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import registry as lab_registry
 
-pytestmark = pytest.mark.skipif(
-    not shutil.which("docker-registry") and not os.environ.get("CI"),
-    reason="docker-registry is not installed (scripts/setup.sh installs it)",
-)
+pytestmark = [
+    pytest.mark.skipif(
+        not shutil.which("docker-registry") and not os.environ.get("CI"),
+        reason="docker-registry is not installed (scripts/setup.sh installs it)",
+    ),
+    pytest.mark.host,  # a containerd of its own pulls from the registry
+]
 
 
 def free_port() -> int:

@@ -21,7 +21,7 @@ from sshlab import HostSpec, open_ssh_lab
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 
-pytestmark = pytest.mark.playbook
+pytestmark = [pytest.mark.playbook, pytest.mark.host]
 
 ROBOT = "fetch-9"
 FLEET = "test-fleet"

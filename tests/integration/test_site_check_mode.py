@@ -24,6 +24,8 @@ import yaml
 from helpers import ROOT, built_kubeadm, venv_tool
 from sshlab import HostSpec, open_ssh_lab
 
+pytestmark = pytest.mark.host  # its hosts are network namespaces with a real sshd
+
 SITE = [
     HostSpec("edge-1", "edge"),
     HostSpec("edge-2", "edge"),

@@ -543,6 +543,10 @@ def test_a_host_added_and_removed_while_the_run_goes_on(rendered_dirs, local_inv
         again = runtime.add_host("cloud-1")  # in the fixture's inventory, not a host yet
         assert again.address == host.address
         cloud = assert_rtt(runtime, "fetch-1", "cloud-1")
+        # the fabric writes its figures once a second: those of the pings just sent may come a write later
+        wait_until(
+            lambda: "fetch-1->cloud-1" in runtime.fabric_stats().get("pairs", {}), 10, "no figures of fetch-1->cloud-1", runtime
+        )
         pairs = runtime.fabric_stats()["pairs"]
         assert pairs["fetch-1->burst-1"]["packets"] >= 5 and pairs["fetch-1->cloud-1"]["delay_ms"] == 20.0
         reloads = list(runtime.fabric_reload_seconds)

@@ -68,3 +68,33 @@ def test_every_compared_row_says_its_problem_remote_rows_included():
     assert rows["far"]["phase"] == "Remote" and rows["far"]["problem"] == ""
     assert rows["m"]["problem"].startswith(f"image {IMAGE} from registry 10.241.0.1:5443: the registry has no such image")
     assert compare({"placements": [row]}, [])[0]["problem"] == "", "no pod yet: no problem"
+
+
+def test_a_backing_off_container_takes_its_cause_from_the_event_that_names_it_not_the_generic_ones():
+    """The kubelet records "Error: ErrImagePull" and "Error: ImagePullBackOff" as Failed events too, often later in
+    the same second than the one that says why; the cause comes from "Failed to pull image ...", whatever the order."""
+    import json
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import _image_problem
+
+    events = [
+        {"message": f'Failed to pull image "{IMAGE}": {PREFIX}401 Unauthorized', "lastTimestamp": "2026-11-27T09:00:01Z"},
+        {"message": "Error: ErrImagePull", "lastTimestamp": "2026-11-27T09:00:01Z"},
+        {"message": "Error: ImagePullBackOff", "lastTimestamp": "2026-11-27T09:00:02Z"},
+    ]
+
+    class Response:
+        data = json.dumps({"items": events}).encode()
+
+    class Core:
+        def list_namespaced_event(self, namespace, field_selector, _preload_content):
+            assert (namespace, field_selector) == ("ns", "involvedObject.uid=u1,reason=Failed")
+            return Response()
+
+    waiting = {"reason": "ImagePullBackOff", "message": f'Back-off pulling image "{IMAGE}"'}
+    pod = {
+        "metadata": {"namespace": "ns", "uid": "u1"},
+        "status": {"containerStatuses": [{"image": IMAGE, "state": {"waiting": waiting}}]},
+    }
+    text = _image_problem({"core": Core()}, pod)
+    assert text.startswith(f"image {IMAGE} from registry 10.241.0.1:5443: the registry refused the credentials"), text

@@ -77,3 +77,24 @@ def test_the_fabric_routes_a_network_behind_a_host_with_that_hosts_delay():
     finally:
         os.close(read_a)
         os.close(write_a)
+
+
+def test_a_state_folder_too_deep_for_containerds_socket_is_named_before_anything_starts():
+    from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import SUN_PATH_MAX, RealNodes
+
+    class Plane:
+        def __init__(self, root):
+            self.root = root
+
+        def path(self, *parts):
+            return os.path.join(self.root, *parts)
+
+    nodes = [{"name": "partner-1", "labels": {}, "taints": []}]
+    deep = RealNodes(Plane("/tmp/" + "d" * 60), nodes, {}, {})
+    socket = deep.socket("partner-1") + ".ttrpc"
+    assert len(socket) > SUN_PATH_MAX
+    assert f"the state folder is too deep for containerd's sockets: {socket} has {len(socket)} characters" in " ".join(
+        deep.problems()
+    )
+    shallow = RealNodes(Plane("/tmp/s"), nodes, {}, {})
+    assert not any("too deep" in problem for problem in shallow.problems())

@@ -761,12 +761,16 @@ def main(argv: list[str] | None = None) -> int:
         help="with --site-vars: serve those images from a registry on the lab's bridge, the machines' mirror, instead of "
         "copying every archive to every machine",
     )  # fmt: skip
+    root = sub.add_parser("root", help="build (or reuse) the machines' Debian root in the cache; print its folder")
+    root.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
     down = sub.add_parser("down", help="power off, remove mounts, cgroups, namespaces and links")
     down.add_argument("--state", required=True)
     down.add_argument("--remove", action="store_true", help="also delete the machines' files and the state")
     args = parser.parse_args(argv)
     try:
-        if args.command == "up":
+        if args.command == "root":
+            print(build_image(args.cache_dir))
+        elif args.command == "up":
             specs = []
             for text in args.machine:
                 name, _sep, rest = text.partition(":")
