@@ -52,6 +52,12 @@ options:
         the monitors then scrape over HTTPS and verify the certificate with the Secret's C(ca.crt). Empty is HTTP.
     type: str
     default: ""
+  robot_offline_after:
+    description:
+      - How long a robot must be offline before the alert C(KubeROSRobotOffline) fires (a Prometheus duration, the
+        alert's C(for)). Robots drop off the network many times a day; their modules stay and run on them meanwhile.
+    type: str
+    default: 10m
 """
 
 EXAMPLES = r"""
@@ -88,6 +94,7 @@ def controller_monitoring(
     prometheus_rule=False,
     labels=None,
     tls_secret="",
+    robot_offline_after="10m",
 ):
     if isinstance(labels, dict):  # label values such as 1 or true become the strings Kubernetes wants
         labels = {str(k): str(v) for k, v in labels.items()}
@@ -99,6 +106,7 @@ def controller_monitoring(
         boolean(prometheus_rule, strict=True),
         labels,
         str(tls_secret or ""),
+        robot_offline_after,
     )
 
 

@@ -44,6 +44,9 @@ class LocalControlPlane:
     # The address of the `kubernetes` Service's endpoint: pods of real nodes reach the API server there (the real
     # nodes' relay on their management bridge); 127.0.0.1 when every node is kwok's.
     advertise_address: str = "127.0.0.1"
+    # How long a pod that does not say otherwise stays on a node that is unreachable or not ready before it is
+    # evicted (the API server's default tolerations; Kubernetes' default is 300 s). Tests shorten it.
+    unreachable_toleration_s: int = 300
     log: list = field(default_factory=list)  # what was done, for the caller to report
     _children: dict = field(default_factory=dict, repr=False)  # processes started by this object
 
@@ -156,6 +159,8 @@ class LocalControlPlane:
                 f"--kubelet-client-certificate={pki}/apiserver-kubelet-client.crt",
                 f"--kubelet-client-key={pki}/apiserver-kubelet-client.key",
                 "--kubelet-preferred-address-types=InternalIP",
+                f"--default-unreachable-toleration-seconds={self.unreachable_toleration_s}",
+                f"--default-not-ready-toleration-seconds={self.unreachable_toleration_s}",
             ]  # fmt: skip
         if component == "kube-controller-manager":
             return [

@@ -302,6 +302,35 @@ class RealNodes:
         """Stop one node's kubelet only (its containers keep running, as on a machine whose kubelet died)."""
         return self._stop("kubelet", node)
 
+    PARTITION_UPLINKS = ("mgmt0", "eth0")  # the control link (API server, registry) and the node's link to the others
+
+    def _partition_rules(self) -> list[list[str]]:
+        rules = []
+        for link in self.PARTITION_UPLINKS:
+            for chain, direction in (("INPUT", "-i"), ("OUTPUT", "-o"), ("FORWARD", "-i"), ("FORWARD", "-o")):
+                rules.append([chain, direction, link, "-m", "comment", "--comment", "kuberos-partition", "-j", "DROP"])
+        return rules
+
+    def partitioned(self, node: str) -> bool:
+        """Whether ``partition`` cut the node off (its rules are in place)."""
+        ns = self.nets[node].netns
+        return all(run(*in_netns(ns, ["iptables", "-C", *rule]), check=False).returncode == 0 for rule in self._partition_rules())
+
+    def partition(self, node: str, cut: bool = True) -> bool:
+        """Cut a node off the network (``cut``), or reconnect it: every packet in and out of its control link and
+        its link to the other nodes is dropped, as for a robot in a dead zone. What runs on the node goes on, and
+        its pods still talk to each other on its own bridge. True when something changed."""
+        ns = self.nets[node].netns
+        changed = False
+        for rule in self._partition_rules():
+            present = run(*in_netns(ns, ["iptables", "-C", *rule]), check=False).returncode == 0
+            if present != cut:
+                run(*in_netns(ns, ["iptables", "-I" if cut else "-D", *rule]))
+                changed = True
+        if changed:
+            self.log.append(f"{'cut' if cut else 'reconnected'} {node}")
+        return changed
+
     # -- state -------------------------------------------------------------------------------------------
     def _read_state(self) -> dict:
         try:

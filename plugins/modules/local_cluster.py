@@ -80,6 +80,14 @@ options:
     description: Seconds to wait for etcd and the API server to become ready.
     type: int
     default: 90
+  unreachable_toleration_s:
+    description:
+      - Seconds a pod without tolerations of its own stays on a node that is unreachable or not ready before it is
+        evicted (the API server's C(--default-unreachable-toleration-seconds) and C(--default-not-ready-toleration-seconds);
+        Kubernetes' default 300). The collection's onboard pods tolerate both for ever whatever this is.
+      - Read when the API server starts; a running one keeps what it was started with.
+    type: int
+    default: 300
 attributes:
   check_mode:
     support: full
@@ -143,6 +151,7 @@ def main():
             kwok_stages=dict(type="list", elements="path", default=[]),
             ports=dict(type="dict", default={}),
             timeout=dict(type="int", default=90),
+            unreachable_toleration_s=dict(type="int", default=300),
             real_nodes=dict(type="dict", default={}),
             real_nodes_base=dict(type="int", default=231),
             real_nodes_tag=dict(type="str", default="kr"),
@@ -159,7 +168,10 @@ def main():
         module.fail_json(msg=f"ports: {exc}")
     # Pods on real nodes reach the API server through the `kubernetes` Service: its endpoint is the nodes' relay.
     advertise = host_address(params["real_nodes_base"]) if params["real_nodes"].get("nodes") else "127.0.0.1"
-    plane = LocalControlPlane(params["state_dir"], params["binaries"], ports, params["kwok_stages"], advertise_address=advertise)
+    plane = LocalControlPlane(
+        params["state_dir"], params["binaries"], ports, params["kwok_stages"], advertise_address=advertise,
+        unreachable_toleration_s=params["unreachable_toleration_s"],
+    )  # fmt: skip
     running = plane.running()
     result = {"kubeconfig": plane.kubeconfig, "server": plane.server, "actions": []}
     real = None

@@ -313,20 +313,27 @@ def test_a_deleted_node_loses_its_modules(fleet):
     fleet.converge()
 
 
-def test_onboard_modules_of_a_dead_robot_stay_and_are_reported(fleet):
+def test_an_offline_robot_keeps_its_modules_and_is_reported_offline_not_stranded(fleet):
+    """A robot's computer that stops reporting is a robot offline, not a failed node: nothing moves, its onboard
+    module is shown Offline (not Stranded), one RobotOffline event, and RobotOnline once it is back."""
     before = fleet.placed()
     onboard = "pick-and-place-controller-fetch-1"
-    stranded_events = len(fleet.events("ModuleStranded"))
+    counts = {reason: len(fleet.events(reason)) for reason in ("RobotOffline", "RobotOnline", "ModuleStranded", "ModuleMoved")}
     fleet.node_down("fetch-1")
     try:
         wait_for(
-            lambda: any(r["instance"] == onboard and r["phase"] == "Stranded" for r in fleet.status()["rows"]),
+            lambda: any(r["instance"] == onboard and r["phase"] == "Offline" for r in fleet.status()["rows"]),
             30,
-            "the onboard controller module reported as stranded",
+            "the onboard controller module shown Offline",
         )
-        assert fleet.placed() == before, "nothing moves: the robot's other modules still run on healthy nodes"
-        events = fleet.events("ModuleStranded")[stranded_events:]
-        assert any(e.involved_object.name == onboard and "onboard modules stay with their robot" in e.message for e in events)
+        row = next(r for r in fleet.status()["rows"] if r["instance"] == onboard)
+        assert row["note"].startswith("robot offline since ") and "node fetch-1 is NotReady" in row["note"], row
+        assert fleet.placed() == before, "nothing moves"
+        offline = fleet.events("RobotOffline")[counts["RobotOffline"] :]
+        assert [e.involved_object.name for e in offline] == [onboard], [e.message for e in offline]
+        assert offline[0].message.startswith("robot fetch-1 is offline (node fetch-1 is NotReady")
+        assert "controller stays on fetch-1, nothing moves or restarts" in offline[0].message
+        assert len(fleet.events("ModuleStranded")) == counts["ModuleStranded"], "an offline robot strands nothing"
         fleet.converge(allow_stranded={onboard})
     finally:
         fleet.node_up("fetch-1")
@@ -335,6 +342,10 @@ def test_onboard_modules_of_a_dead_robot_stay_and_are_reported(fleet):
         30,
         "the onboard module running again",
     )
+    online = wait_for(lambda: fleet.events("RobotOnline")[counts["RobotOnline"] :], 30, "a RobotOnline event")
+    assert [e.involved_object.name for e in online] == [onboard]
+    assert len(fleet.events("RobotOffline")) == counts["RobotOffline"] + 1, "said once"
+    assert len(fleet.events("ModuleMoved")) == counts["ModuleMoved"]
     fleet.converge()
 
 

@@ -303,15 +303,20 @@ def test_prometheus_scrapes_the_controller_and_a_bridge_before_and_after_a_node_
         finally:
             fleet.node_up(node)
         fleet.converge()
-        stranded = 'sum(max without (instance) (kuberos_module_stranded{module="controller"}))'
-        assert prometheus.value(stranded) == 0
+        online = 'max without (instance, pod) (kuberos_robot_online{robot="fetch-1"})'
+        assert prometheus.value(online) == 1
         fleet.node_down("fetch-1")
         try:
-            prometheus.wait(stranded, lambda v: v == 1, "the dead robot's onboard module counted as stranded")
-            prometheus.wait('count(ALERTS{alertname="KubeROSModuleStranded"})', lambda v: v == 1,
-                            "one KubeROSModuleStranded alert (pending or firing), not one per replica")  # fmt: skip
+            prometheus.wait(online, lambda v: v == 0, "the offline robot counted offline")
+            prometheus.wait('count(ALERTS{alertname="KubeROSRobotOffline"})', lambda v: v == 1,
+                            "one KubeROSRobotOffline alert (pending), not one per replica")  # fmt: skip
+            offline = 'sum(max without (instance, pod) (kuberos_module_instances{module="controller", phase="Offline"}))'
+            prometheus.wait(offline, lambda v: v == 1, "its onboard module counted Offline")
+            stranded = 'sum(max without (instance, pod) (kuberos_module_stranded{module="controller"}))'
+            assert prometheus.value(stranded) == 0, "an offline robot strands nothing"
         finally:
             fleet.node_up("fetch-1")
+        prometheus.wait(online, lambda v: v == 1, "the robot online again")
         fleet.converge()
     finally:
         prometheus.close()

@@ -23,6 +23,7 @@ CONTROLLER_METRICS = {
     "kuberos_module_instances",
     "kuberos_module_moves_total",
     "kuberos_module_stranded",
+    "kuberos_robot_online",
     "kuberos_node_allocatable",
     "kuberos_node_allocated",
     "kuberos_node_ready",

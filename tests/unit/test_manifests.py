@@ -95,6 +95,13 @@ def test_every_module_is_pinned_and_wired_to_its_fleets_discovery_servers(root, 
         assert env["KUBEROS_ROBOTS"] == ",".join(inst.robots)
         tolerations = pod.get("tolerations", [])
         assert (inst.tier == "onboard") == bool(tolerations)
+        if inst.tier == "onboard":
+            # an onboard pod stays on its robot however long the robot is offline: no tolerationSeconds
+            offline = [t for t in tolerations if t["effect"] == "NoExecute"]
+            assert offline == [
+                {"key": "node.kubernetes.io/unreachable", "operator": "Exists", "effect": "NoExecute"},
+                {"key": "node.kubernetes.io/not-ready", "operator": "Exists", "effect": "NoExecute"},
+            ]
     for dep in deployments:
         for obj in modules:
             if obj["metadata"]["labels"]["kuberos.io/deployment"] == dep.name:

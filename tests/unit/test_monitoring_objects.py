@@ -182,6 +182,21 @@ def test_the_prometheus_rule_carries_exactly_the_files_groups(rules):
     assert rules == before, "the objects are copies: changing them leaves the parsed file alone"
 
 
+def test_the_robot_offline_alert_fires_after_the_sites_own_duration(rules):
+    def offline_rule(objects):
+        (rule,) = objects
+        return next(r for g in rule["spec"]["groups"] for r in g["rules"] if r.get("alert") == "KubeROSRobotOffline")
+
+    default = offline_rule(monitoring_objects(NAMESPACE, rules, False, False, True))
+    assert default["for"] == "10m" and "for 10m or more" in default["annotations"]["description"]
+    later = offline_rule(controller_monitoring(rules, prometheus_rule=True, robot_offline_after="1h30m"))
+    assert later["for"] == "1h30m" and "for 1h30m or more" in later["annotations"]["description"]
+    assert "10m" not in later["annotations"]["description"]
+    for bad in ("ten minutes", "10", "", 600, None):
+        with pytest.raises(SpecError, match=r"robot_offline_after: expected a Prometheus duration such as 10m"):
+            monitoring_objects(NAMESPACE, rules, False, False, True, robot_offline_after=bad)
+
+
 @pytest.mark.parametrize("bad", [{}, {"groups": []}, {"groups": [{"name": "x"}]}, ["groups"], None])
 def test_a_rule_file_that_is_not_one_is_refused(bad):
     with pytest.raises(SpecError, match="groups"):

@@ -230,6 +230,42 @@ def test_a_failing_pod_moves_its_instance_and_the_node_is_avoided(record):
     assert node in memory.avoid[instance]
 
 
+def _record_of(text: str, local_raw, tmp_path):
+    path = tmp_path / "spec.yml"
+    path.write_text(text, encoding="utf-8")
+    deployments, placement = load_and_place(str(path), local_raw)
+    _revision, configmap = build_records(text, str(path), deployments, placement, local_raw, RenderOptions(), "kuberos")
+    return parse_record(configmap)
+
+
+def test_an_offline_robot_keeps_its_modules_where_they_are_while_a_dead_edge_server_loses_its(local_raw, root, tmp_path):
+    """A robot's computer that drops off the network is not a failed server: nothing of it moves (not even a module
+    that only prefers the robot and could run on the edge), restarts or lands elsewhere, however long it is away;
+    an edge server down as long has its modules moved, and nothing moves onto the offline robot."""
+    with open(f"{root}/{SPEC}", encoding="utf-8") as handle:
+        text = handle.read().replace("  preference: [edge, cloud]", "  preference: [onboard, edge]", 1)
+    record = _record_of(text, local_raw, tmp_path)
+    where = nodes_of(record.placement)
+    assert where["pick-and-place-perception-fetch-1"] == "fetch-1", "perception prefers the robot and fits there"
+    on_robot = {i for i, n in where.items() if n == "fetch-1"}
+    on_edge = {i for i, n in where.items() if n == "edge-1"}
+    assert {"pick-and-place-perception-fetch-1", "pick-and-place-controller-fetch-1"} <= on_robot and on_edge
+    memory = Memory()
+    decision = decide(record, healthy(record, fetch_1=0.0), memory, Settings(grace_s=5), now=3600.0)
+    assert decision.replacement is None and decision.waiting == [], "an hour offline moves nothing"
+    assert set(decision.offline) == {"fetch-1"} and "NotReady" in decision.offline["fetch-1"]
+    both = decide(record, healthy(record, fetch_1=0.0, edge_1=0.0), memory, Settings(grace_s=5), now=3600.0)
+    moved = {m.instance for m in both.replacement.moves} | {s.instance for s in both.replacement.stranded}
+    assert moved == on_edge and not on_robot & moved
+    after = nodes_of(both.replacement.placement)
+    assert all(after[i] == "fetch-1" for i in on_robot) and "fetch-1" not in {m.to_node for m in both.replacement.moves}
+    rows = status_rows(record, healthy(record, fetch_1=0.0), {}, {})
+    offline = [r for r in rows if r["node"] == "fetch-1"]
+    assert offline and all(r["phase"] == "Offline" for r in offline)
+    assert all(r["note"].startswith("robot offline since 1970-01-01T00:00:00Z: node fetch-1 is NotReady") for r in offline)
+    assert all(r["phase"] != "Offline" for r in rows if r["node"] != "fetch-1")
+
+
 def test_status_rows_and_table(record):
     instance = "pick-and-place-perception-fetch-1"
     node = nodes_of(record.placement)[instance]

@@ -18,6 +18,9 @@ ROBOT_TAINT = "kuberos.io/robot"
 ROLES = {"onboard": "robot", "edge": "edge", "cloud": "cloud"}
 TIER_OF_ROLE = {role: tier for tier, role in ROLES.items()}
 LATENCY_ANNOTATION = "kuberos.io/latency-ms"  # a node that joined after deploy: its latency to the robots
+# Kubernetes' own taints of a node whose kubelet stopped reporting (its node lifecycle controller sets them)
+UNREACHABLE_TAINT = "node.kubernetes.io/unreachable"
+NOT_READY_TAINT = "node.kubernetes.io/not-ready"
 
 
 def node_labels(node: Node) -> dict[str, str]:

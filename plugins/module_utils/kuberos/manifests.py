@@ -126,13 +126,23 @@ def discovery_server_list(servers: list[DiscoveryServer], cluster_domain: str) -
     return ";".join(slots)
 
 
+# A robot that drops off the network (dead zones, roaming, lifts) is tainted unreachable or not-ready after the node
+# grace period; by default Kubernetes then evicts its pods 300 s later, and the robot's kubelet kills them the moment
+# it is back. An onboard pod tolerates both for as long as the robot is away: it keeps running on the robot, untouched
+# (docs/connectivity.md).
+OFFLINE_TOLERATIONS = tuple(
+    {"key": taint, "operator": "Exists", "effect": "NoExecute"}
+    for taint in (node_labels.UNREACHABLE_TAINT, node_labels.NOT_READY_TAINT)
+)
+
+
 def _selector_and_tolerations(node: str, tier: str, robot: str | None) -> dict:
     spec = {"nodeSelector": {node_labels.HOSTNAME: node}}
     if tier == "onboard":
         toleration = {"key": node_labels.ROBOT_TAINT, "operator": "Exists", "effect": "NoSchedule"}
         if robot:
             toleration = {"key": node_labels.ROBOT_TAINT, "operator": "Equal", "value": robot, "effect": "NoSchedule"}
-        spec["tolerations"] = [toleration]
+        spec["tolerations"] = [toleration, *(dict(t) for t in OFFLINE_TOLERATIONS)]
     return spec
 
 

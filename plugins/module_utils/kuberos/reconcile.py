@@ -2,7 +2,9 @@
 
 Faults it reacts to, per module instance:
 
-- its node is NotReady (Ready False or Unknown) or gone from the cluster;
+- its node is NotReady (Ready False or Unknown) or gone from the cluster, unless that node is a robot's computer:
+  a robot that is offline (a dead zone, roaming, a lift) keeps its modules where they are and runs them on its own;
+  nothing of it moves, restarts or runs twice (``Decision.offline``, docs/connectivity.md);
 - its pod keeps failing there (restarts at or above a threshold, CrashLoopBackOff, or phase Failed);
 - a measured round-trip time from one of its robots to its node is above the module's ``max_latency``.
 
@@ -17,6 +19,7 @@ cooldown. Re-placement uses ``replacement.replace_modules``: the same rules as d
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 from .placement import Instance, Replacement
@@ -76,6 +79,7 @@ class Decision:
     record: Record
     replacement: Replacement | None = None  # None: nothing moves
     waiting: list[str] = field(default_factory=list)  # faults inside their grace period, for the log
+    offline: dict[str, str] = field(default_factory=dict)  # robot's node -> why it counts as offline; its instances stay
     wake_at: float | None = None  # when the earliest waiting fault becomes due
 
 
@@ -128,6 +132,7 @@ def decide(record: Record, cluster: ClusterView, memory: Memory, settings: Setti
     wake: list[float] = []
 
     bad_nodes = {}
+    robot_nodes = {name for name, node in record.inventory.nodes.items() if node.tier == "onboard"}
     nodes_used = {i.node for i in record.placement.instances} | {
         s.node for servers in record.placement.discovery.values() for s in servers
     }
@@ -145,6 +150,10 @@ def decide(record: Record, cluster: ClusterView, memory: Memory, settings: Setti
     for inst in record.placement.instances:
         if inst.cluster:
             continue  # runs in a third-party cluster, whose own scheduler keeps it running
+        if inst.node in robot_nodes and inst.node in unavailable:
+            hold.add(inst.name)  # an offline robot: its modules stay and run there, never twice
+            decision.offline.setdefault(inst.node, unavailable[inst.node])
+            continue
         if inst.node in bad_nodes:
             if bad_nodes[inst.node]:
                 due_any = True
@@ -171,7 +180,10 @@ def decide(record: Record, cluster: ClusterView, memory: Memory, settings: Setti
                 wake.append(max(at, memory.last_move.get(inst.name, -math.inf) + settings.cooldown_s))
             break
     for server in (s for servers in record.placement.discovery.values() for s in servers):
-        if server.node in bad_nodes:
+        if server.node in robot_nodes and server.node in unavailable:
+            hold.add(server.name)
+            decision.offline.setdefault(server.node, unavailable[server.node])
+        elif server.node in bad_nodes:
             if bad_nodes[server.node]:
                 due_any = True
             else:
@@ -201,14 +213,17 @@ def decide(record: Record, cluster: ClusterView, memory: Memory, settings: Setti
 
 # Phases shown per robot and module.
 RUNNING, PENDING, STRANDED, MISSING, MOVING, REMOTE = "Running", "Pending", "Stranded", "Missing", "Moving", "Remote"
+OFFLINE = "Offline"  # on a robot that is offline: it runs there as far as anyone knows, out of the cluster's sight
 
 
-def instance_phase(inst: Instance, pods: list[PodView], stranded: bool) -> tuple[str, str]:
-    """(phase, pod name) of one instance from its pods."""
+def instance_phase(inst: Instance, pods: list[PodView], stranded: bool, offline: bool = False) -> tuple[str, str]:
+    """(phase, pod name) of one instance from its pods (``offline``: its node is a robot's, offline)."""
     if inst.cluster:
         return REMOTE, ""  # its pods are in the third-party cluster
     live = [p for p in pods if not p.deleting]
     on_node = [p for p in live if p.node == inst.node]
+    if offline:
+        return OFFLINE, on_node[0].name if on_node else ""
     if stranded:
         return STRANDED, on_node[0].name if on_node else ""
     if any(p.phase == "Running" and p.ready for p in on_node):
@@ -220,12 +235,23 @@ def instance_phase(inst: Instance, pods: list[PodView], stranded: bool) -> tuple
     return MISSING, ""
 
 
+def offline_note(node: str, tier: str, cluster: ClusterView) -> str:
+    """Why a robot's computer counts as offline ("" when it is online, or the node is not a robot's)."""
+    fault = node_fault(node, cluster) if tier == "onboard" else None
+    if fault is None:
+        return ""
+    since = fault[1]
+    when = f" since {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime(since))}" if since is not None else ""
+    return f"robot offline{when}: {fault[0]}"
+
+
 def status_rows(record: Record, cluster: ClusterView, stranded: dict[str, str], history: dict[str, dict]) -> list[dict]:
     """One row per (robot, module) plus one per discovery server: node, phase, pod and the last move."""
     rows = []
     versions = {m.name: (m.version or m.image.rsplit("/", 1)[-1]) for m in record.spec.modules}
     for inst in record.placement.instances:
-        phase, pod = instance_phase(inst, cluster.pods.get(inst.name, []), inst.name in stranded)
+        offline = offline_note(inst.node, inst.tier, cluster)
+        phase, pod = instance_phase(inst, cluster.pods.get(inst.name, []), inst.name in stranded, bool(offline))
         last = history.get(inst.name, {})
         for robot in inst.robots:
             rows.append(
@@ -239,15 +265,17 @@ def status_rows(record: Record, cluster: ClusterView, stranded: dict[str, str], 
                     "phase": phase,
                     "pod": pod,
                     "last_move": last,
-                    "note": stranded.get(inst.name, ""),
+                    "note": offline or stranded.get(inst.name, ""),
                 }
             )
     for servers in record.placement.discovery.values():
         for server in servers:
+            offline = offline_note(server.node, server.tier, cluster)
             phase, pod = instance_phase(
                 Instance(server.name, "", server.fleet, server.namespace, "", server.node, server.tier, (), "", 0, 0, 0, 0),
                 cluster.pods.get(server.name, []),
                 server.name in stranded,
+                bool(offline),
             )
             rows.append(
                 {
@@ -260,7 +288,7 @@ def status_rows(record: Record, cluster: ClusterView, stranded: dict[str, str], 
                     "phase": phase,
                     "pod": pod,
                     "last_move": history.get(server.name, {}),
-                    "note": stranded.get(server.name, ""),
+                    "note": offline or stranded.get(server.name, ""),
                 }
             )
     rows.sort(key=lambda r: (r["robot"] == "-", r["robot"], r["module"]))

@@ -152,6 +152,7 @@ class Controller:
         self.memory: dict[tuple[str, str], Memory] = {}
         self.history: dict[tuple[str, str], dict] = {}  # record -> instance -> last move
         self.reported: dict[tuple[str, str], dict] = {}  # record -> stranded instance -> why (events sent once)
+        self.offline: dict[tuple[str, str], dict] = {}  # record -> instance on an offline robot -> node (events once)
         self.parsed: dict[tuple[str, str], tuple[str, Record | None, str]] = {}
         self.status_written: dict[tuple[str, str], str] = {}
         self.passes = 0
@@ -186,6 +187,7 @@ class Controller:
         self.memory.clear()
         self.history.clear()
         self.reported.clear()
+        self.offline.clear()
         self.status_written.clear()
         self.parsed.clear()
         self.windows.clear()
@@ -529,6 +531,8 @@ class Controller:
                 i: w for i, w in stranded.items() if i in where and not getattr(rview.nodes.get(where[i]), "ready", False)
             }
         self.reported[key] = stranded
+        if not record.rollout:
+            events.extend(self._offline_events(key, record, decision.offline))
         modules = {m.name: m for m in record.spec.modules}
         for inst in record.placement.instances:
             if inst.name in stranded:
@@ -556,6 +560,25 @@ class Controller:
         )
         wakes = [t for t in (decision.wake_at, scale_wake) if t is not None]
         return min(wakes) if wakes else None
+
+    def _offline_events(self, key: tuple[str, str], record: Record, offline: dict[str, str]) -> list[tuple]:
+        """ "Robot offline" once when a robot's computer drops off (its modules stay: they are not stranded, nothing
+        failed), "robot online" once when it is back."""
+        now = {i.name: i for i in record.placement.instances if i.node in offline}
+        before = self.offline.get(key, {})
+        events = []
+        for name, inst in now.items():
+            if name not in before:
+                robot = inst.robots[0] if len(inst.robots) == 1 else inst.node
+                why = offline[inst.node]
+                message = f"robot {robot} is offline ({why}): {inst.module} stays on {inst.node}, nothing moves or restarts"
+                log.info("%s/%s: %s", record.namespace, record.deployment, message)
+                events.append((name, "RobotOffline", message, True))
+        for name, node in before.items():
+            if name not in now:
+                events.append((name, "RobotOnline", f"{node} is back online: its modules ran on through the absence", False))
+        self.offline[key] = {name: inst.node for name, inst in now.items()}
+        return events
 
     # -- scaling ----------------------------------------------------------------------------
     def _scheduler(self, record: Record, view: ClusterView) -> Scheduler:

@@ -7,6 +7,7 @@ and the histogram are kept by the controller as it acts. Names and labels are li
 - ``kuberos_module_instances{namespace, deployment, module, tier, phase}``
 - ``kuberos_module_moves_total{reason}`` (node_failure, pod_failure, latency, other; only the leader moves)
 - ``kuberos_module_stranded{namespace, deployment, module}``
+- ``kuberos_robot_online{robot, fleet, node}``
 - ``kuberos_node_allocatable{node, resource}``, ``kuberos_node_allocated{node, resource}`` (cpu in cores,
   memory in bytes, gpu, pods; allocated is what KubeROS pods request), ``kuberos_node_ready{node, tier}``
 - ``kuberos_node_rtt_ms{node, peer}``, ``kuberos_module_rtt_ms{namespace, deployment, module, robot, node}``,
@@ -20,7 +21,7 @@ from __future__ import annotations
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import RESOURCES, View, instance_counts
 
 MOVE_REASONS = ("node_failure", "pod_failure", "latency", "other")
-PHASES = ("Running", "Pending", "Stranded", "Missing", "Moving", "Remote")
+PHASES = ("Running", "Pending", "Stranded", "Missing", "Moving", "Remote", "Offline")
 
 
 def move_reason(why: str) -> str:
@@ -95,6 +96,16 @@ class ViewCollector:
             for peer, ms in sorted(row["rtt_ms"].items()):
                 rtt.add_metric((row["name"], peer), ms)
         yield from (allocatable, allocated, ready, rtt)
+
+        online = GaugeMetricFamily(
+            "kuberos_robot_online",
+            "1 while the robot's computer is Ready, 0 while it is offline (its onboard modules stay and run there).",
+            labels=("robot", "fleet", "node"),
+        )
+        for row in view.resources:
+            if row["tier"] == "onboard":
+                online.add_metric((row["robot"] or row["name"], row["fleet"], row["name"]), 1 if row["ready"] else 0)
+        yield online
 
         module_rtt = GaugeMetricFamily(
             "kuberos_module_rtt_ms",

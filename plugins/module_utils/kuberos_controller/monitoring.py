@@ -18,6 +18,7 @@ namespace, not the controller's, and would otherwise be renamed ``exported_names
 from __future__ import annotations
 
 import copy
+import re
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
@@ -38,6 +39,9 @@ INTERVAL = "15s"
 TOKEN_FILE = "/var/run/secrets/kubernetes.io/serviceaccount/token"
 READER_RULES = [{"nonResourceURLs": [PATH], "verbs": ["get"]}]
 SELECTOR = {"matchLabels": {"app.kubernetes.io/name": NAME}}
+ROBOT_OFFLINE_ALERT = "KubeROSRobotOffline"
+ROBOT_OFFLINE_FOR = "10m"  # the rule file's own
+DURATION = re.compile(r"^([0-9]+(ms|s|m|h|d|w|y))+$")  # a Prometheus duration
 
 
 def _checked_labels(labels) -> dict[str, str]:
@@ -59,6 +63,30 @@ def _checked_groups(rules) -> list:
             [Problem("controller_monitoring", "groups", "expected a Prometheus rule file: groups, each with a name and rules")]
         )
     return copy.deepcopy(groups)
+
+
+def _robot_offline_after(groups: list, after: str) -> list:
+    """The rules with KubeROSRobotOffline firing after ``after`` (its ``for``, and the same duration in its text)."""
+    if not isinstance(after, str) or not DURATION.match(after):
+        raise SpecError(
+            [
+                Problem(
+                    "controller_monitoring",
+                    "robot_offline_after",
+                    f"expected a Prometheus duration such as 10m or 1h30m, got {describe(after)}",
+                )
+            ]
+        )
+    for group in groups:
+        for rule in group.get("rules") or []:
+            if isinstance(rule, dict) and rule.get("alert") == ROBOT_OFFLINE_ALERT:
+                rule["for"] = after
+                annotations = rule.get("annotations") or {}
+                if isinstance(annotations.get("description"), str):
+                    annotations["description"] = annotations["description"].replace(
+                        f"for {ROBOT_OFFLINE_FOR} or more", f"for {after} or more"
+                    )
+    return groups
 
 
 def _service_name(namespace: str) -> str:
@@ -109,6 +137,7 @@ def monitoring_objects(
     prometheus_rule: bool,
     labels: dict | None = None,
     tls_secret: str = "",
+    robot_offline_after: str = ROBOT_OFFLINE_FOR,
 ) -> list[dict]:
     """The objects, in apply order: with a ServiceMonitor or a PodMonitor the ClusterRole ``kuberos-metrics-reader``;
     with a PodMonitor its ServiceAccount, token Secret and binding; the ServiceMonitor, the PodMonitor and the
@@ -122,7 +151,7 @@ def monitoring_objects(
     def metadata(name: str, namespaced: bool = True, **more) -> dict:
         return {"name": name, **({"namespace": namespace} if namespaced else {}), "labels": dict(own), **more}
 
-    groups = _checked_groups(rules) if prometheus_rule else None
+    groups = _robot_offline_after(_checked_groups(rules), robot_offline_after) if prometheus_rule else None
     endpoint = {"port": PORT, "path": PATH, "scheme": "http", "interval": INTERVAL, "honorLabels": True}
     if tls_secret:  # the controller serves HTTPS with this Secret: verify it with the Secret's ca.crt
         endpoint["scheme"] = "https"

@@ -30,6 +30,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile
     NodeView,
     PodView,
     instance_phase,
+    offline_note,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import Record, catalog_of
 
@@ -246,7 +247,8 @@ def _module_rows(record: Record, view: ClusterView, images: dict[str, str], stat
     stranded = status.get("notes", {})
     for inst in record.placement.instances:
         pods = view.pods.get(prefix + inst.name, [])
-        phase, pod = instance_phase(inst, pods, inst.name in stranded)
+        offline = offline_note(inst.node, inst.tier, view)
+        phase, pod = instance_phase(inst, pods, inst.name in stranded, bool(offline))
         module = spec.get(inst.module)
         image = images.get(prefix + pod, "") if pod else ""
         planned = (module.version or _image_version(module.image)) if module else ""
@@ -270,7 +272,7 @@ def _module_rows(record: Record, view: ClusterView, images: dict[str, str], stat
                     "shared": inst.shared,
                     "reason": inst.reason,
                     "last_move": status.get("moves", {}).get(inst.name) or {},
-                    "note": stranded.get(inst.name, ""),
+                    "note": offline or stranded.get(inst.name, ""),
                     "rtt_ms": rtt,
                     "max_latency_ms": limit,
                     "over_latency": rtt is not None and limit is not None and rtt > limit,
@@ -420,14 +422,18 @@ def _events(snapshot: Snapshot, usable: list[Record], nodes: list[dict]) -> list
     seen_failures = {(e["object"], e["at"]) for e in timeline if e["kind"] == "node"}
     for row in nodes:
         if not row["ready"] and (row["name"], row["since"]) not in seen_failures:
+            # a robot's computer off the network is a robot offline, not a failed server: its modules stay
+            robot = row["robot"] if row["tier"] == "onboard" else ""
             timeline.append(
                 {
                     "at": row["since"],
                     "kind": "node",
-                    "reason": "NodeNotReady",
+                    "reason": "RobotOffline" if robot else "NodeNotReady",
                     "namespace": "",
                     "object": row["name"],
-                    "message": f"node {row['name']} is NotReady: {row['condition']}",
+                    "message": f"robot {robot} is offline (node {row['name']}: {row['condition']}); its modules stay on it"
+                    if robot
+                    else f"node {row['name']} is NotReady: {row['condition']}",
                     "warning": True,
                     "count": 1,
                 }
