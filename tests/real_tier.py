@@ -425,3 +425,104 @@ def prometheus_api(address: str, path: str, **params) -> dict | None:
             return json.loads(answer.read())["data"]
     except OSError:
         return None
+
+
+# -- a robot cut off the network (docs/connectivity.md) ---------------------------------------------------------
+def pods_on(core, namespace, node) -> dict[str, tuple[str, int, bool]]:
+    """The pods on a node: name -> (UID, restarts of its containers, being deleted)."""
+    found = {}
+    for pod in core.list_namespaced_pod(namespace, field_selector=f"spec.nodeName={node}").items:
+        restarts = sum(s.restart_count for s in pod.status.container_statuses or [])
+        found[pod.metadata.name] = (pod.metadata.uid, restarts, pod.metadata.deletion_timestamp is not None)
+    return found
+
+
+def node_unreachable(core, node) -> bool:
+    taints = core.read_node(node).spec.taints or []
+    return any(t.key == "node.kubernetes.io/unreachable" and t.effect == "NoExecute" for t in taints)
+
+
+def node_ready(core, node) -> bool:
+    conditions = core.read_node(node).status.conditions or []
+    return any(c.type == "Ready" and c.status == "True" for c in conditions) and not node_unreachable(core, node)
+
+
+def events_of(core, namespace, reason) -> dict[str, tuple[str, str]]:
+    """Event UID -> (the object it is about, its message), of one reason."""
+    items = core.list_namespaced_event(namespace, field_selector=f"reason={reason}").items
+    return {e.metadata.uid: (e.involved_object.name, e.message) for e in items}
+
+
+def new_events(core, namespace, reason, before: dict) -> list[tuple[str, str]]:
+    return [event for uid, event in events_of(core, namespace, reason).items() if uid not in before]
+
+
+def running_where_placed(core, namespace, placed: dict) -> dict | None:
+    """Instance -> node of the Running and Ready pods, when every placed instance (``placed``: instance -> node)
+    has one on its node; else None."""
+    now = {
+        p.metadata.labels.get("kuberos.io/instance"): p.spec.node_name
+        for p in core.list_namespaced_pod(namespace, label_selector="kuberos.io/instance").items
+        if pod_ready(p)
+    }
+    return now if all(now.get(name) == node for name, node in placed.items()) else None
+
+
+def cut_off_robot(real, namespace: str, placed: dict, robot: str, control_namespace: str, status: str, hold_s: float,
+                  toleration_s: float) -> dict:  # fmt: skip
+    """Cut ``robot`` off the network (every packet of its control link and its link to the other nodes dropped)
+    until a pod without the platform's tolerations (the negative control, in ``control_namespace``, which has the
+    ``programs`` ConfigMap) is evicted and ``hold_s`` more, with a controller running; reconnect it. What was seen,
+    for a test to assert and a benchmark to record: the robot's pods before, during and after (UID, restarts,
+    deleting), when the node was tainted and the control evicted, the status rows of ``status``, the RobotOffline
+    and ModuleMoved events of the partition, and how long after reconnecting the node was Ready and every placed
+    instance (``placed``: instance -> node) Running and Ready where placed."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes
+
+    core = real.core
+    nodes = RealNodes.from_state(real.plane(), {})
+    control = program_pod("offline-control", robot, control_namespace, ["-c", "import time; time.sleep(100000)"], {}, robot)
+    core.create_namespaced_pod(control_namespace, control)
+    seen: dict = {"robot": robot, "toleration_s": toleration_s}
+    try:
+        wait_for(lambda: pod_ready(core.read_namespaced_pod("offline-control", control_namespace)), 120, "the control Running")
+        seen["running_before"] = wait_for(lambda: running_where_placed(core, namespace, placed), 120, "every module placed")
+        moves, offline = events_of(core, namespace, "ModuleMoved"), events_of(core, namespace, "RobotOffline")
+        seen["before"] = pods_on(core, namespace, robot)
+        seen["cut"] = nodes.partition(robot) and nodes.partitioned(robot)
+        cut = time.monotonic()
+        wait_for(lambda: node_unreachable(core, robot), 120, f"{robot} tainted unreachable")
+        seen["tainted_after_s"] = round(time.monotonic() - cut, 1)
+        wait_for(lambda: core.read_namespaced_pod("offline-control", control_namespace).metadata.deletion_timestamp,
+                 60 + toleration_s, "the negative control evicted from the unreachable robot")  # fmt: skip
+        seen["control_evicted_after_s"] = round(time.monotonic() - cut, 1)
+        time.sleep(hold_s)
+
+        def offline_rows():
+            rows = json.loads(core.read_namespaced_config_map(status, namespace).data["status.json"])["rows"]
+            mine = [r for r in rows if r["node"] == robot]
+            return mine if mine and all(r["phase"] == "Offline" for r in mine) else None
+
+        seen["offline_rows"] = wait_for(offline_rows, 30, f"the status showing {robot}'s modules Offline")
+        seen["during"] = pods_on(core, namespace, robot)
+        seen["robot_offline_events"] = [message for _object, message in new_events(core, namespace, "RobotOffline", offline)]
+        seen["moves_during"] = new_events(core, namespace, "ModuleMoved", moves)
+        seen["partition_s"] = round(time.monotonic() - cut, 1)
+        seen["reconnected"] = nodes.partition(robot, cut=False) and not nodes.partitioned(robot)
+        back = time.monotonic()
+        wait_for(lambda: node_ready(core, robot), 120, f"{robot} Ready again", 0.2)
+        seen["ready_after_reconnect_s"] = round(time.monotonic() - back, 1)
+        seen["running_after"] = wait_for(lambda: running_where_placed(core, namespace, placed), 120, "every module placed", 0.2)
+        seen["rematch_after_reconnect_s"] = round(time.monotonic() - back, 1)
+        seen["after"] = pods_on(core, namespace, robot)
+        seen["control_gone"] = bool(
+            wait_for(lambda: "offline-control" not in pods_on(core, control_namespace, robot), 120, "the evicted control gone")
+        )
+        seen["moves_after"] = new_events(core, namespace, "ModuleMoved", moves)
+        return seen
+    finally:
+        nodes.partition(robot, cut=False)
+        try:
+            core.delete_namespaced_pod("offline-control", control_namespace, grace_period_seconds=0)
+        except Exception:
+            pass

@@ -38,6 +38,7 @@ from real_tier import (
     apply_objects,
     bridge_round_trips,
     controller_pods,
+    cut_off_robot,
     lease_holder,
     logs,
     pod_ready,
@@ -819,104 +820,39 @@ def test_a_batch_job_runs_its_programs_on_real_nodes_and_collects_what_they_said
     )
 
 
-def pods_on(real, namespace, node) -> dict[str, tuple[str, int, bool]]:
-    """The pods on a node: name -> (UID, restarts of its containers, being deleted)."""
-    found = {}
-    for pod in real.core.list_namespaced_pod(namespace, field_selector=f"spec.nodeName={node}").items:
-        restarts = sum(s.restart_count for s in pod.status.container_statuses or [])
-        found[pod.metadata.name] = (pod.metadata.uid, restarts, pod.metadata.deletion_timestamp is not None)
-    return found
-
-
-def node_unreachable(real, node) -> bool:
-    taints = real.core.read_node(node).spec.taints or []
-    return any(t.key == "node.kubernetes.io/unreachable" and t.effect == "NoExecute" for t in taints)
-
-
-def node_ready(real, node) -> bool:
-    conditions = real.core.read_node(node).status.conditions or []
-    return any(c.type == "Ready" and c.status == "True" for c in conditions) and not node_unreachable(real, node)
-
-
-def events(real, namespace, reason) -> list[str]:
-    return [e.message for e in real.core.list_namespaced_event(namespace, field_selector=f"reason={reason}").items]
-
-
 def test_a_robot_cut_off_longer_than_the_eviction_delay_keeps_its_pods_and_nothing_moves(real, deployed, lab, tmp_path_factory):
     """robot-1 loses its network (every packet of its control link and its link to the other nodes dropped) for
     longer than the API server's default toleration of an unreachable node (shortened to UNREACHABLE_S here): a pod
     without the platform's tolerations (the negative control) is evicted, the onboard modules are not, the controller
     moves nothing and says "robot offline"; once reconnected, the same pods run on with the same restart counts and
-    every module runs where it was placed."""
+    every module runs where it was placed (docs/connectivity.md)."""
     namespace = fleet_namespace(deployed)
-    robot = "robot-1"
     state = str(tmp_path_factory.mktemp("controller-offline"))
     extra = {"controller_kubeconfig": real.kubeconfig, "controller_state_dir": state, "controller_grace": GRACE}
     assert real.play("controller.yml", "-e", json.dumps(extra)).returncode == 0
-    nodes = RealNodes.from_state(real.plane(), {})
-    control = program_pod("offline-control", robot, lab, ["-c", "import time; time.sleep(100000)"], {}, robot=robot)
-    real.core.create_namespaced_pod(lab, control)
+    status = f"kuberos-status-{deployed['deployments'][0]['name']}"
     try:
-        wait_for(lambda: pod_ready(real.core.read_namespaced_pod("offline-control", lab)), 120, "the negative control Running")
-        moved_before = len(events(real, namespace, "ModuleMoved"))
-        placed = instances(deployed)
-
-        def all_where_placed():
-            now = running_pods(real, namespace)
-            return now if all(now.get(name) == node for name, node in placed.items()) else None
-
-        everything = wait_for(all_where_placed, 120, "every module Running and Ready where placed")
-        before = pods_on(real, namespace, robot)
-        assert before and not any(deleting for _uid, _restarts, deleting in before.values()), before
-        assert nodes.partition(robot) and nodes.partitioned(robot)
-        cut = time.monotonic()
-        wait_for(lambda: node_unreachable(real, robot), 120, f"{robot} tainted unreachable")
-        tainted = time.monotonic() - cut
-        evicted = wait_for(
-            lambda: real.core.read_namespaced_pod("offline-control", lab).metadata.deletion_timestamp,
-            60 + UNREACHABLE_S,
-            "the negative control evicted from the unreachable robot",
-        )
-        evicted_after = time.monotonic() - cut
-        time.sleep(GRACE + 8)  # the controller's grace and a few passes: time to move something, were it to
-        during = pods_on(real, namespace, robot)
-        assert during == before, "an onboard pod was evicted, deleted or restarted while its robot was offline"
-        status = f"kuberos-status-{deployed['deployments'][0]['name']}"
-
-        def offline_rows():
-            rows = json.loads(real.core.read_namespaced_config_map(status, namespace).data["status.json"])["rows"]
-            mine = [r for r in rows if r["node"] == robot]
-            return mine if mine and all(r["phase"] == "Offline" for r in mine) else None
-
-        offline = wait_for(offline_rows, 30, f"the status showing {robot}'s modules Offline")
-        assert all(r["note"].startswith("robot offline since") for r in offline), offline
-        said = events(real, namespace, "RobotOffline")
-        assert said and all(f"robot {robot} is offline" in message for message in said), said
-        assert len(events(real, namespace, "ModuleMoved")) == moved_before, "nothing moved"
-        partition_s = time.monotonic() - cut
-        assert nodes.partition(robot, cut=False) and not nodes.partitioned(robot)
-        back = time.monotonic()
-        wait_for(lambda: node_ready(real, robot), 120, f"{robot} Ready again")
-        ready_after = time.monotonic() - back
-        after = wait_for(all_where_placed, 120, "every module Running and Ready where placed again")
-        rematch = time.monotonic() - back
-        assert after == everything
-        assert pods_on(real, namespace, robot) == before, "the same pods, the same restart counts"
-        wait_for(
-            lambda: "offline-control" not in pods_on(real, lab, robot), 120, "the evicted control pod gone once the robot is back"
-        )
-        print(f"{robot} cut off {partition_s:.0f} s: tainted unreachable after {tainted:.0f} s, the negative control evicted "
-              f"after {evicted_after:.0f} s, {len(before)} onboard pods untouched; reconnected: Ready after "
-              f"{ready_after:.1f} s, every module Running and Ready where placed after {rematch:.1f} s")  # fmt: skip
-        assert evicted
+        seen = cut_off_robot(real, namespace, instances(deployed), "robot-1", lab, status, GRACE + 8, UNREACHABLE_S)
     finally:
-        nodes.partition(robot, cut=False)
-        try:
-            real.core.delete_namespaced_pod("offline-control", lab, grace_period_seconds=0)
-        except Exception:
-            pass
         extra["controller_state"] = "stopped"
         real.play("controller.yml", "-e", json.dumps(extra))
+    before = seen["before"]
+    assert before and seen["cut"] and seen["reconnected"], seen
+    assert not any(deleting for _uid, _restarts, deleting in before.values()), before
+    assert seen["during"] == before, "an onboard pod was evicted, deleted or restarted while its robot was offline"
+    assert seen["after"] == before, "the same pods, the same restart counts after the robot is back"
+    assert seen["running_after"] == seen["running_before"], "every module runs where it ran"
+    assert all(r["note"].startswith("robot offline since") for r in seen["offline_rows"]), seen["offline_rows"]
+    said = seen["robot_offline_events"]
+    assert said and all("robot robot-1 is offline" in message for message in said), said
+    assert seen["moves_after"] == [], "nothing moved"
+    assert seen["control_gone"]
+    print(
+        f"robot-1 cut off {seen['partition_s']:.0f} s: tainted unreachable after {seen['tainted_after_s']:.0f} s, the "
+        f"negative control evicted after {seen['control_evicted_after_s']:.0f} s, {len(before)} onboard pods untouched; "
+        f"reconnected: Ready after {seen['ready_after_reconnect_s']:.1f} s, every module Running and Ready where placed "
+        f"after {seen['rematch_after_reconnect_s']:.1f} s"
+    )
 
 
 def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_again(real, deployed, tmp_path_factory):
