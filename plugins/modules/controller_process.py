@@ -96,6 +96,13 @@ options:
     description: Container restarts at which a pod counts as failing.
     type: int
     default: 3
+  node_probe_interval:
+    description:
+      - Seconds between the controller's probes of each edge and cloud node's kubelet port (a TCP connection to its
+        InternalIP, port 10250). Three failed in a row make the node down at once, without waiting for Kubernetes'
+        node grace period; robots are never probed. C(0) leaves it to Kubernetes' node status alone.
+    type: float
+    default: 1.0
   resync:
     description: Seconds between passes when nothing changes.
     type: float
@@ -177,6 +184,7 @@ ARGUMENT_SPEC = dict(
     grace=dict(type="float", default=5.0),
     cooldown=dict(type="float", default=30.0),
     restart_threshold=dict(type="int", default=3),
+    node_probe_interval=dict(type="float", default=1.0),
     resync=dict(type="float", default=30.0),
     log_level=dict(type="str", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default="INFO"),
     replicas=dict(type="int", default=2),
@@ -202,6 +210,7 @@ def command(params: dict, index: int = 1) -> list[str]:
         sys.executable, "-m", ENTRY, "--kubeconfig", params["kubeconfig"],
         "--grace", f"{params['grace']:g}", "--cooldown", f"{params['cooldown']:g}",
         "--restart-threshold", str(params["restart_threshold"]), "--resync", f"{params['resync']:g}",
+        "--node-probe-interval", f"{params['node_probe_interval']:g}",
         "--log-level", params["log_level"], "--lease-duration", str(params["lease_duration"]),
         "--renew-deadline", f"{params['renew_deadline']:g}", "--retry-period", f"{params['retry_period']:g}",
         "--dashboard-port", str(params["dashboard_port"] + index - 1 if params["dashboard_port"] else 0),

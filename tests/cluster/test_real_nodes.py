@@ -39,6 +39,7 @@ from real_tier import (
     bridge_round_trips,
     controller_pods,
     cut_off_robot,
+    events_of,
     lease_holder,
     logs,
     pod_ready,
@@ -873,9 +874,12 @@ def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_ag
             now = running_pods(real, namespace)
             return all(now.get(name) not in (None, victim) for name in moved) and now
 
-        after = wait_for(moved_and_running, 240, f"{moved} Running off {victim}", 2)
+        after = wait_for(moved_and_running, 240, f"{moved} Running off {victim}", 0.5)
         took = time.monotonic() - started
-        print(f"{victim} kubelet stopped: {moved} Running on {[after[m] for m in moved]} after {took:.0f} s")
+        print(f"{victim} kubelet stopped: {moved} Running on {[after[m] for m in moved]} after {took:.1f} s")
+        why = [message for _name, message in events_of(real.core, namespace, "ModuleMoved").values() if victim in message]
+        assert any("has not answered the controller's probes" in message for message in why), why
+        assert took < 30, "the controller's own probe, not Kubernetes' 40 s node grace period, saw the node down"
         assert {name: node for name, node in after.items() if name not in moved} == {
             name: node for name, node in before.items() if name not in moved
         }, "only the stopped node's modules moved"

@@ -6,6 +6,7 @@ import json
 import threading
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.controller import RTT_ANNOTATION, Controller
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.liveness import NodeProbe, server_targets
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import (
     FLEET_RULES,
     LEASE_ROLE,
@@ -39,6 +40,7 @@ def test_the_watch_cache_applies_events_and_asks_to_relist_after_an_error():
 
 def test_the_cluster_view_maps_nodes_readiness_rtt_and_pods():
     controller = Controller.__new__(Controller)
+    controller.probe = None
     controller.nodes = Store("nodes", None, threading.Event())
     controller.pods = Store("pods", None, threading.Event())
     controller.nodes.items = {
@@ -62,6 +64,40 @@ def test_the_cluster_view_maps_nodes_readiness_rtt_and_pods():
     assert view.measured == {"fetch-1": {"edge-1": 7.0}}, "a malformed annotation is ignored (and logged)"
     (pod,) = view.pods["ns/i"]
     assert (pod.node, pod.restarts, pod.waiting_reason, pod.deleting) == ("edge-1", 4, "CrashLoopBackOff", True)
+
+
+def test_a_server_node_whose_kubelet_stopped_answering_is_down_at_once_a_robot_never():
+    """The controller's own probe (liveness.py) makes a Ready edge node down, from its first failed probe, with the
+    probe's words; a robot's computer is never probed, and a node that never answered is left to Kubernetes."""
+    answers = {"10.0.0.1": [True, False, False, False], "10.0.0.2": [False] * 4, "10.0.0.3": [True, True, False, False]}
+    clock = iter(range(100, 200))
+    probe = NodeProbe(1.0, connect=lambda address, port, timeout: answers[address].pop(0), clock=lambda: next(clock))
+
+    def server(name, address, role="edge"):
+        node = _node(name, {"kuberos.io/role": role})
+        node["status"]["addresses"] = [{"type": "Hostname", "address": name}, {"type": "InternalIP", "address": address}]
+        return node
+
+    nodes = [server("edge-1", "10.0.0.1"), server("edge-2", "10.0.0.2", "cloud"), server("edge-3", "10.0.0.3")]
+    nodes.append(server("fetch-1", "10.0.0.9", "robot"))
+    assert server_targets(nodes) == {"edge-1": "10.0.0.1", "edge-2": "10.0.0.2", "edge-3": "10.0.0.3"}, "no robot"
+    changes = [probe.probe(server_targets(nodes)) for _round in range(4)]
+    assert changes == [False, False, False, True], "down after 3 failed probes in a row, not before"
+    assert probe.down() == {"edge-1": 101}, "from its first failed probe; edge-2 never answered; edge-3 failed twice"
+    controller = Controller.__new__(Controller)
+    controller.probe = probe
+    controller.nodes = Store("nodes", None, threading.Event())
+    controller.pods = Store("pods", None, threading.Event())
+    controller.nodes.items = {("", n["metadata"]["name"]): n for n in nodes}
+    view = controller.cluster_view()
+    edge = view.nodes["edge-1"]
+    assert not edge.ready and edge.since == 101 and "has not answered the controller's probes since" in edge.probe
+    assert all(view.nodes[n].ready for n in ("edge-2", "edge-3", "fetch-1"))
+    answers["10.0.0.1"].append(True)
+    answers["10.0.0.2"].append(False)
+    answers["10.0.0.3"].append(True)
+    assert probe.probe(server_targets(nodes)) and probe.down() == {}, "one answer and it is up again"
+    assert probe.probe({}) is False
 
 
 def pod_labels(deployment: dict) -> dict:

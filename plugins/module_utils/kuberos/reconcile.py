@@ -43,6 +43,7 @@ class NodeView:
     ready: bool
     condition: str = ""  # e.g. "Ready=Unknown (NodeStatusUnknown)"
     since: float | None = None  # lastTransitionTime of the Ready condition, epoch seconds
+    probe: str = ""  # the controller's own probe found its kubelet gone (kuberos_controller/liveness.py), before Kubernetes
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,8 @@ def node_fault(name: str, cluster: ClusterView) -> tuple[str, float | None] | No
     view = cluster.nodes.get(name)
     if view is None:
         return f"node {name} is not in the cluster", None
+    if view.probe:
+        return f"node {name} is down ({view.probe})", view.since
     if not view.ready:
         return f"node {name} is NotReady ({view.condition or 'no Ready condition'})", view.since
     return None

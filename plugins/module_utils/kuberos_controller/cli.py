@@ -63,6 +63,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     parser.add_argument("--resync", type=float, default=30.0, help="seconds between passes without any change")
     parser.add_argument(
+        "--node-probe-interval", type=float, default=1.0,
+        help="seconds between the controller's probes of each edge and cloud node's kubelet port: 3 failed in a row "
+        "make the node down at once, before Kubernetes' node grace period (0: Kubernetes' node status alone)",
+    )  # fmt: skip
+    parser.add_argument(
         "--prometheus-url",
         default="",
         help="read scaled modules' own load metrics from this Prometheus (e.g. http://prometheus:9090) instead of "
@@ -197,7 +202,10 @@ def main(argv=None) -> int:
         Controller(api_client, settings, args.resync, prometheus_url=args.prometheus_url).run_once()
         return 0
     identity = args.identity or f"{socket.gethostname()}_{os.getpid()}"
-    controller = Controller(api_client, settings, args.resync, identity=identity, prometheus_url=args.prometheus_url)
+    controller = Controller(
+        api_client, settings, args.resync, identity=identity, prometheus_url=args.prometheus_url,
+        node_probe_interval=args.node_probe_interval,
+    )  # fmt: skip
     if args.leader_elect:
         controller.elector = leader_election.LeaderElector(
             api_client, args.lease_namespace, args.lease_name, controller.identity, timings,

@@ -75,6 +75,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Scheduler
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import controller_table
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import leader_election
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.liveness import NodeProbe
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.signals import Signals
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import RTT_ANNOTATION, pod_view
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, object_key
@@ -128,7 +129,7 @@ def _pod_requests(pod: dict) -> dict:
 class Controller:
     def __init__(self, api_client, settings: Settings | None = None, resync_s: float = 30.0, dry_run: bool = False,
                  elector: leader_election.LeaderElector | None = None, identity: str = "",
-                 prometheus_url: str = ""):  # fmt: skip
+                 prometheus_url: str = "", node_probe_interval: float = 0.0):  # fmt: skip
         from kubernetes import client
 
         self.api_client = api_client
@@ -149,6 +150,8 @@ class Controller:
             "records", self.core.list_config_map_for_all_namespaces, self.changed, label_selector=f"{RECORD_LABEL}=true"
         )
         self.stores = (self.nodes, self.pods, self.deployments, self.records)
+        # The controller's own probe of the server nodes' kubelets (liveness.py; 0: Kubernetes' node status alone).
+        self.probe = NodeProbe(node_probe_interval) if node_probe_interval > 0 else None
         self.memory: dict[tuple[str, str], Memory] = {}
         self.history: dict[tuple[str, str], dict] = {}  # record -> instance -> last move
         self.reported: dict[tuple[str, str], dict] = {}  # record -> stranded instance -> why (events sent once)
@@ -207,6 +210,7 @@ class Controller:
     def cluster_view(self) -> ClusterView:
         view = ClusterView()
         names = self._node_names()
+        down = self.probe.down() if self.probe is not None else {}
         for node in self.nodes.snapshot():
             meta = node["metadata"]
             name = names[meta["name"]]
@@ -214,6 +218,12 @@ class Controller:
             ok = bool(ready) and ready.get("status") == "True"
             condition = f"Ready={ready.get('status')} ({ready.get('reason', '')})" if ready else ""
             view.nodes[name] = NodeView(name, ok, condition, _epoch(ready.get("lastTransitionTime")) if ready else None)
+            if ok and meta["name"] in down:
+                since = down[meta["name"]]
+                probe = (
+                    f"its kubelet has not answered the controller's probes since {time.strftime('%H:%M:%S', time.gmtime(since))}"
+                )
+                view.nodes[name] = NodeView(name, False, condition, since, probe)
             robot = (meta.get("labels") or {}).get(node_labels.ROBOT)
             rtt = (meta.get("annotations") or {}).get(RTT_ANNOTATION)
             if robot and rtt:
@@ -782,6 +792,9 @@ class Controller:
         threads = [threading.Thread(target=s.run, args=(self.stop_event,), name=s.name, daemon=True) for s in self.stores]
         if self.elector is not None:
             threads.append(threading.Thread(target=self.elector.run, args=(self.stop_event,), name="lease", daemon=True))
+        if self.probe is not None:
+            probing = (self.stop_event, self.nodes.snapshot, self.changed)
+            threads.append(threading.Thread(target=self.probe.run, args=probing, name="probe", daemon=True))
         for thread in threads:
             thread.start()
         log.info(
