@@ -287,3 +287,23 @@ def test_deploy_places_nothing_on_an_unavailable_node_and_says_why_when_that_lea
     with pytest.raises(Exception) as raised:
         load_and_place(f"{root}/{SPEC}", local_raw, unavailable={"fetch-1": "node fetch-1 is NotReady"})
     assert "fetch-1 (onboard): node fetch-1 is NotReady" in str(raised.value)
+
+
+def test_a_deploy_while_a_robot_is_offline_keeps_what_runs_on_it(local_raw, root, tmp_path):
+    """Deploy (and a rollout, which places the same way) with a robot offline: what already runs on it stays, also
+    a module that only prefers the robot; nothing new lands on it, and the rest is placed as usual."""
+    with open(f"{root}/{SPEC}", encoding="utf-8") as handle:
+        text = handle.read().replace("  preference: [edge, cloud]", "  preference: [onboard, edge]", 1)
+    path = tmp_path / "spec.yml"
+    path.write_text(text, encoding="utf-8")
+    _, running = load_and_place(str(path), local_raw)
+    on_robot = {i for i, n in nodes_of(running).items() if n == "fetch-1"}
+    assert {"pick-and-place-perception-fetch-1", "pick-and-place-controller-fetch-1"} <= on_robot
+    offline = {"fetch-1": "node fetch-1 is NotReady (Ready=Unknown (NodeStatusUnknown))"}
+    _, again = load_and_place(str(path), local_raw, unavailable=offline, previous=running)
+    assert nodes_of(again) == nodes_of(running), "a redeploy with the robot offline moves nothing"
+    edited = text.replace("  preference: [onboard, edge]", "  preference: [edge, cloud]", 1)
+    path.write_text(edited, encoding="utf-8")
+    _, moved = load_and_place(str(path), local_raw, unavailable=offline, previous=running)
+    assert nodes_of(moved)["pick-and-place-perception-fetch-1"] != "fetch-1", "the developer asked for the move"
+    assert nodes_of(moved)["pick-and-place-controller-fetch-1"] == "fetch-1"

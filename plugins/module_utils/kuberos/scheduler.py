@@ -413,7 +413,8 @@ def _keep_previous(scheduler: Scheduler, deployments: list[RosDeployment], targe
     """Sticky placement: every instance of ``previous`` that still fits where it runs stays there.
 
     An instance stays when its deployment and module still exist, it still serves one of the targeted robots, its
-    node is in the inventory and available, serves the fleet, is of a tier the module may use, meets the module's
+    node is in the inventory and available (a robot's computer that is offline counts as available for what already
+    runs there), serves the fleet, is of a tier the module may use, meets the module's
     hard requirements and has room for the module's resources as the spec says them now. An instance that ran on
     its preferred tier while the spec now prefers another tier is placed again (the developer asked for the move);
     one that ran on a fallback tier, or was moved there by the controller, stays. Kept instances take their
@@ -437,7 +438,15 @@ def _keep_previous(scheduler: Scheduler, deployments: list[RosDeployment], targe
         if node not in scheduler.candidates(node.tier, dep.fleet, robots[0]):
             continue
         res = module.resources
-        if scheduler.rejection(node, module, robots, res.cpu_millis, res.memory_bytes, res.gpu) is not None:
+        if node.tier == "onboard" and node.name in scheduler.unavailable:
+            # A robot that is offline keeps what runs on it (docs/connectivity.md): its node being unavailable is
+            # no reason to move it, only to place nothing new there.
+            why = scheduler.requirement_rejection(node, module, robots) or scheduler.capacity_rejection(
+                node, res.cpu_millis, res.memory_bytes, res.gpu
+            )
+        else:
+            why = scheduler.rejection(node, module, robots, res.cpu_millis, res.memory_bytes, res.gpu)
+        if why is not None:
             continue
         scheduler.take(node.name, res.cpu_millis, res.memory_bytes, res.gpu)
         scheduler.kept[inst.name] = _kept_instance(inst, module, robots)
