@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -113,6 +113,12 @@ bench-controller: binaries
 ## Rollout benchmark: 100 robots, one module upgraded in waves of 10, and a broken version stopped at the canary.
 bench-rollout: binaries
 	cd bench && ../$(VENV)/python bench_rollout.py --json results/rollout.json
+
+## Connectivity on real nodes: a robot cut off longer than the eviction delay (its pods, moves, rematch after
+## reconnecting), and edge kubelets stopped in turn (time until their modules run elsewhere; docs/connectivity.md).
+bench-connectivity:
+	$(MAKE) binaries WITH_NODES=1
+	$(VENV)/python bench/bench_connectivity.py --json bench/results/connectivity.json
 
 ## Real nodes: image build, cold and warm start, deploy to all pods Running, pick cycles against the netns runtime.
 bench-real-pods:
