@@ -119,6 +119,34 @@ def test_every_module_of_every_robot_is_shown_where_its_pod_runs(deployed):
     assert fleet["robots"] == ["fetch-1", "fetch-2"] and fleet["deployments"] == ["pick-and-place"]
     assert [s["node"] for s in fleet["discovery"]] == [s.node for s in record.placement.discovery["test-fleet"]]
     assert all(s["phase"] == "Running" for s in fleet["discovery"])
+    assert fleet["offline"] == []
+
+
+def test_an_offline_robot_is_shown_offline_with_its_modules_not_stranded(deployed):
+    """A robot whose node is not Ready: its fleet lists it offline since the node's transition, its modules are in
+    phase Offline with the time in their note (not Stranded), and the timeline says RobotOffline."""
+    _configmap, _record, nodes, _pods = deployed
+    changed = []
+    for node in nodes:
+        node = json.loads(json.dumps(node))
+        if node["metadata"]["name"] == "fetch-1":
+            node["status"]["conditions"] = [
+                {
+                    "type": "Ready",
+                    "status": "Unknown",
+                    "reason": "NodeStatusUnknown",
+                    "lastTransitionTime": "2026-11-27T09:00:00Z",
+                }
+            ]
+        changed.append(node)
+    view = build_view(snapshot(deployed, nodes=changed))
+    fleet = next(f for f in view.fleets if f["fleet"] == "test-fleet")
+    assert [(r["robot"], r["since"]) for r in fleet["offline"]] == [("fetch-1", "2026-11-27T09:00:00Z")]
+    rows = [r for r in view.modules if r["node"] == "fetch-1"]
+    assert rows and all(r["phase"] == "Offline" and r["note"].startswith("robot offline") for r in rows), rows
+    assert view.summary["stranded"] == 0
+    (event,) = [e for e in view.events if e["object"] == "fetch-1" and e["kind"] == "node"]
+    assert event["reason"] == "RobotOffline" and event["message"].startswith("robot fetch-1 is offline")
 
 
 def test_allocated_is_what_the_kubernetes_pods_on_a_node_request(deployed):

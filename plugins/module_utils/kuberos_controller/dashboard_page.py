@@ -276,8 +276,11 @@ function renderResources(data) {
 function renderFleets(data) {
   const cards = data.fleets.map(f => el('div', { class: 'fleet', 'data-fleet': f.fleet },
     el('h3', { text: `Fleet ${f.fleet}` }),
-    el('div', { class: 'muted', text: `namespace ${f.namespace || '–'} · ${f.robots.length} robots · ` +
+    el('div', { class: 'muted', text: `namespace ${f.namespace || '–'} · ${f.robots.length} robots ` +
+      `(${f.robots.length - f.offline.length} online) · ` +
       `${f.nodes.length} edge/cloud nodes in use · deployments: ${f.deployments.join(', ') || 'none'}` }),
+    f.offline.length ? el('p', { class: 'offline', text: 'Offline (their modules stay and run on them): ' +
+      f.offline.map(r => `${r.robot} since ${r.since || '?'}`).join(', ') }) : null,
     el('table', null, el('thead', null, el('tr', null, ...['Discovery server', 'Node', 'Tier', 'Port', 'Phase'].map(t => el('th', { text: t })))),
       el('tbody', null, ...f.discovery.map(s => el('tr', { 'data-server': s.name },
         el('td', { text: `${s.name} (id ${s.id})` }), el('td', { class: 'node', text: s.node }), el('td', { text: s.tier }),

@@ -321,6 +321,12 @@ def _fleet_rows(snapshot: Snapshot, usable: list[Record], view: ClusterView, nod
                     "node": bridge.node,
                     "port": bridge.node_port,
                 }
+    offline: dict[str, list[dict]] = {}  # fleet -> its robots that are offline (docs/connectivity.md)
+    for row in nodes.values():
+        if row["fleet"] and row["robot"] and not row["ready"]:
+            offline.setdefault(row["fleet"], []).append(
+                {"robot": row["robot"], "node": row["name"], "since": row["since"], "condition": row["condition"]}
+            )
     rows = []
     for name, entry in sorted(fleets.items()):
         rows.append(
@@ -328,6 +334,7 @@ def _fleet_rows(snapshot: Snapshot, usable: list[Record], view: ClusterView, nod
                 "fleet": name,
                 "namespace": entry.get("namespace", ""),
                 "robots": sorted(entry["robots"]),
+                "offline": sorted(offline.get(name, []), key=lambda r: r["robot"]),
                 "nodes": sorted(entry["nodes"]),
                 "deployments": sorted(entry.get("deployments", ())),
                 "discovery": sorted((s for s in servers.values() if s["fleet"] == name), key=lambda s: s["id"]),
