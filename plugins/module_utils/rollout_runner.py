@@ -407,6 +407,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
         COMPONENT,
+        DEPLOYMENT,
         render_deployment,
     )
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
@@ -416,7 +417,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
         build_records,
         module_versions,
     )
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import plan_rollout
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import behind_live, plan_rollout
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
     from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
 
@@ -434,12 +435,24 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     unavailable = cluster_state.unavailable_nodes(clients, list(inventory.nodes))
     placement = place_modules([dep], inventory, allocated, unavailable, record.placement)
     options = render_options(params)
-    before = render_deployment(record.deployments, record.placement, record.options)
+    # What runs: the record's state, except the modules of robots an earlier rollout left pending while they were
+    # offline (they still run the older image); robots offline now are left pending in turn.
+    live = (
+        json.loads(
+            clients["apps"]
+            .list_namespaced_deployment(namespace, label_selector=f"{DEPLOYMENT}={dep.name}", _preload_content=False)
+            .data
+        ).get("items")
+        or []
+    )
+    before = behind_live(render_deployment(record.deployments, record.placement, record.options), live)
     after = render_deployment([dep], placement, options)
     robots = list(inventory.fleets[dep.fleet])
+    offline = {r for r in robots if inventory.robots[r].node in unavailable}
     plan = plan_rollout(
         before, after, robots, params["canary"], params["wave_size"], tuple(params["canary_robots"] or ()),
         skip=lambda o: (o["metadata"].get("labels") or {}).get(COMPONENT) in FLEET_COMPONENTS,  # the fleet's, never a rollout's
+        offline=offline,
     )  # fmt: skip
     current = {"revision": record.revision, "hash": record.revision_hash}
     records = build_records(
@@ -454,8 +467,14 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
         "versions": {"before": module_versions(record.spec), "after": module_versions(dep)},
         "plan": plan.to_dict(),
         "per_robot": plan.per_robot(),
+        "pending_robots": list(plan.pending_robots),
         "changed": plan.changed or revision != record.revision,
     }
+    if plan.pending_robots:
+        progress(
+            f"{len(plan.pending_robots)} robot(s) offline, left pending (the next rollout run finishes them): "
+            + ", ".join(plan.pending_robots)
+        )
     if check_mode or not result["changed"]:
         return result
     cluster = Cluster(clients, record.field_manager)

@@ -137,6 +137,13 @@ summary:
   description: What changed (or would change), per robot and per wave, as lines of text.
   returned: always
   type: str
+pending_robots:
+  description:
+    - Robots that were offline (their computer's node not Ready): none of their modules was touched and nothing waited
+      for them. The next rollout run (the same spec again) finishes them once they are back.
+  returned: always
+  type: list
+  elements: str
 rolled_back_robots:
   description: The robots given their previous state after a failed gate.
   returned: when a gate failed
@@ -190,6 +197,8 @@ def summary_of(result: dict, check_mode: bool) -> str:
         + (" (check mode: nothing written)" if check_mode else "")
     ]
     lines += [f"{robot}: {'; '.join(changes)}" for robot, changes in result["per_robot"].items()] or ["nothing to change"]
+    if result.get("pending_robots"):
+        lines.append(f"pending, offline (the next rollout run finishes them): {', '.join(result['pending_robots'])}")
     for wave in result.get("waves", []):
         label = "canary" if wave["canary"] else f"wave {wave['number']}"
         lines.append(f"{label}: {len(wave['robots'])} robot(s) in {wave['seconds']} s")

@@ -334,6 +334,38 @@ def test_a_ros_probe_that_does_not_find_the_waves_nodes_fails_the_gate(life, tmp
     life.converge()
 
 
+def test_a_rollout_leaves_an_offline_robot_pending_and_the_next_run_finishes_it(life, tmp_path):
+    """fetch-2 offline: the rollout upgrades fetch-1 and reports fetch-2 pending, touching none of fetch-2's modules
+    and waiting for nothing; with fetch-2 back, the same rollout run again upgrades it (as its own canary)."""
+    spec = _at(tmp_path, "^0.2")
+    before = life.images()
+    assert not any(image.endswith(":0.2.0") for image in before.values()), before
+    theirs = {name for name in before if name.endswith("-fetch-2")}
+    untouched = {k: v for k, v in life.versions().items() if k in theirs}
+    life.node_down("fetch-2")
+    try:
+        started = time.monotonic()
+        done = life.rollout(spec, "-e", "rosdeployment_rollout_wave_size=1")
+        took = time.monotonic() - started
+        assert done.returncode == 0, done.stdout[-5000:]
+        assert "pending, offline (the next rollout run finishes them): fetch-2" in done.stdout, done.stdout[-3000:]
+        images = life.images()
+        assert all(images[n].endswith(":0.2.0") for n in images if n.endswith("-fetch-1")), images
+        assert {n: images[n] for n in theirs} == {n: before[n] for n in theirs}, "fetch-2's modules were not touched"
+        assert {k: v for k, v in life.versions().items() if k in theirs} == untouched
+        assert took < 120, f"the rollout waited for the offline robot ({took:.0f} s)"
+        revision = life.record().revision
+    finally:
+        life.node_up("fetch-2")
+    again = life.rollout(spec)
+    assert again.returncode == 0, again.stdout[-5000:]
+    assert "fetch-2: " in again.stdout and "fetch-1: " not in again.stdout, again.stdout[-3000:]
+    assert "canary: 1 robot(s) in" in again.stdout and "pending, offline" not in again.stdout, again.stdout[-3000:]
+    assert all(image.endswith(":0.2.0") for image in life.images().values()), life.images()
+    assert life.record().revision == revision, "the same revision, now on every robot"
+    life.converge()
+
+
 def _free_port() -> int:
     import socket
 

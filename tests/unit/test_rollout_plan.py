@@ -19,6 +19,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import (
     Downtime,
     PodState,
+    behind_live,
     gate_verdict,
     plan_rollout,
 )
@@ -115,6 +116,32 @@ def test_a_shared_instance_goes_with_the_first_of_its_robots_reached():
     assert canary.canary and canary.robots == ("robot-00", "robot-01", "robot-02", "robot-03")  # robotsPerInstance 4
     assert [c.name for c in canary.changes] == ["app-coordinator-shared-0"]
     assert plan.waves[1].robots == ("robot-04", "robot-05")
+
+
+def test_an_offline_robot_is_left_pending_and_the_next_run_finishes_it():
+    """A robot that is offline is in no wave: its changes are pending (shown per robot), the others roll out; once
+    the record says the new state, the robot's modules still run the old image (live), and a plan against the same
+    new state, with the robot back, has it in a wave."""
+    raw = _fleet(4)
+    _d, placement, before = _render(_spec(coordinator="dedicated"), raw)
+    _d, _p, after = _render(_spec(planner="r/planner:2", control="r/control:2", coordinator="dedicated"), raw, placement)
+    order = [f"robot-0{i}" for i in range(4)]
+    plan = plan_rollout(before, after, order, canary=1, wave_size=10, offline={"robot-00"})
+    assert [w.robots for w in plan.waves] == [("robot-01",), ("robot-02", "robot-03")], "the canary is an online robot"
+    assert plan.pending_robots == ("robot-00",) and {c.module for c in plan.pending} == {"planner", "control"}
+    assert plan.changed and "robot-00" not in plan.untouched
+    assert all("pending, the robot is offline" in line for line in plan.per_robot()["robot-00"])
+    assert plan.to_dict()["pending_robots"] == ["robot-00"]
+    # The rollout done for the others: the record renders the new state; robot-00 still runs the old images.
+    live = [o for o in before if o["kind"] == "Deployment" and "robot-00" in o["metadata"]["name"]]
+    assert live
+    seen = behind_live(after, live)
+    still = plan_rollout(seen, after, order, canary=1, wave_size=10)
+    assert [w.robots for w in still.waves] == [("robot-00",)], "the next run finishes the robot, as its canary"
+    assert {c.module for c in still.waves[0].changes} == {"planner", "control"}
+    assert not plan_rollout(behind_live(after, live), after, order, offline={"robot-00"}).waves, "still away: pending"
+    caught_up = [o for o in after if o["kind"] == "Deployment" and "robot-00" in o["metadata"]["name"]]
+    assert not plan_rollout(behind_live(after, caught_up), after, order).changed, "nothing behind: nothing to do"
 
 
 def test_the_fleets_discovery_servers_can_be_left_out():

@@ -9,13 +9,16 @@ current record renders with the objects the new state renders and groups the dif
   ``wave_size`` robots in the fleet's order. A shared instance goes with the first of its robots to be reached;
 - ``removals``: objects the new state no longer renders, removed once every wave passed.
 
-Robots whose modules do not change are in no wave and are never touched. ``gate_verdict`` is the health gate a
-wave must pass (pure over what was observed); ``Downtime`` measures, per instance, the time no pod of it was
-Ready while it was replaced.
+Robots whose modules do not change are in no wave and are never touched. Robots that are offline (their computer's
+node not Ready) are in no wave either: their changes are ``pending``, reported, and the next rollout run finishes
+them (``behind_live`` finds a robot whose modules still run an older state than the record's). Nothing waits for a
+robot that is away (docs/connectivity.md). ``gate_verdict`` is the health gate a wave must pass (pure over what
+was observed); ``Downtime`` measures, per instance, the time no pod of it was Ready while it was replaced.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 from . import labels as node_labels
@@ -62,6 +65,8 @@ class RolloutPlan:
     waves: list[Wave] = field(default_factory=list)
     removals: list[Change] = field(default_factory=list)
     untouched: tuple[str, ...] = ()  # robots with nothing to change
+    pending: list[Change] = field(default_factory=list)  # changes of robots that are offline: the next run's
+    pending_robots: tuple[str, ...] = ()
 
     @property
     def changed(self) -> bool:
@@ -80,6 +85,9 @@ class RolloutPlan:
                     out.setdefault(robot, []).append(f"{change.module}: {change.action} ({change.summary})")
         for change in self.prepare + self.removals:
             out.setdefault("(fleet)", []).append(f"{change.kind}/{change.name}: {change.action} ({change.summary})")
+        for change in self.pending:
+            for robot in change.robot.split(","):
+                out.setdefault(robot, []).append(f"{change.module}: pending, the robot is offline ({change.summary})")
         return {robot: sorted(lines) for robot, lines in sorted(out.items())}
 
     def to_dict(self) -> dict:
@@ -96,6 +104,8 @@ class RolloutPlan:
             ],
             "removals": rows(self.removals),
             "untouched": list(self.untouched),
+            "pending": rows(self.pending),
+            "pending_robots": list(self.pending_robots),
         }
 
 
@@ -152,11 +162,13 @@ def plan_rollout(
     wave_size: int = 10,
     canary_robots: tuple[str, ...] = (),
     skip=lambda obj: False,
+    offline: tuple[str, ...] | set[str] = (),
 ) -> RolloutPlan:
     """Group the differences between two renderings of a deployment into prepare, waves and removals.
 
     ``robots`` is the fleet's robot order; ``canary_robots`` (when given) are the canary set, else the first
-    ``canary`` robots with a change. Objects for which ``skip(obj)`` is true (the record) are left out."""
+    ``canary`` robots with a change. Objects for which ``skip(obj)`` is true (the record) are left out. The changes
+    of a module instance whose robots are all ``offline`` are ``pending`` instead of in a wave."""
     if canary < 0 or wave_size < 1:
         raise ValueError("canary must be 0 or more and wave_size 1 or more")
     old = {object_key(o): o for o in before if not skip(o) and o["kind"] != "Namespace"}
@@ -177,6 +189,8 @@ def plan_rollout(
             plan.removals.append(change)
         elif not owners:
             plan.prepare.append(change)
+        elif all(r in offline for r in owners):
+            plan.pending.append(change)
         else:
             first = min(owners, key=lambda r: (robots.index(r) if r in robots else len(robots), r))
             by_robot.setdefault(first, []).append(change)
@@ -188,9 +202,40 @@ def plan_rollout(
         changes = [c for r in members for c in by_robot[r]]
         touched = tuple(sorted({r for c in changes for r in c.robot.split(",")}))
         plan.waves.append(Wave(number, is_canary, touched, changes))
-    touched_all = {r for w in plan.waves for r in w.robots}
+    plan.pending_robots = tuple(sorted({r for c in plan.pending for r in c.robot.split(",")}))
+    touched_all = {r for w in plan.waves for r in w.robots} | set(plan.pending_robots)
     plan.untouched = tuple(r for r in robots if r not in touched_all)
     return plan
+
+
+def behind_live(rendered: list[dict], live: list[dict]) -> list[dict]:
+    """``rendered`` (what the record says runs) with each module Deployment whose live object runs another image or
+    version (a robot a rollout left pending while it was offline) given the live image and version, so that a plan
+    against the new state includes it again. Other objects as they are."""
+    running = {}
+    for obj in live:
+        meta = obj.get("metadata") or {}
+        running[(meta.get("namespace", ""), meta.get("name", ""))] = obj
+    out = []
+    for obj in rendered:
+        meta = obj["metadata"]
+        now = running.get((meta.get("namespace", ""), meta["name"])) if obj["kind"] == "Deployment" else None
+        if now is None:
+            out.append(obj)
+            continue
+        image, version = _container(now).get("image"), (now["metadata"].get("labels") or {}).get(VERSION)
+        if image == _container(obj).get("image") and version == (meta.get("labels") or {}).get(VERSION):
+            out.append(obj)
+            continue
+        older = copy.deepcopy(obj)
+        _container(older)["image"] = image
+        labels = older["metadata"].setdefault("labels", {})
+        if version is None:
+            labels.pop(VERSION, None)
+        else:
+            labels[VERSION] = version
+        out.append(older)
+    return out
 
 
 # -- the health gate ------------------------------------------------------------------------------
