@@ -4,7 +4,8 @@
 On a cluster of real nodes of its own (inventories/real-pods: robot-1, edge-1, edge-2, cloud-1; its own ports,
 addresses and state directory; the API server's default toleration of an unreachable node shortened to
 ``--toleration`` seconds so that a pod without the platform's tolerations is evicted within the run), with
-examples/pick-and-place.yml deployed and the controller running (grace 2 s):
+examples/pick-and-place.yml deployed and the controller running with the role's defaults (grace 5 s, its own probe
+of the server nodes' kubelets every 1 s):
 
 (1) robot-1 cut off the network (``RealNodes.partition``: every packet of its control link and its link to the
     other nodes dropped) until a pod without the platform's tolerations is evicted and ``--hold`` seconds more, then
@@ -51,7 +52,6 @@ PORTS = {"apiserver": 37443, "etcd_client": 37379, "etcd_peer": 37380, "controll
 PORTS["kwok"] = 37247
 BASE, TAG = 205, "ke"  # 10.205-207.x: apart from the tests' tiers and the other benchmarks'
 SPEC = REPO / "examples" / "pick-and-place.yml"
-GRACE = 2
 NOT_MEASURED = {
     "onboard_messages_lost_during": "the robot's own ROS 2 traffic during a partition",
     "discovery_restart_rematch_s": "a discovery server restarted or moved",
@@ -110,11 +110,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="kuberos-bench-conn-") as work:
         work = Path(work)
         real = RealCluster(work / "c", PORTS, BASE, TAG, local_cluster_unreachable_toleration_s=args.toleration)
-        controller = {
-            "controller_kubeconfig": real.kubeconfig,
-            "controller_state_dir": str(work / "ctl"),
-            "controller_grace": GRACE,
-        }
+        controller = {"controller_kubeconfig": real.kubeconfig, "controller_state_dir": str(work / "ctl")}
         try:
             log("starting the real-node tier")
             done = real.start()
