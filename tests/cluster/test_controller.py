@@ -342,8 +342,8 @@ def test_an_offline_robot_keeps_its_modules_and_is_reported_offline_not_stranded
         30,
         "the onboard module running again",
     )
-    online = wait_for(lambda: fleet.events("RobotOnline")[counts["RobotOnline"] :], 30, "a RobotOnline event")
-    assert [e.involved_object.name for e in online] == [onboard]
+    wait_for(lambda: fleet.events("RobotOnline")[counts["RobotOnline"] :], 30, "a RobotOnline event")
+    assert [e.involved_object.name for e in fleet.events("RobotOnline")[counts["RobotOnline"] :]] == [onboard]
     assert len(fleet.events("RobotOffline")) == counts["RobotOffline"] + 1, "said once"
     assert len(fleet.events("ModuleMoved")) == counts["ModuleMoved"]
     fleet.converge()

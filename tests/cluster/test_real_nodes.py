@@ -842,7 +842,8 @@ def test_a_robot_cut_off_longer_than_the_eviction_delay_keeps_its_pods_and_nothi
     assert not any(deleting for _uid, _restarts, deleting in before.values()), before
     assert seen["during"] == before, "an onboard pod was evicted, deleted or restarted while its robot was offline"
     assert seen["after"] == before, "the same pods, the same restart counts after the robot is back"
-    assert seen["running_after"] == seen["running_before"], "every module runs where it ran"
+    placed = instances(deployed)
+    assert {i: seen["running_after"][i] for i in placed} == placed, "every module runs where it was placed"
     assert all(r["note"].startswith("robot offline since") for r in seen["offline_rows"]), seen["offline_rows"]
     said = seen["robot_offline_events"]
     assert said and all("robot robot-1 is offline" in message for message in said), said
@@ -867,6 +868,9 @@ def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_ag
         moved = sorted(name for name, node in before.items() if node == victim)
         assert moved, f"nothing runs on {victim}: {before}"
         nodes = RealNodes.from_state(real.plane(), {})
+        # The controller's probe counts a node down only once its kubelet has answered it (a kubelet silent from
+        # the start is left to Kubernetes): let it probe a few rounds first.
+        time.sleep(3)
         assert nodes.stop_kubelet(victim)
         started = time.monotonic()
 

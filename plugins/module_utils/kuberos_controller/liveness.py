@@ -21,6 +21,7 @@ Pure over ``connect`` and ``clock``, so the rules are testable without sockets (
 from __future__ import annotations
 
 import concurrent.futures
+import logging
 import socket
 import threading
 import time
@@ -28,6 +29,7 @@ from dataclasses import dataclass, field
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
 
+log = logging.getLogger("kuberos.controller")
 KUBELET_PORT = 10250
 FAILURES = 3  # probes in a row that fail before a node counts as down
 SERVER_ROLES = ("edge", "cloud")
@@ -64,6 +66,7 @@ class NodeProbe:
     connect: object = tcp_connect
     clock: object = time.time
     answered: set = field(default_factory=set)  # nodes that answered at least once
+    silent: set = field(default_factory=set)  # nodes said (once) never to have answered
     streak: dict = field(default_factory=dict)  # node -> (failures in a row, time of the first)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -88,9 +91,19 @@ class NodeProbe:
                 else:
                     count, first = self.streak.get(node, (0, started))
                     self.streak[node] = (count + 1, first)
+                    if count + 1 == FAILURES and node not in self.answered and node not in self.silent:
+                        self.silent.add(node)
+                        log.info("node %s: its kubelet at %s:%d never answered; left to Kubernetes' node status",
+                                 node, targets[node], self.port)  # fmt: skip
             for node in set(self.streak) - set(targets):
                 del self.streak[node]  # gone from the cluster (or now a robot): Kubernetes' status says the rest
-            return set(self._down()) != before
+            after = set(self._down())
+            for node in sorted(after - before):
+                log.warning("node %s: its kubelet at %s:%d has not answered %d probes in a row: down", node,
+                            targets.get(node, "?"), self.port, FAILURES)  # fmt: skip
+            for node in sorted(before - after):
+                log.info("node %s: its kubelet answers again", node)
+            return after != before
 
     def _down(self) -> dict[str, float]:
         return {n: first for n, (count, first) in self.streak.items() if count >= FAILURES and n in self.answered}
