@@ -68,7 +68,9 @@ status: setup
 ## and Calico's programs, built from Calico's Go module and ../shared/third_party's api/ tree).
 ## The collection's images and the lab machines' Debian root are built beside the Go programs (downloads and disk
 ## more than CPU; their log: $(PREBUILD_LOG)); a build that fails there fails again in the test that needs it, which
-## says why. Then pytest in two lanes side by side (docs/testing.md).
+## says why. Then pytest in two lanes side by side (docs/testing.md), while the images of the lab machines' cluster
+## (kubeadm's and Calico's, from the Go programs) are built beside the first tests (the molecule scenarios and the
+## site chain, which need them, come later in their lane and wait for the build if it is not done).
 PREBUILD_LOG := $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/prebuild.log
 test: setup
 	@mkdir -p "$${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}"; \
@@ -79,7 +81,12 @@ test: setup
 	  && roles/local_cluster/files/build-calico.sh \
 	  && scripts/operator-crds.sh >/dev/null; built=$$?; \
 	wait $$prebuild || echo "make test: the images or the machines' root did not build here ($(PREBUILD_LOG)); the tests that need them build them again"; \
-	[ $$built -eq 0 ] && $(VENV)/python -m pytest -n 2 --dist loadgroup
+	[ $$built -eq 0 ] || exit 1; \
+	PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.machines \
+	  site-images >>"$(PREBUILD_LOG)" 2>&1 & images=$$!; \
+	$(VENV)/python -m pytest -n 2 --dist loadgroup; tested=$$?; \
+	wait $$images || echo "make test: the lab machines' images did not build beside the tests ($(PREBUILD_LOG))"; \
+	exit $$tested
 
 unit: setup
 	$(VENV)/python -m pytest tests/unit

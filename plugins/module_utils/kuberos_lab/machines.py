@@ -763,6 +763,10 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     root = sub.add_parser("root", help="build (or reuse) the machines' Debian root in the cache; print its folder")
     root.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
+    images = sub.add_parser(
+        "site-images", help="build (or reuse) the images the machines' cluster runs (kubeadm's, Calico's); print them"
+    )
+    images.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
     down = sub.add_parser("down", help="power off, remove mounts, cgroups, namespaces and links")
     down.add_argument("--state", required=True)
     down.add_argument("--remove", action="store_true", help="also delete the machines' files and the state")
@@ -770,6 +774,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "root":
             print(build_image(args.cache_dir))
+        elif args.command == "site-images":
+            print("\n".join(site_vars(args.cache_dir)["node_prereqs_image_archives"]))
         elif args.command == "up":
             specs = []
             for text in args.machine:
