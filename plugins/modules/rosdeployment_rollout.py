@@ -139,7 +139,7 @@ summary:
   type: str
 pending_robots:
   description:
-    - Robots that were offline (their computer's node not Ready): none of their modules was touched and nothing waited
+    - Robots that were offline (their computer's node not Ready). None of their modules was touched and nothing waited
       for them. The next rollout run (the same spec again) finishes them once they are back.
   returned: always
   type: list
