@@ -41,6 +41,7 @@ from real_tier import (  # noqa: E402  (the tests' driver of the real-node tier)
     events_of,
     new_events,
     node_ready,
+    placed_instances,
     programs_configmap,
     running_where_placed,
     wait_for,
@@ -58,12 +59,6 @@ NOT_MEASURED = {
     "rollout_downtime_with_prestage_s": "rollouts with images pre-pulled on a bandwidth-limited link",
     "rollout_downtime_without_prestage_s": "the same without pre-pulling",
 }
-
-
-def placed_instances(placement: dict) -> dict[str, str]:
-    wanted = {i["name"]: i["node"] for i in placement["instances"]}
-    wanted.update({s["name"]: s["node"] for fleet in placement["discovery"] for s in fleet["servers"]})
-    return wanted
 
 
 def failover(real: RealCluster, namespace: str, placed: dict[str, str], trial: int) -> tuple[dict, dict[str, str]]:

@@ -457,14 +457,26 @@ def new_events(core, namespace, reason, before: dict) -> list[tuple[str, str]]:
     return [event for uid, event in events_of(core, namespace, reason).items() if uid not in before]
 
 
-def running_where_placed(core, namespace, placed: dict) -> dict | None:
-    """Instance -> node of the Running and Ready pods, when every placed instance (``placed``: instance -> node)
-    has one on its node; else None."""
-    now = {
+def placed_instances(placement: dict) -> dict[str, str]:
+    """Deployment name -> node, for every module instance and discovery server of a placement (placement.json)."""
+    wanted = {inst["name"]: inst["node"] for inst in placement["instances"]}
+    wanted.update({server["name"]: server["node"] for fleet in placement["discovery"] for server in fleet["servers"]})
+    return wanted
+
+
+def running_instances(core, namespace) -> dict[str, str]:
+    """Instance -> node of the KubeROS pods that are Running and Ready (not being deleted)."""
+    return {
         p.metadata.labels.get("kuberos.io/instance"): p.spec.node_name
         for p in core.list_namespaced_pod(namespace, label_selector="kuberos.io/instance").items
         if pod_ready(p)
     }
+
+
+def running_where_placed(core, namespace, placed: dict) -> dict | None:
+    """``running_instances``, when every placed instance (``placed``: instance -> node) has one on its node; else
+    None."""
+    now = running_instances(core, namespace)
     return now if all(now.get(name) == node for name, node in placed.items()) else None
 
 

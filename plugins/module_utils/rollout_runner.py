@@ -437,13 +437,8 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     options = render_options(params)
     # What runs: the record's state, except the modules of robots an earlier rollout left pending while they were
     # offline (they still run the older image); robots offline now are left pending in turn.
-    live = (
-        json.loads(
-            clients["apps"]
-            .list_namespaced_deployment(namespace, label_selector=f"{DEPLOYMENT}={dep.name}", _preload_content=False)
-            .data
-        ).get("items")
-        or []
+    live = cluster_state._items(
+        clients["apps"].list_namespaced_deployment(namespace, label_selector=f"{DEPLOYMENT}={dep.name}", _preload_content=False)
     )
     before = behind_live(render_deployment(record.deployments, record.placement, record.options), live)
     after = render_deployment([dep], placement, options)

@@ -42,11 +42,13 @@ from real_tier import (
     events_of,
     lease_holder,
     logs,
+    placed_instances,
     pod_ready,
     program_pod,
     programs_configmap,
     prometheus_api,
     prometheus_objects,
+    running_instances,
     wait_for,
 )  # fmt: skip
 
@@ -238,35 +240,17 @@ def deployed(real, tmp_path_factory):
     return placement
 
 
-def instances(placement):
-    """Deployment name -> node, for every module instance and discovery server of the placement."""
-    wanted = {inst["name"]: inst["node"] for inst in placement["instances"]}
-    wanted.update({server["name"]: server["node"] for fleet in placement["discovery"] for server in fleet["servers"]})
-    return wanted
-
-
-def running_pods(real, namespace):
-    return {
-        p.metadata.labels.get("kuberos.io/instance"): p.spec.node_name
-        for p in real.core.list_namespaced_pod(namespace).items
-        if p.status.phase == "Running"
-        and p.metadata.deletion_timestamp is None
-        and p.metadata.labels.get("kuberos.io/instance")
-        and all(s.ready for s in p.status.container_statuses or [])
-    }
-
-
 def fleet_namespace(placement):
     return placement["deployments"][0]["namespace"]
 
 
 def test_deployed_instances_run_as_pods_on_the_nodes_the_placement_names(real, deployed):
-    wanted = instances(deployed)
+    wanted = placed_instances(deployed)
     assert wanted and set(wanted.values()) <= set(NODES), deployed
     namespace = fleet_namespace(deployed)
     started = time.monotonic()
     wait_for(
-        lambda: running_pods(real, namespace) == wanted or None,
+        lambda: running_instances(real.core, namespace) == wanted or None,
         300,
         f"every instance Running and Ready where placed: {wanted}",
         2,
@@ -833,7 +817,7 @@ def test_a_robot_cut_off_longer_than_the_eviction_delay_keeps_its_pods_and_nothi
     assert real.play("controller.yml", "-e", json.dumps(extra)).returncode == 0
     status = f"kuberos-status-{deployed['deployments'][0]['name']}"
     try:
-        seen = cut_off_robot(real, namespace, instances(deployed), "robot-1", lab, status, GRACE + 8, UNREACHABLE_S)
+        seen = cut_off_robot(real, namespace, placed_instances(deployed), "robot-1", lab, status, GRACE + 8, UNREACHABLE_S)
     finally:
         extra["controller_state"] = "stopped"
         real.play("controller.yml", "-e", json.dumps(extra))
@@ -842,7 +826,7 @@ def test_a_robot_cut_off_longer_than_the_eviction_delay_keeps_its_pods_and_nothi
     assert not any(deleting for _uid, _restarts, deleting in before.values()), before
     assert seen["during"] == before, "an onboard pod was evicted, deleted or restarted while its robot was offline"
     assert seen["after"] == before, "the same pods, the same restart counts after the robot is back"
-    placed = instances(deployed)
+    placed = placed_instances(deployed)
     assert {i: seen["running_after"][i] for i in placed} == placed, "every module runs where it was placed"
     assert all(r["note"].startswith("robot offline since") for r in seen["offline_rows"]), seen["offline_rows"]
     said = seen["robot_offline_events"]
@@ -863,7 +847,7 @@ def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_ag
     extra = {"controller_kubeconfig": real.kubeconfig, "controller_state_dir": state, "controller_grace": GRACE}
     assert real.play("controller.yml", "-e", json.dumps(extra)).returncode == 0
     try:
-        before = running_pods(real, namespace)
+        before = running_instances(real.core, namespace)
         victim = "edge-2"
         moved = sorted(name for name, node in before.items() if node == victim)
         assert moved, f"nothing runs on {victim}: {before}"
@@ -875,7 +859,7 @@ def test_a_stopped_kubelet_makes_the_controller_move_its_modules_and_they_run_ag
         started = time.monotonic()
 
         def moved_and_running():
-            now = running_pods(real, namespace)
+            now = running_instances(real.core, namespace)
             return all(now.get(name) not in (None, victim) for name in moved) and now
 
         after = wait_for(moved_and_running, 240, f"{moved} Running off {victim}", 0.5)

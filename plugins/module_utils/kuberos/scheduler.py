@@ -70,9 +70,14 @@ class Scheduler:
         return scheduler
 
     # -- feasibility -------------------------------------------------------------------------
-    def rejection(self, node: Node, module: RosModule, robots, cpu: int, memory: int, gpu: int) -> str | None:
-        """Why ``node`` cannot run this instance for ``robots``, or None when it can."""
-        why = self.unavailable.get(node.name) or self.avoid.get(node.name)
+    def rejection(
+        self, node: Node, module: RosModule, robots, cpu: int, memory: int, gpu: int, keeping: bool = False
+    ) -> str | None:
+        """Why ``node`` cannot run this instance for ``robots``, or None when it can. ``keeping``: the instance runs
+        there already, and a robot's computer that is offline keeps what runs on it (docs/connectivity.md): being
+        unavailable is no reason to move it, only to place nothing new there."""
+        offline_robot = keeping and node.tier == "onboard"
+        why = (None if offline_robot else self.unavailable.get(node.name)) or self.avoid.get(node.name)
         if why:
             return why
         return self.requirement_rejection(node, module, robots) or self.capacity_rejection(node, cpu, memory, gpu)
@@ -438,15 +443,7 @@ def _keep_previous(scheduler: Scheduler, deployments: list[RosDeployment], targe
         if node not in scheduler.candidates(node.tier, dep.fleet, robots[0]):
             continue
         res = module.resources
-        if node.tier == "onboard" and node.name in scheduler.unavailable:
-            # A robot that is offline keeps what runs on it (docs/connectivity.md): its node being unavailable is
-            # no reason to move it, only to place nothing new there.
-            why = scheduler.requirement_rejection(node, module, robots) or scheduler.capacity_rejection(
-                node, res.cpu_millis, res.memory_bytes, res.gpu
-            )
-        else:
-            why = scheduler.rejection(node, module, robots, res.cpu_millis, res.memory_bytes, res.gpu)
-        if why is not None:
+        if scheduler.rejection(node, module, robots, res.cpu_millis, res.memory_bytes, res.gpu, keeping=True) is not None:
             continue
         scheduler.take(node.name, res.cpu_millis, res.memory_bytes, res.gpu)
         scheduler.kept[inst.name] = _kept_instance(inst, module, robots)

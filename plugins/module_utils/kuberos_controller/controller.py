@@ -217,13 +217,14 @@ class Controller:
             ready = next((c for c in node.get("status", {}).get("conditions", []) if c.get("type") == "Ready"), None)
             ok = bool(ready) and ready.get("status") == "True"
             condition = f"Ready={ready.get('status')} ({ready.get('reason', '')})" if ready else ""
-            view.nodes[name] = NodeView(name, ok, condition, _epoch(ready.get("lastTransitionTime")) if ready else None)
-            if ok and meta["name"] in down:
-                since = down[meta["name"]]
+            since = _epoch(ready.get("lastTransitionTime")) if ready else None
+            probe = ""
+            if ok and meta["name"] in down:  # Ready to Kubernetes, but its kubelet stopped answering the probe
+                ok, since = False, down[meta["name"]]
                 probe = (
                     f"its kubelet has not answered the controller's probes since {time.strftime('%H:%M:%S', time.gmtime(since))}"
                 )
-                view.nodes[name] = NodeView(name, False, condition, since, probe)
+            view.nodes[name] = NodeView(name, ok, condition, since, probe)
             robot = (meta.get("labels") or {}).get(node_labels.ROBOT)
             rtt = (meta.get("annotations") or {}).get(RTT_ANNOTATION)
             if robot and rtt:

@@ -15,7 +15,7 @@ What it never does:
 - count a node down that never answered: a site whose firewall keeps the controller from kubelet ports (or a node
   with no InternalIP) is left to Kubernetes' node status alone, rather than seen as dead.
 
-Pure over ``connect`` and ``clock``, so the rules are testable without sockets (tests/unit/test_liveness.py).
+Pure over ``connect`` and ``clock``, so the rules are testable without sockets (tests/unit/test_controller_parts.py).
 """
 
 from __future__ import annotations
@@ -121,6 +121,6 @@ class NodeProbe:
             try:
                 if self.probe(server_targets(nodes())):
                     changed.set()
-            except Exception:  # a probe round never stops the controller
-                pass
+            except Exception as exc:  # a probe round never stops the controller
+                log.debug("node probe round failed: %s: %s", exc.__class__.__name__, exc)
             stop.wait(max(0.0, self.interval_s - (time.monotonic() - started)))
