@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit molecule schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -69,8 +69,8 @@ status: setup
 ## The collection's images and the lab machines' Debian root are built beside the Go programs (downloads and disk
 ## more than CPU; their log: $(PREBUILD_LOG)); a build that fails there fails again in the test that needs it, which
 ## says why. Then pytest in two lanes side by side (docs/testing.md), while the images of the lab machines' cluster
-## (kubeadm's and Calico's, from the Go programs) are built beside the first tests (the molecule scenarios and the
-## site chain, which need them, come later in their lane and wait for the build if it is not done).
+## (kubeadm's and Calico's, from the Go programs) are built beside the first tests (the site chain, which needs them,
+## comes later in its lane and waits for the build if it is not done).
 PREBUILD_LOG := $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/prebuild.log
 test: setup
 	@mkdir -p "$${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}"; \
@@ -90,6 +90,13 @@ test: setup
 
 unit: setup
 	$(VENV)/python -m pytest tests/unit
+
+## Every molecule scenario run whole (as root), also those on lab machines that `make test` only syntax-checks because
+## the site chain runs their roles (kubeadm_init, kubeadm_join, calico; docs/testing.md). S=NAME runs one.
+molecule: setup
+	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1
+	@roles/local_cluster/files/build-calico.sh
+	KUBEROS_MACHINE_SCENARIOS=1 $(VENV)/python -m pytest tests/molecule $(if $(S),-k "$(S)")
 
 ## Lint as the ecosystem does: ruff, yamllint, ansible-lint (production profile), ansible-test sanity on the built
 ## collection and the tarball's contents (tests/lint; docs/testing.md). Set-up first: it works on a fresh clone.

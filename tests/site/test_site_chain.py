@@ -93,6 +93,22 @@ def test_site_yml_builds_an_ha_cluster_with_the_cloud_vm_over_the_vpn(chain):
     assert len(site_lab.vip_holders(chain.lab.machines, CONTROL_PLANES)) == 1
     members = site_lab.etcd_members(chain.lab.machines, "edge-a")
     assert members == sorted(CONTROL_PLANES), members
+    # edge servers run modules: no taint but the node lifecycle's own (the kubeadm_init scenario's check)
+    edge = (*CONTROL_PLANES, EDGE_WORKER)
+    edge_taints = {n: [t for t in found[n]["taints"] if not t.startswith("node.kubernetes.io/")] for n in edge}
+    assert not any(edge_taints.values()), edge_taints
+    # every control plane's static pods, and kube-proxy ready on every node (the kubeadm scenarios' checks)
+    parts = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler")
+    static = {f"{part}-{cp}" for part in parts for cp in CONTROL_PLANES}
+
+    def running_and_proxies():
+        pods = chain.core.list_namespaced_pod("kube-system").items
+        running = {p.metadata.name for p in pods if p.status.phase == "Running"}
+        ready = [p for p in pods if p.status.container_statuses and all(c.ready for c in p.status.container_statuses)]
+        proxied = {p.spec.node_name for p in ready if p.metadata.name.startswith("kube-proxy-")}
+        return static <= running and proxied == set(found) and (running, proxied)
+
+    site_lab.wait_for("the control planes' static pods and kube-proxy ready on every node", running_and_proxies, 180)
 
 
 def test_pods_reach_each_other_across_nodes_and_the_vpn_and_a_policy_refuses(chain):
