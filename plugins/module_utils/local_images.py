@@ -215,6 +215,16 @@ class ImageBuildError(RuntimeError):
 # --- helpers ---------------------------------------------------------------------------------------------------
 
 
+def debootstrap_command(suite: str, target: str, mirror: str, packages: list[str] | tuple[str, ...]) -> list[str]:
+    """debootstrap (minbase with ``packages``) in a mount namespace of its own: the file systems it mounts inside
+    the root it builds (/proc and others) are its alone, so nothing else on this machine sees them (the host
+    snapshots of the lab's tests, which run beside the builds), and they go when it exits, however it exits."""
+    return [
+        "unshare", "--mount", "--propagation", "private",
+        "debootstrap", "--variant=minbase", f"--include={','.join(packages)}", suite, target, mirror,
+    ]  # fmt: skip
+
+
 def _run(command: list[str], *, timeout: float = BUILD_TIMEOUT, env: dict | None = None, what: str = "") -> str:
     """Run a command; its output (stdout and stderr together) on success, ImageBuildError with the tail if not."""
     try:
@@ -508,7 +518,7 @@ def _image_environment(rootfs: str) -> dict[str, str]:
 
 def _build_base(images: str, key: str, lines: list[str], python: str, python_version: str, log) -> str:
     """Build the base layout into images/base-<key>/ (returns that directory)."""
-    _require_programs("debootstrap", "chroot", "umoci")
+    _require_programs("debootstrap", "unshare", "chroot", "umoci")
     if os.geteuid() != 0:
         raise ImageBuildError("building the ROS image's base needs root (debootstrap, chroot, root-owned files)")
     started, since = time.monotonic(), time.time()
@@ -524,10 +534,7 @@ def _build_base(images: str, key: str, lines: list[str], python: str, python_ver
     step = time.monotonic()
     log(f"local images: debootstrap {DEBIAN_SUITE} ({', '.join(DEBIAN_PACKAGES)}) from {DEBIAN_MIRROR}")
     with _progress(log, f"debootstrap {DEBIAN_SUITE}"):
-        _run(
-            ["debootstrap", "--variant=minbase", f"--include={','.join(DEBIAN_PACKAGES)}", DEBIAN_SUITE, rootfs, DEBIAN_MIRROR],
-            what="debootstrap",
-        )
+        _run(debootstrap_command(DEBIAN_SUITE, rootfs, DEBIAN_MIRROR, DEBIAN_PACKAGES), what="debootstrap")
     log(f"local images: debootstrap done in {time.monotonic() - step:.0f}s")
     chroot_env = {"PATH": "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin", "LANG": "C.UTF-8", "HOME": "/root"}
     image_python = _chroot(rootfs, ["python3", "-c", "import sys; print('%d.%d' % sys.version_info[:2])"], chroot_env).strip()

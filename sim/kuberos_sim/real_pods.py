@@ -72,7 +72,7 @@ def records(core, namespace: str) -> list[dict]:
                 text = core.read_namespaced_pod_log(pod.metadata.name, namespace, container=container.name)
             except Exception:
                 continue
-            found.extend(common.read_results(text))
+            found.extend(common.read_results(text or ""))  # a container that has written nothing yet: no log at all
     return found
 
 

@@ -71,15 +71,15 @@ def _node_base(folder: str, log) -> str:
     base = os.path.join(folder, f"node-base-{key}")
     if os.path.exists(os.path.join(base, "done")):
         return os.path.join(base, "rootfs")
-    li._require_programs("debootstrap")
+    li._require_programs("debootstrap", "unshare")
     work = base + ".tmp"
     li._remove(work)
     os.makedirs(work)
     started = time.monotonic()
     log(f"calico images: debootstrap {li.DEBIAN_SUITE} with {', '.join(NODE_PACKAGES)} for calico-node (about a minute)")
     with li._progress(log, "debootstrap for calico-node"):
-        li._run(["debootstrap", "--variant=minbase", f"--include={','.join(NODE_PACKAGES)}", li.DEBIAN_SUITE,
-                 os.path.join(work, "rootfs"), li.DEBIAN_MIRROR], what="debootstrap")  # fmt: skip
+        li._run(li.debootstrap_command(li.DEBIAN_SUITE, os.path.join(work, "rootfs"), li.DEBIAN_MIRROR, NODE_PACKAGES),
+                what="debootstrap")  # fmt: skip
     li._strip(os.path.join(work, "rootfs"))
     with open(os.path.join(work, "done"), "w", encoding="utf-8") as handle:
         handle.write(json.dumps({"packages": NODE_PACKAGES}))

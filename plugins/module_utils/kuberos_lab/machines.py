@@ -173,7 +173,7 @@ def build_image(cache_dir: str, log=print) -> str:
         started = time.monotonic()
         log(f"lab machines: debootstrap {SUITE} with {len(PACKAGES)} packages into {work} (about a minute)")
         done = subprocess.run(
-            ["debootstrap", "--variant=minbase", f"--include={','.join(PACKAGES)}", SUITE, work, MIRROR],
+            li.debootstrap_command(SUITE, work, MIRROR, PACKAGES),
             capture_output=True, text=True, timeout=1800, check=False,
         )  # fmt: skip
         if done.returncode != 0:
