@@ -69,6 +69,12 @@ class Lab:
         self.addresses[role] = address
         return namespace
 
+    def set_connected(self, role: str, on: bool) -> None:
+        """Cut a namespace off the bridge (its port down: every packet to and from it dropped), or connect it again,
+        as a robot's wireless link drops and comes back. Its processes keep running."""
+        port = self.ports[list(self.namespaces).index(role)]
+        run("ip", "link", "set", port, "up" if on else "down")
+
     def set_multicast_flood(self, on: bool) -> None:
         for port in self.ports:
             run("bridge", "link", "set", "dev", port, "mcast_flood", "on" if on else "off")
@@ -152,12 +158,13 @@ class Process:
             self.popen.wait(STOP_TIMEOUT)
 
 
-def spawn(name: str, command: list[str], env: dict[str, str], directory: str) -> Process:
-    """``command`` in a session of its own (so that killing its group kills nothing else), output to <name>.log."""
+def spawn(name: str, command: list[str], env: dict[str, str], directory: str, cwd: str | None = None) -> Process:
+    """``command`` in a session of its own (so that killing its group kills nothing else), output to <name>.log
+    (appended: a process started again under its name, as a restarted container, keeps one log)."""
     log = os.path.join(directory, f"{name}.log")
-    with open(log, "wb") as out:
+    with open(log, "ab") as out:
         popen = subprocess.Popen(
-            command, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, start_new_session=True
+            command, env=env, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, start_new_session=True, cwd=cwd
         )
     return Process(name, popen, log)
 
@@ -167,10 +174,12 @@ class Processes:
         self.lab, self.directory, self.started = lab, directory, []
         self.base_env = ros_environment(log_dir=os.path.join(directory, "ros-log"))
 
-    def start(self, name: str, role: str, command: list[str], env: dict[str, str] | None = None) -> Process:
+    def start(
+        self, name: str, role: str, command: list[str], env: dict[str, str] | None = None, cwd: str | None = None
+    ) -> Process:
         """Run command in the role's namespace with a private /dev/shm and the venv's environment plus env."""
         wrapped = [shutil.which("ip"), "netns", "exec", self.lab.namespaces[role], "sh", "-c", PRIVATE_SHM, "sh", *command]
-        process = spawn(name, wrapped, {**self.base_env, **(env or {})}, self.directory)
+        process = spawn(name, wrapped, {**self.base_env, **(env or {})}, self.directory, cwd)
         self.started.append(process)
         return process
 

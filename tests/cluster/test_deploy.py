@@ -66,10 +66,12 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
         assert pod.spec.node_name == inst["node"], inst["name"]  # bound by kube-scheduler, pinned by nodeSelector
         assert pod.status.phase == "Running"
         env = {e.name: e.value for e in pod.spec.containers[0].env}
-        assert env["ROS_DISCOVERY_SERVER"] == (
-            "kuberos-discovery-0.kuberos-test-fleet.svc.cluster.local:11811;"
-            "kuberos-discovery-1.kuberos-test-fleet.svc.cluster.local:11811"
+        # the Services' cluster IPs, which the kubelet expands (the fleet's namespace holds both Services)
+        assert (
+            env["ROS_DISCOVERY_SERVER"] == "$(KUBEROS_DISCOVERY_0_SERVICE_HOST):11811;$(KUBEROS_DISCOVERY_1_SERVICE_HOST):11811"
         )
+        services = {s.metadata.name for s in core.list_namespaced_service(namespace).items}
+        assert {"kuberos-discovery-0", "kuberos-discovery-1"} <= services, services
         assert env["ROS_DOMAIN_ID"] == "7" and env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp"
     for server in placement["discovery"][0]["servers"]:
         assert pods[server["name"]].spec.node_name == server["node"]
@@ -131,7 +133,10 @@ def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
     for name, pod in warehouse.items():
         if not name.startswith("kuberos-discovery"):
             env = {e.name: e.value for e in pod.spec.containers[0].env}
-            assert env["ROS_DISCOVERY_SERVER"].count("kuberos-warehouse-fleet") == 3
+            assert (
+                env["ROS_DISCOVERY_SERVER"].count("_SERVICE_HOST):11811") == 3
+                and pod.metadata.namespace == "kuberos-warehouse-fleet"
+            )
 
     # Undeploy the two-fleet file: its deployments go; pick-and-place (same test-fleet) stays.
     before = resource_versions(apps, core, "kuberos-test-fleet")

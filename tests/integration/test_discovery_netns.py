@@ -4,9 +4,9 @@ listing1 is rendered with the project's own code, and what it renders is used un
 server Deployment's container args (`fast-discovery-server -i <id> -l 0.0.0.0 -p 11811`, the program
 from the ros-fastrtps wheel) runs in a network namespace of its own, and rclpy talker and listener
 processes run in others with a module container's environment (ROS_DISCOVERY_SERVER, RMW_IMPLEMENTATION,
-ROS_DOMAIN_ID, ...). /etc/netns/<ns>/hosts resolves the servers' cluster DNS names to the namespaces'
-addresses, and every process gets a private /dev/shm, as pods on different nodes would, so that all
-traffic crosses the bridge.
+ROS_DOMAIN_ID, ...), its references to the servers' Services (``$(KUBEROS_DISCOVERY_0_SERVICE_HOST)``) expanded
+to the namespaces' addresses as the kubelet expands them to the Services' cluster IPs, and every process gets a
+private /dev/shm, as pods on different nodes would, so that all traffic crosses the bridge.
 
 The bridge joining the namespaces floods no multicast (multicast snooping off, mcast_flood off on every
 port), so participants can meet only through the discovery servers. The negative control shows it: without
@@ -30,7 +30,7 @@ import pytest
 from helpers import ROOT
 from netlab import Lab, Process, Processes, open_lab  # test_bridge.py and bench/bench_bridge.py import them from here
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, scheduler, spec
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, naming, scheduler, spec
 from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_problem
 
 pytestmark = pytest.mark.ros
@@ -63,8 +63,8 @@ def require_ros() -> None:
 @dataclass(frozen=True)
 class Rendered:
     servers: dict[str, list[str]]  # discovery server Deployment name -> its container args
-    addresses: dict[str, str]  # host name in ROS_DISCOVERY_SERVER -> the discovery server Deployment it names
-    module_env: dict[str, dict[str, str]]  # module Deployment name -> its container's environment
+    addresses: dict[str, str]  # service link in ROS_DISCOVERY_SERVER -> the discovery server Deployment it names
+    module_env: dict[str, dict[str, str]]  # module Deployment name -> its container's environment (as rendered)
 
 
 def container_env(deployment: dict) -> dict[str, str]:
@@ -86,10 +86,7 @@ def rendered(local_inventory) -> Rendered:
     servers = {
         d["metadata"]["name"]: d["spec"]["template"]["spec"]["containers"][0]["args"] for d in by_component["discovery-server"]
     }
-    dns_names = {
-        f"{d['metadata']['name']}.{d['metadata']['namespace']}.svc.{options.cluster_domain}": d["metadata"]["name"]
-        for d in by_component["discovery-server"]
-    }
+    links = {naming.service_host_variable(d["metadata"]["name"]): d["metadata"]["name"] for d in by_component["discovery-server"]}
     module_env = {d["metadata"]["name"]: container_env(d) for d in by_component["ros-module"]}
     values = {env["ROS_DISCOVERY_SERVER"] for env in module_env.values()}
     assert len(values) == 1, f"modules of one fleet disagree on ROS_DISCOVERY_SERVER: {values}"
@@ -97,15 +94,23 @@ def rendered(local_inventory) -> Rendered:
     addresses = {}
     for slot in values.pop().split(";"):
         host, _port = slot.rsplit(":", 1)
-        assert host in dns_names, f"{host} in ROS_DISCOVERY_SERVER names no discovery server Deployment ({sorted(dns_names)})"
-        addresses[host] = dns_names[host]
+        variable = host.removeprefix("$(").removesuffix(")")
+        assert host == f"$({variable})" and variable in links, f"{host} in ROS_DISCOVERY_SERVER names no discovery Service"
+        addresses[variable] = links[variable]
     assert len(servers) == 2 and set(addresses.values()) == set(servers), (servers, addresses)
     return Rendered(servers=servers, addresses=addresses, module_env=module_env)
 
 
-def module_env(rendered: Rendered, module: str, robot: str) -> dict[str, str]:
+def module_env(rendered: Rendered, lab: Lab, module: str, robot: str) -> dict[str, str]:
+    """A module container's environment as the kubelet sets it: the discovery Services' links expanded to the
+    addresses of the namespaces that run their servers."""
     (name,) = [n for n, env in rendered.module_env.items() if n.endswith(f"-{module}-{robot}")]
-    return rendered.module_env[name]
+    links = {variable: lab.addresses[server_role(rendered, server)] for variable, server in rendered.addresses.items()}
+    return {k: manifests.expand_references(v, links) for k, v in rendered.module_env[name].items()}
+
+
+def without_discovery(env: dict[str, str]) -> dict[str, str]:
+    return {k: v for k, v in env.items() if k != "ROS_DISCOVERY_SERVER"}
 
 
 # --- network namespaces (tests/netlab.py) -----------------------------------------------------------------
@@ -116,8 +121,6 @@ def lab(request, rendered) -> Lab:
     lab = open_lab(request, "ds0")
     for role in ("ds1", "talk", "listen", "late"):
         lab.add(role)
-    # ROS_DISCOVERY_SERVER's names resolve to the namespaces running the Deployments they name.
-    lab.write_hosts({host: lab.addresses[server_role(rendered, server)] for host, server in rendered.addresses.items()})
     return lab
 
 
@@ -168,9 +171,9 @@ def start_listener(procs: Processes, name: str, role: str, env: dict[str, str]) 
 def test_negative_control_without_ros_discovery_server_modules_never_meet(procs, lab, rendered):
     """Multicast is really blocked: simple discovery fails, and succeeds once the bridge floods multicast."""
     require_ros()
-    simple = {k: v for k, v in module_env(rendered, "fetch-controller-foxy", "fetch-1").items() if k != "ROS_DISCOVERY_SERVER"}
+    simple = without_discovery(module_env(rendered, lab, "fetch-controller-foxy", "fetch-1"))
     talker = start_talker(procs, "talker-simple", "talk", simple)
-    simple = {k: v for k, v in module_env(rendered, "fetch-motion-planner", "fetch-1").items() if k != "ROS_DISCOVERY_SERVER"}
+    simple = without_discovery(module_env(rendered, lab, "fetch-motion-planner", "fetch-1"))
     listener = start_listener(procs, "listener-simple", "listen", simple)
     deadline = time.monotonic() + NEGATIVE_WINDOW
     while time.monotonic() < deadline:
@@ -186,28 +189,28 @@ def test_negative_control_without_ros_discovery_server_modules_never_meet(procs,
     print(f"no discovery in {NEGATIVE_WINDOW:.0f} s without multicast; with multicast, the first message after {seconds:.1f} s")
 
 
-def test_modules_meet_through_the_rendered_discovery_servers(procs, rendered):
+def test_modules_meet_through_the_rendered_discovery_servers(procs, lab, rendered):
     require_ros()
     start_servers(procs, rendered)
-    talker = start_talker(procs, "talker", "talk", module_env(rendered, "fetch-controller-foxy", "fetch-1"))
-    listener = start_listener(procs, "listener", "listen", module_env(rendered, "fetch-motion-planner", "fetch-1"))
+    talker = start_talker(procs, "talker", "talk", module_env(rendered, lab, "fetch-controller-foxy", "fetch-1"))
+    listener = start_listener(procs, "listener", "listen", module_env(rendered, lab, "fetch-motion-planner", "fetch-1"))
     seconds = procs.wait_until(lambda: len(listener.received()) >= 3, DISCOVERY_TIMEOUT, "listener got no messages")
     assert talker.subscribers() == 1, procs.tails()
     print(f"listener received 3 messages {seconds:.1f} s after subscribing")
 
 
-def test_a_new_listener_meets_the_talker_through_server_1_after_server_0_is_killed(procs, rendered):
+def test_a_new_listener_meets_the_talker_through_server_1_after_server_0_is_killed(procs, lab, rendered):
     require_ros()
     servers = start_servers(procs, rendered)
     first, second = sorted(servers)
-    start_talker(procs, "talker", "talk", module_env(rendered, "fetch-controller-foxy", "fetch-1"))
-    listener = start_listener(procs, "listener", "listen", module_env(rendered, "fetch-motion-planner", "fetch-1"))
+    start_talker(procs, "talker", "talk", module_env(rendered, lab, "fetch-controller-foxy", "fetch-1"))
+    listener = start_listener(procs, "listener", "listen", module_env(rendered, lab, "fetch-motion-planner", "fetch-1"))
     procs.wait_until(lambda: listener.received(), DISCOVERY_TIMEOUT, "listener got no messages with both servers up")
 
     servers[first].kill(signal.SIGKILL)
     assert servers[first].popen.returncode is not None and servers[second].popen.poll() is None
     before = len(listener.received())
-    late = start_listener(procs, "listener-late", "late", module_env(rendered, "fetch-motion-planner", "fetch-2"))
+    late = start_listener(procs, "listener-late", "late", module_env(rendered, lab, "fetch-motion-planner", "fetch-2"))
     seconds = procs.wait_until(lambda: late.received(), DISCOVERY_TIMEOUT, f"a new listener got no messages without {first}")
     procs.wait_until(lambda: len(listener.received()) > before, DISCOVERY_TIMEOUT, "the first listener stopped receiving")
     assert servers[second].popen.poll() is None, procs.tails()

@@ -69,7 +69,7 @@ def test_discovery_only_through_the_discovery_servers(run):
     server 1 runs in this scenario."""
     _row, _records, fabric, directory = run
     rendered = os.path.join(directory, "rendered", "manifests", "kuberos-sim-fleet")
-    servers = ";".join(f"kuberos-discovery-{i}.kuberos-sim-fleet.svc.cluster.local:11811" for i in (0, 1))
+    servers = ";".join(f"$(KUBEROS_DISCOVERY_{i}_SERVICE_HOST):11811" for i in (0, 1))  # the Services' addresses
     modules = [f for f in os.listdir(rendered) if f.startswith("deployment-pick-and-place-")]
     assert len(modules) == 4
     for name in modules:

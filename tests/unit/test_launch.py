@@ -129,7 +129,8 @@ def test_every_container_shares_the_module_and_the_requests_add_up_to_the_placem
         assert container["volumeMounts"] == [{"name": "ros-parameters", "mountPath": "/etc/kuberos", "readOnly": True}]
     env = {e["name"]: e.get("value") for e in first["env"]}
     assert env["LOG_LEVEL"] == "debug" and env["KUBEROS_PARAMS_FILE"] == "/etc/kuberos/params.yaml"
-    assert env["ROS_DISCOVERY_SERVER"].startswith("kuberos-discovery-0.kuberos-warehouse-fleet.")
+    assert env["ROS_DISCOVERY_SERVER"].startswith("$(KUBEROS_DISCOVERY_0_SERVICE_HOST):")  # expanded by the kubelet
+    assert inst.namespace == "kuberos-warehouse-fleet", "in the namespace of its fleet's discovery Services"
 
 
 @pytest.mark.parametrize(

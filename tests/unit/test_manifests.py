@@ -88,9 +88,10 @@ def test_every_module_is_pinned_and_wired_to_its_fleets_discovery_servers(root, 
         assert len(servers) == len(expected)
         for server_id, address in enumerate(servers):
             host, port = address.rsplit(":", 1)
-            service, namespace = host.split(".")[:2]
-            assert service == f"kuberos-discovery-{server_id}"
-            assert (namespace, service) in services
+            # the Service's cluster IP as the kubelet expands it: a Service of the module's own namespace
+            service = f"kuberos-discovery-{server_id}"
+            assert host == f"$({service.upper().replace('-', '_')}_SERVICE_HOST)", host
+            assert (obj["metadata"]["namespace"], service) in services
             assert int(port) == expected[server_id].port
         assert env["KUBEROS_ROBOTS"] == ",".join(inst.robots)
         tolerations = pod.get("tolerations", [])
@@ -229,3 +230,15 @@ def test_libyaml_and_python_emitters_write_the_same_text():
     assert len(objects) > 40
     for obj in objects:
         assert manifest_yaml.dump_object(obj) == manifest_yaml.dump_object(obj, manifest_yaml.PURE_DUMPER)
+
+
+def test_references_expand_as_the_kubelet_expands_them():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, naming
+
+    links = {naming.service_host_variable("kuberos-discovery-0"): "10.96.0.12"}
+    assert links == {"KUBEROS_DISCOVERY_0_SERVICE_HOST": "10.96.0.12"}
+    assert manifests.expand_references("$(KUBEROS_DISCOVERY_0_SERVICE_HOST):11811", links) == "10.96.0.12:11811"
+    # unknown references stay as they are, $$ escapes a reference (Kubernetes' EnvVar.value rules)
+    assert manifests.expand_references("$(NOPE):1;$$(KUBEROS_DISCOVERY_0_SERVICE_HOST)", links) == (
+        "$(NOPE):1;$(KUBEROS_DISCOVERY_0_SERVICE_HOST)"
+    )

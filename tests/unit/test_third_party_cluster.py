@@ -57,7 +57,7 @@ def test_a_module_in_a_third_party_cluster_is_placed_there_with_a_bridge_at_the_
     pod = server["spec"]["template"]["spec"]
     assert pod["nodeSelector"] == {"device.kuberos.io/hostname": bridge.node}
     env = {e["name"]: e["value"] for e in pod["containers"][0]["env"]}
-    assert env["ROS_DISCOVERY_SERVER"].startswith("kuberos-discovery-0.kuberos-test-fleet.svc.cluster.local:11811;")
+    assert env["ROS_DISCOVERY_SERVER"].startswith("$(KUBEROS_DISCOVERY_0_SERVICE_HOST):11811;")  # the kubelet expands it
     assert pod["containers"][0]["args"][3:6] == ["server", "--listen", "0.0.0.0:50051"]
     service = next(o for o in main if o["kind"] == "Service" and o["metadata"]["name"] == bridge.name)
     assert service["spec"]["ports"][0]["nodePort"] == 30722, "the port the partner's client connects to"
@@ -76,7 +76,8 @@ def test_a_module_in_a_third_party_cluster_is_placed_there_with_a_bridge_at_the_
             assert "nodeSelector" not in spec and "tolerations" not in spec, "the partner's scheduler picks the node"
     planner = next(o for o in objects if o["metadata"]["name"] == "partner-planning-motion-planner-fetch-1")
     env = {e["name"]: e.get("value") for e in planner["spec"]["template"]["spec"]["containers"][0]["env"]}
-    assert env["ROS_DISCOVERY_SERVER"] == "kuberos-discovery-0.kuberos-test-fleet.svc.partner.local:11811"
+    assert env["ROS_DISCOVERY_SERVER"] == "$(KUBEROS_DISCOVERY_0_SERVICE_HOST):11811"  # the partner's own server's Service
+    assert planner["metadata"]["namespace"] == "kuberos-test-fleet" and ("Service", "kuberos-discovery-0") in names
     client = next(o for o in objects if o["metadata"]["name"] == "kuberos-bridge-client")
     args = client["spec"]["template"]["spec"]["containers"][0]["args"]
     assert args[3:8] == ["client", "--connect", "203.0.113.10:30722", "--server-name", "kuberos-bridge-partner-cloud"]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import re
 from dataclasses import dataclass
 
 from . import cyclonedds, naming, scaling
@@ -114,16 +115,29 @@ def _argument_value(argument, inst: Instance, options: RenderOptions) -> str | N
     return options.device_parameter(inst.node, argument.device, argument.parameter, robot)
 
 
-def discovery_server_list(servers: list[DiscoveryServer], cluster_domain: str) -> str:
-    """ROS_DISCOVERY_SERVER value: addresses separated by ';', the position being the server id."""
+def discovery_server_list(servers: list[DiscoveryServer]) -> str:
+    """ROS_DISCOVERY_SERVER value: addresses separated by ';', the position being the server id.
+
+    Each address is its Service's cluster IP as the kubelet expands it (``$(KUBEROS_DISCOVERY_0_SERVICE_HOST)``,
+    from the Services of the pod's namespace, which is the servers'), not its DNS name: Fast DDS rejects the whole
+    list when one name does not resolve and falls back to multicast discovery, which finds nothing here. A module
+    that starts while the cluster's DNS cannot be reached (a robot cut off from the edge servers that run it) would
+    stay deaf until restarted; with the cluster IP it meets the servers as soon as it reaches them."""
     by_id = {s.server_id: s for s in servers}
     slots = []
     for server_id in range(max(by_id) + 1 if by_id else 0):
         server = by_id.get(server_id)
-        slots.append(
-            naming.discovery_server_address(server.namespace, server.server_id, server.port, cluster_domain) if server else ""
-        )
+        slots.append(f"$({naming.service_host_variable(server.name)}):{server.port}" if server else "")
     return ";".join(slots)
+
+
+_REFERENCE = re.compile(r"\$\$|\$\(([A-Za-z_][A-Za-z0-9_.-]*)\)")
+
+
+def expand_references(value: str, variables: dict[str, str]) -> str:
+    """An env value as the kubelet expands it: ``$(NAME)`` becomes ``variables[NAME]`` when defined and stays as it
+    is otherwise, ``$$`` becomes ``$`` (for tools that start containers without a kubelet: the simulator, tests)."""
+    return _REFERENCE.sub(lambda m: "$" if m.group(0) == "$$" else variables.get(m.group(1), m.group(0)), value)
 
 
 # A robot that drops off the network (dead zones, roaming, lifts) is tainted unreachable or not-ready after the node
@@ -691,7 +705,7 @@ def render_remote(
             first = by_name[instances[0].deployment]
             server = DiscoveryServer(fleet, namespace, 0, naming.discovery_server_name(0), "", "cloud", first.discovery_port,
                                      f"the fleet's discovery server in cluster {bridge.cluster}")  # fmt: skip
-            discovery = discovery_server_list([server], cluster.cluster_domain)
+            discovery = discovery_server_list([server])
             objects = [_namespace(fleet, namespace)]
             objects.extend(_unpinned(o) if o["kind"] == "Deployment" else o for o in _discovery_objects(server, remote_options))
             labels = {MANAGED_BY: "kuberos", COMPONENT: "bridge-client", node_labels.FLEET: fleet, INSTANCE: naming.BRIDGE_CLIENT}
@@ -753,7 +767,7 @@ def render_deployment(
         objects.append(_namespace(fleet, namespace))
         for server in servers:
             objects.extend(_discovery_objects(server, options))
-    addresses = {f: discovery_server_list(placement.discovery[f], options.cluster_domain) for f in fleets}
+    addresses = {f: discovery_server_list(placement.discovery[f]) for f in fleets}
     modules = {(d.name, m.name): m for d in deployments for m in d.modules}
     seen_params = set()
     for fleet, bridges in sorted(placement.bridges.items()):

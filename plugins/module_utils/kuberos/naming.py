@@ -129,7 +129,14 @@ def discovery_server_name(server_id: int) -> str:
 
 
 def discovery_server_address(namespace: str, server_id: int, port: int, cluster_domain: str = "cluster.local") -> str:
+    """The server's cluster DNS name and port: for people and tools; modules name it by its Service's address."""
     return f"{discovery_server_name(server_id)}.{namespace}.svc.{cluster_domain}:{port}"
+
+
+def service_host_variable(service: str) -> str:
+    """The variable the kubelet sets in every container of a Service's namespace to the Service's cluster IP
+    (Kubernetes' service links: ``kuberos-discovery-0`` -> ``KUBEROS_DISCOVERY_0_SERVICE_HOST``)."""
+    return service.upper().replace("-", "_") + "_SERVICE_HOST"
 
 
 def bridge_server_name(cluster: str) -> str:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import yaml
 
-from ._core import Problem, SpecError, labels, manifests
+from ._core import Problem, SpecError, labels, manifests, naming
 
 MANIFEST_DIR = "manifests"
 DISCOVERY_COMPONENT = "discovery-server"
@@ -78,6 +78,16 @@ class RenderedDir:
     def nodes(self) -> list[str]:
         """Nodes any Deployment is pinned to, by name."""
         return sorted({d.node for d in self.deployments.values()})
+
+    def service_links(self, namespace: str, address_of) -> dict[str, str]:
+        """The service links the kubelet gives every container in ``namespace``: each Service's
+        ``<NAME>_SERVICE_HOST``, here the address (``address_of(node)``) of the node of its first Deployment."""
+        links = {}
+        for service, targets in self.service_targets():
+            nodes = sorted({d.node for d in targets})
+            if service.namespace == namespace and nodes:
+                links[naming.service_host_variable(service.name)] = address_of(nodes[0])
+        return links
 
     def service_targets(self) -> list[tuple[Service, list[Deployment]]]:
         """Each Service with its Deployments: same namespace, pod labels matching its selector."""
@@ -327,8 +337,12 @@ def configmap_files(configmap: dict, volume: dict) -> dict[str, bytes]:
     return {item["path"]: data[item["key"]] for item in items if item.get("key") in data}
 
 
-def resolve_env(container: Container, deployment: Deployment, pod_ip: str, configmaps: dict) -> dict[str, str]:
-    """The container's environment as the kubelet would set it on ``deployment.node`` at ``pod_ip``."""
+def resolve_env(
+    container: Container, deployment: Deployment, pod_ip: str, configmaps: dict, services: dict[str, str] | None = None
+) -> dict[str, str]:
+    """The container's environment as the kubelet would set it on ``deployment.node`` at ``pod_ip``: ``$(NAME)`` in a
+    value expanded from the entries before it and ``services`` (the service links of the pod's namespace, variable ->
+    value: ``RenderedDir.service_links``)."""
     fields = {
         "spec.nodeName": deployment.node,
         "metadata.name": f"{deployment.name}-sim",
@@ -339,7 +353,7 @@ def resolve_env(container: Container, deployment: Deployment, pod_ip: str, confi
     env: dict[str, str] = {}
     for entry in container.env:
         if "value" in entry:
-            env[entry["name"]] = entry["value"]
+            env[entry["name"]] = manifests.expand_references(entry["value"], {**(services or {}), **env})
             continue
         source = entry["valueFrom"]
         if "fieldRef" in source:

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 from . import cgroups, delays, netns
 from . import fabric as fabric_script
-from ._core import COLLECTIONS_DIR, SIM_DIR, Problem, SpecError, labels, ros_wheels
+from ._core import COLLECTIONS_DIR, SIM_DIR, Problem, SpecError, labels, manifests, ros_wheels
 from .processes import SimProcess, VolumeMount, launch, stop_all
 from .rendered import Deployment, RenderedDir, configmap_files, load_rendered, parse_deployment, resolve_env
 
@@ -404,7 +404,12 @@ class Runtime:
         chosen = next((c for c in dep.containers if container in (None, c.name)), None)
         if chosen is None:
             raise KeyError(f"{deployment} has no container {container!r}")
-        return resolve_env(chosen, dep, self.host_address(dep.node), self.rendered.configmaps)
+        return self._resolved_env(dep, chosen)
+
+    def _resolved_env(self, dep: Deployment, container) -> dict[str, str]:
+        """As the kubelet sets it on the Deployment's host, with the service links of its namespace."""
+        links = self.rendered.service_links(dep.namespace, self.host_address)
+        return resolve_env(container, dep, self.host_address(dep.node), self.rendered.configmaps, links)
 
     def _volumes(self, dep: Deployment, container_name: str, mounts) -> list[VolumeMount]:
         result = []
@@ -479,7 +484,7 @@ class Runtime:
         started = []
         for container in dep.containers:
             process_name = dep.name if len(dep.containers) == 1 else f"{dep.name}/{container.name}"
-            env = resolve_env(container, dep, self.host_address(dep.node), self.rendered.configmaps)
+            env = self._resolved_env(dep, container)
             mounts = self._volumes(dep, container.name, container.mounts)
             os.makedirs(os.path.join(self.run_dir, "metrics"), exist_ok=True)
             env["KUBEROS_METRICS_FILE"] = metrics_file(self.run_dir, process_name)
@@ -575,7 +580,8 @@ class Runtime:
 
     def fleet_env(self, fleet: str | None = None) -> dict[str, str]:
         """The environment every ROS module Deployment of the fleet shares as rendered (ROS_DISCOVERY_SERVER,
-        RMW_IMPLEMENTATION, ROS_DOMAIN_ID, KUBEROS_FLEET, ...): for processes that join the fleet's ROS graph."""
+        RMW_IMPLEMENTATION, ROS_DOMAIN_ID, KUBEROS_FLEET, ...), once started with the Services' addresses expanded
+        as the kubelet expands them: for processes that join the fleet's ROS graph."""
         modules = [d for d in self.rendered.deployments.values() if not d.is_discovery_server]
         fleets = sorted({d.pod_labels.get(labels.FLEET, "") for d in modules})
         if fleet is None and len(fleets) != 1:
@@ -583,8 +589,9 @@ class Runtime:
         chosen = fleet if fleet is not None else fleets[0]
         shared: dict[str, str] | None = None
         for dep in (d for d in modules if d.pod_labels.get(labels.FLEET, "") == chosen):
+            links = self.rendered.service_links(dep.namespace, self.host_address) if self._started else {}
             for container in dep.containers:
-                values = {e["name"]: e["value"] for e in container.env if "value" in e}
+                values = {e["name"]: manifests.expand_references(e["value"], links) for e in container.env if "value" in e}
                 shared = values if shared is None else {k: v for k, v in shared.items() if values.get(k) == v}
         if shared is None:
             raise ValueError(f"no rendered module belongs to fleet {chosen!r}; fleets: {fleets}")

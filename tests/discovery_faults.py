@@ -1,0 +1,280 @@
+"""Fast DDS discovery under faults, with real rclpy processes in network namespaces (tests/netlab.py).
+
+Two procedures, each returning its figures: the test asserts on them (tests/integration/test_discovery_faults.py)
+and the benchmark records them (bench/bench_discovery.py), so both measure the same thing.
+
+- `restart_server`: the fleet's discovery server killed and started again, as a kubelet restarts its container.
+  Participants that ran before keep talking; a participant that starts afterwards must meet one that ran before
+  (new meets old), and one that ran before must meet one that starts afterwards (old meets new): the second needs the
+  restarted server to know the participants it had before, which it does only from its backup (`-b`).
+- `cut_off_robot`: a robot's link to the edge server dropped (the edge namespace's bridge port down; the cluster's
+  DNS, on the edge, unreachable too), with or without a discovery server on the robot's own computer in the
+  modules' ROS_DISCOVERY_SERVER. Onboard talker and listener matched before the cut; an onboard listener started
+  during it; an edge listener that must hear the robot again after it.
+
+The servers run the rendered discovery server's arguments (`manifests`), the processes a module container's
+environment. Every wait is bounded; traffic stays on the namespaces' bridge.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import sys
+import time
+
+from netlab import Lab, Process, Processes
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, manifests, naming
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import DiscoveryServer
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+TALKER = os.path.join(HERE, "integration", "ros", "talker.py")
+LISTENER = os.path.join(HERE, "integration", "ros", "listener.py")
+TOPIC, OTHER_TOPIC = "/kuberos_chatter", "/kuberos_other"
+FLEET = "fetch"
+PORT = 11811
+STARTUP_TIMEOUT = 20.0
+MEET_TIMEOUT = 30.0  # two participants that can meet do so within this, with a server up (test_discovery_netns)
+REDISCOVERY_TIMEOUT = 60.0  # three default leases (20 s) after a fault: a participant not met by then never is
+SERVER_ROLES = ("edge", "edge2")
+RESTART_ROLES = ("edge", "edge2", "talk", "listen", "late", "talk2")
+CUT_ROLES = ("edge", "robot", "talk", "listen", "late")
+
+
+def server_name(server_id: int) -> str:
+    """The fleet server's cluster DNS name, as modules' ROS_DISCOVERY_SERVER names it."""
+    return naming.discovery_server_address(naming.fleet_namespace(FLEET), server_id, PORT).rsplit(":", 1)[0]
+
+
+def _server(server_id: int) -> DiscoveryServer:
+    name = naming.discovery_server_name(server_id)
+    return DiscoveryServer(FLEET, naming.fleet_namespace(FLEET), server_id, name, "edge", "edge", PORT, "")
+
+
+def server_command(server_id: int, backup: bool) -> list[str]:
+    """The rendered discovery server's container arguments, with or without its backup (``-b``)."""
+    objects = manifests._discovery_objects(_server(server_id), manifests.RenderOptions())
+    (deployment,) = [o for o in objects if o["kind"] == "Deployment"]
+    args = [a for a in deployment["spec"]["template"]["spec"]["containers"][0]["args"] if a != "-b"]
+    return args + (["-b"] if backup else [])
+
+
+def discovery_servers(addresses: list[str], dns: bool = False) -> str:
+    """ROS_DISCOVERY_SERVER for servers 0.. at ``addresses``: as rendered, the Services' links expanded as the kubelet
+    does (to these addresses, standing for the cluster IPs), or with ``dns`` their cluster DNS names (what the
+    collection rendered before, which /etc/hosts resolves here while the edge is reachable)."""
+    if dns:
+        return ";".join(f"{server_name(i)}:{PORT}" for i in range(len(addresses)))
+    servers = [_server(i) for i in range(len(addresses))]
+    links = {naming.service_host_variable(s.name): address for s, address in zip(servers, addresses, strict=True)}
+    return manifests.expand_references(manifests.discovery_server_list(servers), links)
+
+
+def module_env(servers: str) -> dict[str, str]:
+    """A module container's ROS environment with ROS_DISCOVERY_SERVER ``servers``."""
+    return {
+        "ROS_DISCOVERY_SERVER": servers,
+        "RMW_IMPLEMENTATION": manifests.RMW,
+        "ROS_DOMAIN_ID": "0",
+        **dict(fastdds.TRANSPORT_ENV),
+    }
+
+
+def start_server(procs: Processes, name: str, role: str, server_id: int, backup: bool, peers: str = "") -> Process:
+    """A server in its own working directory (its backup file lives there, as in the pod's volume); started again
+    under the same name it appends to the same log, and is up when it has said so once more. ``peers``: the other
+    servers it connects to (ROS_DISCOVERY_SERVER with its own position empty), sharing what each knows."""
+    directory = os.path.join(procs.directory, name)
+    os.makedirs(directory, exist_ok=True)
+    log = os.path.join(procs.directory, f"{name}.log")
+    before = _server_lines(log)
+    env = {"ROS_DISCOVERY_SERVER": peers} if peers else None
+    process = procs.start(name, role, server_command(server_id, backup), env, cwd=directory)
+    procs.wait_until(
+        lambda: _server_lines(log) > before or process.popen.poll() is not None,
+        STARTUP_TIMEOUT,
+        f"{name} did not report itself running",
+    )
+    time.sleep(0.5)  # a server that fails at start fails here (a backup server reading its file: ServerCrashed)
+    if process.popen.poll() is not None:
+        raise ServerCrashed(f"{name} exited {process.popen.returncode} at start:\n{process.tail(5)}")
+    return process
+
+
+class ServerCrashed(RuntimeError):
+    """A discovery server that exited while starting."""
+
+
+def _server_lines(log: str) -> int:
+    if not os.path.exists(log):
+        return 0
+    with open(log, encoding="utf-8", errors="replace") as handle:
+        return len(re.findall(r"Server ID:\s+\d+", handle.read()))
+
+
+def start_talker(procs: Processes, name: str, role: str, env: dict[str, str], topic: str = TOPIC) -> Process:
+    talker = procs.start(name, role, [sys.executable, TALKER, topic, "0.1"], env)
+    procs.wait_until(lambda: len(talker.published()) >= 2, STARTUP_TIMEOUT, f"{name} did not start publishing")
+    return talker
+
+
+def start_listener(procs: Processes, name: str, role: str, env: dict[str, str], topic: str = TOPIC, wait=True) -> Process:
+    listener = procs.start(name, role, [sys.executable, LISTENER, topic], env)
+    if wait:
+        procs.wait_until(lambda: "ready" in listener.output().split(), STARTUP_TIMEOUT, f"{name} did not subscribe")
+    return listener
+
+
+def seconds_until(condition, timeout: float, poll: float = 0.1) -> float | None:
+    """Seconds until condition() held, None if it did not within timeout."""
+    start = time.monotonic()
+    while time.monotonic() - start < timeout:
+        if condition():
+            return round(time.monotonic() - start, 2)
+        time.sleep(poll)
+    return None
+
+
+def first_times(conditions: dict, timeout: float, poll: float = 0.1) -> dict[str, float | None]:
+    """Seconds from now until each condition first held, polled together (None: not within timeout)."""
+    start, found = time.monotonic(), {}
+    while time.monotonic() - start < timeout and len(found) < len(conditions):
+        for name, condition in conditions.items():
+            if name not in found and condition():
+                found[name] = round(time.monotonic() - start, 2)
+        time.sleep(poll)
+    return {name: found.get(name) for name in conditions}
+
+
+def lost(talker: Process, listener: Process, first: int, last: int) -> int:
+    """Messages ``first``..``last`` the talker published that the listener never received."""
+    received = set(listener.received())
+    return sum(1 for n in talker.published() if first <= n <= last and n not in received)
+
+
+def linked_peers(addresses: list[str], server_id: int) -> str:
+    """What server ``server_id`` of servers at ``addresses`` connects to: every other one, its own position empty."""
+    return ";".join("" if i == server_id else f"{address}:{PORT}" for i, address in enumerate(addresses))
+
+
+def restart_server(
+    lab: Lab,
+    procs: Processes,
+    backup: bool,
+    down_s: float = 1.0,
+    servers: int = 1,
+    linked: bool = False,
+    together: bool = False,
+) -> dict:
+    """Each edge server in turn killed (SIGKILL) and started again after ``down_s`` seconds (then 3 s to settle),
+    with or without its backup; with ``linked`` each server connects to the others; with ``together`` all are killed
+    and started again at once (one node running every server of the fleet)."""
+    addresses = [lab.addresses[role] for role in SERVER_ROLES[:servers]]
+    env = module_env(discovery_servers(addresses))
+
+    def start(server_id):
+        peers = linked_peers(addresses, server_id) if linked else ""
+        return start_server(procs, f"server-{server_id}", SERVER_ROLES[server_id], server_id, backup, peers)
+
+    running = [start(i) for i in range(servers)]
+    talker = start_talker(procs, "talker", "talk", env)
+    listener = start_listener(procs, "listener", "listen", env)
+    old_listener = start_listener(procs, "listener-other", "listen", env, OTHER_TOPIC)  # nobody publishes it yet
+    if seconds_until(lambda: len(listener.received()) >= 3, MEET_TIMEOUT) is None:
+        raise AssertionError(f"talker and listener did not meet before the restart\n{procs.tails()}")
+    time.sleep(1.0)  # the server has heard every participant's endpoints, and written them to its backup
+
+    killed_at = (talker.published() or [0])[-1]
+    rounds = [list(range(servers))] if together else [[i] for i in range(servers)]
+    for ids in rounds:
+        for server_id in ids:
+            running[server_id].kill(signal.SIGKILL)
+        time.sleep(down_s)
+        try:
+            for server_id in ids:
+                start(server_id)
+        except ServerCrashed as crash:
+            return {"backup": backup, "servers": servers, "linked": linked, "down_s": down_s, "crashed": str(crash)}
+        time.sleep(3.0)
+    late = start_listener(procs, "listener-late", "late", env)
+    new_meets_old = seconds_until(lambda: bool(late.received()), REDISCOVERY_TIMEOUT)
+    new_talker = start_talker(procs, "talker-new", "talk2", env, OTHER_TOPIC)
+    old_meets_new = seconds_until(lambda: bool(old_listener.received()), REDISCOVERY_TIMEOUT)
+    settled = talker.published()[-1] - 10  # in flight at the end: not lost
+    return {
+        "backup": backup,
+        "servers": servers,
+        "linked": linked,
+        "together": together,
+        "down_s": down_s,
+        "crashed": "",
+        "new_meets_old_s": new_meets_old,
+        "old_meets_new_s": old_meets_new,
+        "matched_pair_lost": lost(talker, listener, killed_at, settled),
+        "matched_pair_published": settled - killed_at + 1,
+        "processes": [p.name for p in (talker, listener, old_listener, late, new_talker) if p.popen.poll() is not None],
+    }
+
+
+ROBOT_SERVER_CHOICES = ("none", "listed", "linked")
+
+
+def cut_off_robot(lab: Lab, procs: Processes, robot_server: str, cut_s: float = 30.0, dns: bool = False) -> dict:
+    """A robot cut off from the edge for ``cut_s`` seconds: its onboard pair's messages, an onboard listener started
+    during the cut, an edge listener hearing the robot again after it. ``robot_server``: ``none``, the modules name
+    the fleet's edge server only; ``listed``, the robot's modules also name a server on the robot (the second of
+    their servers); ``linked``, the robot's modules name only the server on the robot, which connects to the edge
+    server and shares what it knows. ``dns``: modules name the edge server by its DNS name, which does not resolve
+    during the cut (the cluster's DNS runs on the edge)."""
+    if robot_server not in ROBOT_SERVER_CHOICES or (dns and robot_server != "none"):
+        raise ValueError(f"robot_server: expected one of {ROBOT_SERVER_CHOICES}, and none with dns")
+    names = {server_name(0): lab.addresses["edge"]}
+    lab.write_hosts(names)
+    edge_env = module_env(discovery_servers([lab.addresses["edge"]], dns=dns))
+    both = discovery_servers([lab.addresses["edge"], lab.addresses["robot"]], dns=dns)
+    env = {
+        "none": edge_env,
+        "listed": module_env(both),
+        "linked": module_env(";" + both.split(";")[1]),  # the robot's server alone, at its position
+    }[robot_server]
+    start_server(procs, "edge-server", "edge", 0, backup=False)
+    if robot_server != "none":
+        peers = both.split(";")[0] if robot_server == "linked" else ""
+        start_server(procs, "robot-server", "robot", 1, backup=False, peers=peers)
+    talker = start_talker(procs, "talker", "talk", env)
+    listener = start_listener(procs, "listener", "listen", env)
+    edge = start_listener(procs, "listener-edge", "edge", edge_env if robot_server == "linked" else env)
+    if seconds_until(lambda: len(listener.received()) >= 3 and len(edge.received()) >= 3, MEET_TIMEOUT) is None:
+        raise AssertionError(f"the robot's talker, its listener and the edge listener did not meet\n{procs.tails()}")
+
+    lab.set_connected("edge", False)
+    lab.write_hosts({})  # the cluster's DNS runs on the edge: no name resolves during the cut
+    cut_at, start = talker.published()[-1], time.monotonic()
+    late = start_listener(procs, "listener-late", "late", env, wait=False)
+    started_during = seconds_until(lambda: bool(late.received()), cut_s)
+    time.sleep(max(0.0, cut_s - (time.monotonic() - start)))
+    reconnect_at = talker.published()[-1]
+    onboard_lost = lost(talker, listener, cut_at, reconnect_at)
+    heard_by_edge = len(edge.received())
+    late_alive = late.popen.poll() is None
+
+    lab.set_connected("edge", True)
+    lab.write_hosts(names)
+    conditions = {"edge": lambda: len(edge.received()) > heard_by_edge + 2}
+    if started_during is None:
+        conditions["late"] = lambda: bool(late.received())
+    after = first_times(conditions, REDISCOVERY_TIMEOUT)
+    edge_rematch, late_after = after["edge"], after.get("late")
+    return {
+        "robot_server": robot_server,
+        "dns": dns,
+        "cut_s": cut_s,
+        "onboard_published_during": reconnect_at - cut_at + 1,
+        "onboard_lost_during": onboard_lost,
+        "started_during_first_message_s": started_during,
+        "started_during_alive": late_alive,
+        "started_during_first_message_after_reconnect_s": late_after,
+        "edge_rematch_after_reconnect_s": edge_rematch,
+    }
