@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit molecule schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-discovery bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit molecule schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -133,6 +133,12 @@ bench-rollout: binaries
 bench-connectivity:
 	$(MAKE) binaries WITH_NODES=1
 	$(VENV)/python bench/bench_connectivity.py --json bench/results/connectivity.json
+
+## Discovery under faults (as root): rclpy in network namespaces, a robot cut off, discovery servers restarted
+## (tests/discovery_faults.py; docs/connectivity.md).
+bench-discovery: setup
+	$(VENV)/python bench/bench_discovery.py --repeat 3 --json bench/results/discovery.json \
+	  --connectivity bench/results/connectivity.json
 
 ## Real nodes: image build, cold and warm start, deploy to all pods Running, pick cycles against the netns runtime.
 bench-real-pods:

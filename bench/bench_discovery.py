@@ -73,6 +73,11 @@ def main() -> int:
     parser.add_argument("--cut", type=float, default=30.0, help="seconds the robot is cut off")
     parser.add_argument("--only", choices=("restart", "cut"))
     parser.add_argument("--json", help="write the results here")
+    parser.add_argument(
+        "--connectivity",
+        help="also fill onboard_messages_lost_during and discovery_restart_rematch_s of this file "
+        "(bench/results/connectivity.json, whose other keys bench_connectivity.py measures on real nodes)",
+    )
     args = parser.parse_args()
     if os.geteuid() != 0:
         parser.error("network namespaces need root")
@@ -127,7 +132,28 @@ def main() -> int:
     if args.json:
         with open(args.json, "w", encoding="utf-8") as handle:
             handle.write(json.dumps(results, indent=1) + "\n")
+    if args.connectivity:
+        fill_connectivity(args.connectivity, results)
     return 0
+
+
+def fill_connectivity(path: str, results: dict) -> None:
+    """The keys of the connectivity results this benchmark measures, from the configuration the collection renders
+    (servers named by address, two servers per fleet); the rest of the file stays as bench_connectivity wrote it."""
+    with open(path, encoding="utf-8") as handle:
+        found = json.load(handle)
+    cut, restart = results.get("cut_edge_server"), results.get("restart_two_servers_in_turn")
+    measured = found.setdefault("measured_by", {})
+    if cut:
+        found["onboard_messages_lost_during"] = cut["onboard_lost_during"]
+        measured["onboard_messages_lost_during"] = f"{results['command']} ({results['date']}): cut_edge_server"
+    if restart and restart["new_meets_old"]["met"] == restart["new_meets_old"]["runs"]:
+        found["discovery_restart_rematch_s"] = restart["new_meets_old"]["max_s"]
+        measured["discovery_restart_rematch_s"] = f"{results['command']} ({results['date']}): restart_two_servers_in_turn"
+    for key in measured:
+        found.get("not_measured", {}).pop(key, None)
+    with open(path, "w", encoding="utf-8") as handle:
+        handle.write(json.dumps(found, indent=1, default=str) + "\n")
 
 
 if __name__ == "__main__":

@@ -167,6 +167,7 @@ def restart_server(
     servers: int = 1,
     linked: bool = False,
     together: bool = False,
+    wait_s: float = REDISCOVERY_TIMEOUT,
 ) -> dict:
     """Each edge server in turn killed (SIGKILL) and started again after ``down_s`` seconds (then 3 s to settle),
     with or without its backup; with ``linked`` each server connects to the others; with ``together`` all are killed
@@ -199,9 +200,9 @@ def restart_server(
             return {"backup": backup, "servers": servers, "linked": linked, "down_s": down_s, "crashed": str(crash)}
         time.sleep(3.0)
     late = start_listener(procs, "listener-late", "late", env)
-    new_meets_old = seconds_until(lambda: bool(late.received()), REDISCOVERY_TIMEOUT)
+    new_meets_old = seconds_until(lambda: bool(late.received()), wait_s)
     new_talker = start_talker(procs, "talker-new", "talk2", env, OTHER_TOPIC)
-    old_meets_new = seconds_until(lambda: bool(old_listener.received()), REDISCOVERY_TIMEOUT)
+    old_meets_new = seconds_until(lambda: bool(old_listener.received()), wait_s)
     settled = talker.published()[-1] - 10  # in flight at the end: not lost
     return {
         "backup": backup,
@@ -221,13 +222,15 @@ def restart_server(
 ROBOT_SERVER_CHOICES = ("none", "listed", "linked")
 
 
-def cut_off_robot(lab: Lab, procs: Processes, robot_server: str, cut_s: float = 30.0, dns: bool = False) -> dict:
+def cut_off_robot(
+    lab: Lab, procs: Processes, robot_server: str, cut_s: float = 30.0, dns: bool = False, after_s: float = REDISCOVERY_TIMEOUT
+) -> dict:
     """A robot cut off from the edge for ``cut_s`` seconds: its onboard pair's messages, an onboard listener started
     during the cut, an edge listener hearing the robot again after it. ``robot_server``: ``none``, the modules name
     the fleet's edge server only; ``listed``, the robot's modules also name a server on the robot (the second of
     their servers); ``linked``, the robot's modules name only the server on the robot, which connects to the edge
     server and shares what it knows. ``dns``: modules name the edge server by its DNS name, which does not resolve
-    during the cut (the cluster's DNS runs on the edge)."""
+    during the cut (the cluster's DNS runs on the edge). ``after_s``: how long to wait for the rematches after it."""
     if robot_server not in ROBOT_SERVER_CHOICES or (dns and robot_server != "none"):
         raise ValueError(f"robot_server: expected one of {ROBOT_SERVER_CHOICES}, and none with dns")
     names = {server_name(0): lab.addresses["edge"]}
@@ -265,7 +268,7 @@ def cut_off_robot(lab: Lab, procs: Processes, robot_server: str, cut_s: float = 
     conditions = {"edge": lambda: len(edge.received()) > heard_by_edge + 2}
     if started_during is None:
         conditions["late"] = lambda: bool(late.received())
-    after = first_times(conditions, REDISCOVERY_TIMEOUT)
+    after = first_times(conditions, after_s)
     edge_rematch, late_after = after["edge"], after.get("late")
     return {
         "robot_server": robot_server,

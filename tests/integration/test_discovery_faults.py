@@ -1,0 +1,80 @@
+"""Discovery under faults, with real rclpy processes and the rendered discovery servers in network namespaces
+(tests/discovery_faults.py, whose procedures bench/bench_discovery.py records): a robot cut off from the edge, and
+discovery servers restarted as a kubelet restarts a container.
+
+Needs root and `ip netns` (skipped otherwise) and requirements-ros.txt (fails otherwise). Every wait is bounded;
+traffic stays on the bridge of the namespaces each test creates.
+"""
+
+from __future__ import annotations
+
+import json
+
+import discovery_faults as faults
+import pytest
+from netlab import Processes, open_lab
+
+from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_problem
+
+pytestmark = pytest.mark.ros
+
+CUT_S = 25.0  # longer than Fast DDS's participant lease (20 s): every participant across the cut is forgotten
+BOUND_S = 10.0  # what the tests allow for a rematch; measured about 1 s (bench/RESULTS.md)
+
+
+def _setup(request, tmp_path, roles):
+    problem = ros_problem()
+    if problem:
+        pytest.fail(f"rclpy with Fast DDS is not usable: install requirements-ros.txt\n{problem}", pytrace=False)
+    lab = open_lab(request, roles[0])
+    for role in roles[1:]:
+        lab.add(role)
+    procs = Processes(lab, str(tmp_path))
+    request.addfinalizer(procs.close)
+    return lab, procs
+
+
+@pytest.fixture
+def cut_lab(request, tmp_path):
+    return _setup(request, tmp_path, faults.CUT_ROLES)
+
+
+@pytest.fixture
+def restart_lab(request, tmp_path):
+    return _setup(request, tmp_path, faults.RESTART_ROLES)
+
+
+def test_a_module_started_while_its_robot_is_cut_off_meets_its_robot_once_the_link_is_back(cut_lab):
+    figures = faults.cut_off_robot(*cut_lab, robot_server="none", cut_s=CUT_S, after_s=30.0)
+    print(json.dumps(figures))
+    assert figures["onboard_lost_during"] == 0, figures  # matched onboard modules talk on, directly
+    assert figures["started_during_first_message_s"] is None, figures  # no server on the robot: nothing to meet it
+    assert figures["started_during_alive"], figures
+    after = figures["started_during_first_message_after_reconnect_s"]
+    assert after is not None and after < BOUND_S, figures
+    rematch = figures["edge_rematch_after_reconnect_s"]
+    assert rematch is not None and rematch < BOUND_S, figures
+
+
+def test_negative_control_a_module_naming_its_servers_by_dns_name_stays_deaf_after_a_cut(cut_lab):
+    """What the collection rendered before: the name does not resolve during the cut, Fast DDS drops the whole list
+    and falls back to multicast, and the module finds nothing, even once the link is back."""
+    lab, procs = cut_lab
+    figures = faults.cut_off_robot(lab, procs, robot_server="none", cut_s=8.0, dns=True, after_s=10.0)
+    print(json.dumps(figures))
+    assert figures["started_during_first_message_after_reconnect_s"] is None, figures
+    late = next(p for p in procs.started if p.name == "listener-late")
+    assert "Wrong domain name passed into the server's list" in late.output(), late.tail()
+    assert figures["edge_rematch_after_reconnect_s"] is not None, figures  # what ran before the cut is fine
+
+
+def test_the_fleets_second_server_covers_a_restart_of_each_in_turn(restart_lab):
+    """With one server, a participant started after its restart met one that ran before in only one of five runs
+    (the others not within 60 s: Fast DDS 2.14, eProsima/Fast-DDS#2534), too rare a failure for a negative control
+    here; bench/bench_discovery.py records it."""
+    figures = faults.restart_server(*restart_lab, backup=False, servers=2, wait_s=30.0)
+    print(json.dumps(figures))
+    assert not figures["crashed"], figures
+    assert figures["matched_pair_lost"] == 0, figures
+    assert figures["new_meets_old_s"] is not None and figures["new_meets_old_s"] < BOUND_S, figures
+    assert figures["old_meets_new_s"] is not None and figures["old_meets_new_s"] < BOUND_S, figures
