@@ -21,21 +21,16 @@ from __future__ import annotations
 import os
 import re
 import signal
-import sys
 import time
 
-from netlab import Lab, Process, Processes
+from netlab import STARTUP_TIMEOUT, Lab, Process, Processes
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, manifests, naming
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import DiscoveryServer
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-TALKER = os.path.join(HERE, "integration", "ros", "talker.py")
-LISTENER = os.path.join(HERE, "integration", "ros", "listener.py")
-TOPIC, OTHER_TOPIC = "/kuberos_chatter", "/kuberos_other"
+OTHER_TOPIC = "/kuberos_other"
 FLEET = "fetch"
 PORT = 11811
-STARTUP_TIMEOUT = 20.0
 MEET_TIMEOUT = 30.0  # two participants that can meet do so within this, with a server up (test_discovery_netns)
 REDISCOVERY_TIMEOUT = 60.0  # three default leases (20 s) after a fault: a participant not met by then never is
 SERVER_ROLES = ("edge", "edge2")
@@ -114,27 +109,9 @@ def _server_lines(log: str) -> int:
         return len(re.findall(r"Server ID:\s+\d+", handle.read()))
 
 
-def start_talker(procs: Processes, name: str, role: str, env: dict[str, str], topic: str = TOPIC) -> Process:
-    talker = procs.start(name, role, [sys.executable, TALKER, topic, "0.1"], env)
-    procs.wait_until(lambda: len(talker.published()) >= 2, STARTUP_TIMEOUT, f"{name} did not start publishing")
-    return talker
-
-
-def start_listener(procs: Processes, name: str, role: str, env: dict[str, str], topic: str = TOPIC, wait=True) -> Process:
-    listener = procs.start(name, role, [sys.executable, LISTENER, topic], env)
-    if wait:
-        procs.wait_until(lambda: "ready" in listener.output().split(), STARTUP_TIMEOUT, f"{name} did not subscribe")
-    return listener
-
-
-def seconds_until(condition, timeout: float, poll: float = 0.1) -> float | None:
+def seconds_until(condition, timeout: float) -> float | None:
     """Seconds until condition() held, None if it did not within timeout."""
-    start = time.monotonic()
-    while time.monotonic() - start < timeout:
-        if condition():
-            return round(time.monotonic() - start, 2)
-        time.sleep(poll)
-    return None
+    return first_times({"it": condition}, timeout)["it"]
 
 
 def first_times(conditions: dict, timeout: float, poll: float = 0.1) -> dict[str, float | None]:
@@ -180,9 +157,9 @@ def restart_server(
         return start_server(procs, f"server-{server_id}", SERVER_ROLES[server_id], server_id, backup, peers)
 
     running = [start(i) for i in range(servers)]
-    talker = start_talker(procs, "talker", "talk", env)
-    listener = start_listener(procs, "listener", "listen", env)
-    old_listener = start_listener(procs, "listener-other", "listen", env, OTHER_TOPIC)  # nobody publishes it yet
+    talker = procs.start_talker("talker", "talk", env, period="0.1")
+    listener = procs.start_listener("listener", "listen", env)
+    old_listener = procs.start_listener("listener-other", "listen", env, OTHER_TOPIC)  # nobody publishes it yet
     if seconds_until(lambda: len(listener.received()) >= 3, MEET_TIMEOUT) is None:
         raise AssertionError(f"talker and listener did not meet before the restart\n{procs.tails()}")
     time.sleep(1.0)  # the server has heard every participant's endpoints, and written them to its backup
@@ -199,9 +176,9 @@ def restart_server(
         except ServerCrashed as crash:
             return {"backup": backup, "servers": servers, "linked": linked, "down_s": down_s, "crashed": str(crash)}
         time.sleep(3.0)
-    late = start_listener(procs, "listener-late", "late", env)
+    late = procs.start_listener("listener-late", "late", env)
     new_meets_old = seconds_until(lambda: bool(late.received()), wait_s)
-    new_talker = start_talker(procs, "talker-new", "talk2", env, OTHER_TOPIC)
+    new_talker = procs.start_talker("talker-new", "talk2", env, OTHER_TOPIC, period="0.1")
     old_meets_new = seconds_until(lambda: bool(old_listener.received()), wait_s)
     settled = talker.published()[-1] - 10  # in flight at the end: not lost
     return {
@@ -246,16 +223,16 @@ def cut_off_robot(
     if robot_server != "none":
         peers = both.split(";")[0] if robot_server == "linked" else ""
         start_server(procs, "robot-server", "robot", 1, backup=False, peers=peers)
-    talker = start_talker(procs, "talker", "talk", env)
-    listener = start_listener(procs, "listener", "listen", env)
-    edge = start_listener(procs, "listener-edge", "edge", edge_env if robot_server == "linked" else env)
+    talker = procs.start_talker("talker", "talk", env, period="0.1")
+    listener = procs.start_listener("listener", "listen", env)
+    edge = procs.start_listener("listener-edge", "edge", edge_env if robot_server == "linked" else env)
     if seconds_until(lambda: len(listener.received()) >= 3 and len(edge.received()) >= 3, MEET_TIMEOUT) is None:
         raise AssertionError(f"the robot's talker, its listener and the edge listener did not meet\n{procs.tails()}")
 
     lab.set_connected("edge", False)
     lab.write_hosts({})  # the cluster's DNS runs on the edge: no name resolves during the cut
     cut_at, start = talker.published()[-1], time.monotonic()
-    late = start_listener(procs, "listener-late", "late", env, wait=False)
+    late = procs.start_listener("listener-late", "late", env, wait=False)
     started_during = seconds_until(lambda: bool(late.received()), cut_s)
     time.sleep(max(0.0, cut_s - (time.monotonic() - start)))
     reconnect_at = talker.published()[-1]

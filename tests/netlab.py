@@ -23,6 +23,7 @@ import secrets
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -31,6 +32,10 @@ from sshlab import run
 
 from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import PRIVATE_SHM, ros_environment
 
+ROS_PROGRAMS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "integration", "ros")
+TALKER, LISTENER = os.path.join(ROS_PROGRAMS, "talker.py"), os.path.join(ROS_PROGRAMS, "listener.py")
+CHATTER = "/kuberos_chatter"
+STARTUP_TIMEOUT = 20.0  # a process printing that it is up
 SUBNET = "10.213.7"  # a /24 that exists only inside the namespaces and on the bridge a Lab creates
 STOP_TIMEOUT = 5.0
 
@@ -198,3 +203,16 @@ class Processes:
     def close(self) -> None:
         for process in reversed(self.started):
             process.kill()
+
+    def start_talker(self, name: str, role: str, env: dict[str, str], topic: str = CHATTER, period: str = "") -> Process:
+        """ros/talker.py on ``topic`` (every ``period`` seconds; its default 0.2 s), once it has published twice."""
+        talker = self.start(name, role, [sys.executable, TALKER, topic, *([period] if period else [])], env)
+        self.wait_until(lambda: len(talker.published()) >= 2, STARTUP_TIMEOUT, f"{name} did not start publishing")
+        return talker
+
+    def start_listener(self, name: str, role: str, env: dict[str, str], topic: str = CHATTER, wait: bool = True) -> Process:
+        """ros/listener.py on ``topic``; with ``wait``, once it has subscribed."""
+        listener = self.start(name, role, [sys.executable, LISTENER, topic], env)
+        if wait:
+            self.wait_until(lambda: "ready" in listener.output().split(), STARTUP_TIMEOUT, f"{name} did not subscribe")
+        return listener

@@ -28,18 +28,15 @@ from dataclasses import dataclass
 
 import pytest
 from helpers import ROOT
-from netlab import Lab, Process, Processes, open_lab  # test_bridge.py and bench/bench_bridge.py import them from here
+
+# test_bridge.py and bench/bench_bridge.py import Lab, Process, Processes and open_lab from here
+from netlab import STARTUP_TIMEOUT, Lab, Process, Processes, open_lab
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, naming, scheduler, spec
 from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_problem
 
 pytestmark = pytest.mark.ros
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-TALKER = os.path.join(HERE, "ros", "talker.py")
-LISTENER = os.path.join(HERE, "ros", "listener.py")
-TOPIC = "/kuberos_chatter"
-STARTUP_TIMEOUT = 20.0  # a process printing that it is up
 DISCOVERY_TIMEOUT = 30.0  # a listener receiving its first message
 NEGATIVE_WINDOW = 8.0  # simple discovery gets this long to fail; with multicast it succeeds in under a second
 
@@ -153,18 +150,6 @@ def start_servers(procs: Processes, rendered: Rendered) -> dict[str, Process]:
     return servers
 
 
-def start_talker(procs: Processes, name: str, role: str, env: dict[str, str]) -> Process:
-    talker = procs.start(name, role, [sys.executable, TALKER, TOPIC], env)
-    procs.wait_until(lambda: len(talker.published()) >= 2, STARTUP_TIMEOUT, f"{name} did not start publishing")
-    return talker
-
-
-def start_listener(procs: Processes, name: str, role: str, env: dict[str, str]) -> Process:
-    listener = procs.start(name, role, [sys.executable, LISTENER, TOPIC], env)
-    procs.wait_until(lambda: "ready" in listener.output().split(), STARTUP_TIMEOUT, f"{name} did not subscribe")
-    return listener
-
-
 # --- tests ------------------------------------------------------------------------------------------------
 
 
@@ -172,9 +157,9 @@ def test_negative_control_without_ros_discovery_server_modules_never_meet(procs,
     """Multicast is really blocked: simple discovery fails, and succeeds once the bridge floods multicast."""
     require_ros()
     simple = without_discovery(module_env(rendered, lab, "fetch-controller-foxy", "fetch-1"))
-    talker = start_talker(procs, "talker-simple", "talk", simple)
+    talker = procs.start_talker("talker-simple", "talk", simple)
     simple = without_discovery(module_env(rendered, lab, "fetch-motion-planner", "fetch-1"))
-    listener = start_listener(procs, "listener-simple", "listen", simple)
+    listener = procs.start_listener("listener-simple", "listen", simple)
     deadline = time.monotonic() + NEGATIVE_WINDOW
     while time.monotonic() < deadline:
         assert not listener.received(), f"found each other without a discovery server\n{procs.tails()}"
@@ -192,8 +177,8 @@ def test_negative_control_without_ros_discovery_server_modules_never_meet(procs,
 def test_modules_meet_through_the_rendered_discovery_servers(procs, lab, rendered):
     require_ros()
     start_servers(procs, rendered)
-    talker = start_talker(procs, "talker", "talk", module_env(rendered, lab, "fetch-controller-foxy", "fetch-1"))
-    listener = start_listener(procs, "listener", "listen", module_env(rendered, lab, "fetch-motion-planner", "fetch-1"))
+    talker = procs.start_talker("talker", "talk", module_env(rendered, lab, "fetch-controller-foxy", "fetch-1"))
+    listener = procs.start_listener("listener", "listen", module_env(rendered, lab, "fetch-motion-planner", "fetch-1"))
     seconds = procs.wait_until(lambda: len(listener.received()) >= 3, DISCOVERY_TIMEOUT, "listener got no messages")
     assert talker.subscribers() == 1, procs.tails()
     print(f"listener received 3 messages {seconds:.1f} s after subscribing")
@@ -203,14 +188,14 @@ def test_a_new_listener_meets_the_talker_through_server_1_after_server_0_is_kill
     require_ros()
     servers = start_servers(procs, rendered)
     first, second = sorted(servers)
-    start_talker(procs, "talker", "talk", module_env(rendered, lab, "fetch-controller-foxy", "fetch-1"))
-    listener = start_listener(procs, "listener", "listen", module_env(rendered, lab, "fetch-motion-planner", "fetch-1"))
+    procs.start_talker("talker", "talk", module_env(rendered, lab, "fetch-controller-foxy", "fetch-1"))
+    listener = procs.start_listener("listener", "listen", module_env(rendered, lab, "fetch-motion-planner", "fetch-1"))
     procs.wait_until(lambda: listener.received(), DISCOVERY_TIMEOUT, "listener got no messages with both servers up")
 
     servers[first].kill(signal.SIGKILL)
     assert servers[first].popen.returncode is not None and servers[second].popen.poll() is None
     before = len(listener.received())
-    late = start_listener(procs, "listener-late", "late", module_env(rendered, lab, "fetch-motion-planner", "fetch-2"))
+    late = procs.start_listener("listener-late", "late", module_env(rendered, lab, "fetch-motion-planner", "fetch-2"))
     seconds = procs.wait_until(lambda: late.received(), DISCOVERY_TIMEOUT, f"a new listener got no messages without {first}")
     procs.wait_until(lambda: len(listener.received()) > before, DISCOVERY_TIMEOUT, "the first listener stopped receiving")
     assert servers[second].popen.poll() is None, procs.tails()

@@ -35,7 +35,9 @@ from kuberos_sim.runtime import fabric as fabric_module  # noqa: E402
 from kuberos_sim.runtime.cgroups import machine_cores  # noqa: E402
 from kuberos_sim.runtime.delays import one_way_delays_ms  # noqa: E402
 from kuberos_sim.runtime.rendered import load_rendered  # noqa: E402
-from test_discovery_netns import LISTENER, TALKER, TOPIC, require_ros  # noqa: E402
+from netlab import CHATTER as TOPIC  # noqa: E402
+from netlab import LISTENER, TALKER  # noqa: E402
+from test_discovery_netns import require_ros  # noqa: E402
 
 from ansible_collections.kuberos.platform.plugins.module_utils import render_dir  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, service  # noqa: E402

@@ -79,15 +79,19 @@ class RenderedDir:
         """Nodes any Deployment is pinned to, by name."""
         return sorted({d.node for d in self.deployments.values()})
 
+    def service_nodes(self) -> list[tuple[Service, str]]:
+        """Each Service that has a Deployment with the node that answers for it here: one Deployment per Service as
+        rendered; the first node by name otherwise (a host stands for the cluster IP and for the DNS name)."""
+        return [(svc, min(d.node for d in targets)) for svc, targets in self.service_targets() if targets]
+
     def service_links(self, namespace: str, address_of) -> dict[str, str]:
         """The service links the kubelet gives every container in ``namespace``: each Service's
-        ``<NAME>_SERVICE_HOST``, here the address (``address_of(node)``) of the node of its first Deployment."""
-        links = {}
-        for service, targets in self.service_targets():
-            nodes = sorted({d.node for d in targets})
-            if service.namespace == namespace and nodes:
-                links[naming.service_host_variable(service.name)] = address_of(nodes[0])
-        return links
+        ``<NAME>_SERVICE_HOST``, here the address (``address_of(node)``) of its node (``service_nodes``)."""
+        return {
+            naming.service_host_variable(svc.name): address_of(node)
+            for svc, node in self.service_nodes()
+            if svc.namespace == namespace
+        }
 
     def service_targets(self) -> list[tuple[Service, list[Deployment]]]:
         """Each Service with its Deployments: same namespace, pod labels matching its selector."""

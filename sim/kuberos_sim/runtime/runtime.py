@@ -274,11 +274,8 @@ class Runtime:
     def _hosts_text(self) -> str:
         names: dict[str, str] = {host.node: host.address for host in self.hosts.values()}
         short: dict[str, set[str]] = {}
-        for service, targets in self.rendered.service_targets():
-            nodes = sorted({d.node for d in targets})
-            if not nodes:
-                continue
-            address = self.hosts[nodes[0]].address  # one Deployment per Service as rendered; the first otherwise
+        for service, node in self.rendered.service_nodes():
+            address = self.hosts[node].address
             for name in netns.service_names(service.name, service.namespace, self.cluster_domain):
                 names[name] = address
             short.setdefault(service.name, set()).add(address)
