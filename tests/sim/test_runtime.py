@@ -450,24 +450,52 @@ def test_64kb_datagrams_cross_unfragmented(runtime):
 
 def test_cpu_quota_is_enforced_and_hardware_is_accounted_apart(rendered_dirs, local_inventory, tmp_path):
     """cpu_scale 1/16: a 4-CPU robot gets a quarter core; a busy loop there uses that much, one beside it in
-    the hardware cgroup as much as it can, and both are counted apart."""
+    the hardware cgroup (no quota) as much as a busy loop outside the runtime gets in the same seconds (the
+    reference: this machine may be busy with other work), and both groups are counted apart."""
     require_environment()
     busy = [sys.executable, "-c", "while True: pass"]
-    with Runtime(rendered_dirs["probe"], local_inventory, str(tmp_path), cpu_scale=0.0625) as runtime:
-        runtime.start(modules=False)
-        assert runtime.hosts["fetch-1"].cpu_cores == 0.25
-        runtime.start_on("fetch-1", "busy-node", busy)
-        runtime.start_on("fetch-1", "busy-hardware", busy, cgroup="hardware")
-        time.sleep(1.0)
-        before, start = runtime.cpu_seconds(), time.monotonic()
-        time.sleep(4.0)
-        after, elapsed = runtime.cpu_seconds(), time.monotonic() - start
+    reference = subprocess.Popen(busy)
+    try:
+        with Runtime(rendered_dirs["probe"], local_inventory, str(tmp_path), cpu_scale=0.0625) as runtime:
+            runtime.start(modules=False)
+            assert runtime.hosts["fetch-1"].cpu_cores == 0.25
+            hardware_group = runtime.hosts["fetch-1"].cgroups["hardware"]
+            assert read_int(os.path.join(hardware_group.cpu_dir, "cpu.cfs_quota_us")) == -1
+            runtime.start_on("fetch-1", "busy-node", busy)
+            runtime.start_on("fetch-1", "busy-hardware", busy, cgroup="hardware")
+            time.sleep(1.0)
+            before, reference_before, start = runtime.cpu_seconds(), process_cpu_seconds(reference.pid), time.monotonic()
+            time.sleep(4.0)
+            after, reference_after = runtime.cpu_seconds(), process_cpu_seconds(reference.pid)
+            elapsed = time.monotonic() - start
+    finally:
+        reference.kill()
+        reference.wait()
     node = (after[("fetch-1", "node")] - before[("fetch-1", "node")]) / elapsed
     hardware = (after[("fetch-1", "hardware")] - before[("fetch-1", "hardware")]) / elapsed
-    print(f"quota 0.25 core: the node cgroup used {node:.3f} cores, the hardware cgroup {hardware:.3f}")
-    assert abs(node - 0.25) <= 0.04, f"node cgroup used {node:.3f} cores with a 0.25 quota"
-    assert hardware > 0.6, f"the unlimited hardware cgroup used only {hardware:.3f} cores"
+    outside = (reference_after - reference_before) / elapsed
+    print(
+        f"quota 0.25 core: the node cgroup used {node:.3f} cores, the hardware cgroup {hardware:.3f}, "
+        f"a busy loop outside the runtime {outside:.3f}"
+    )
+    assert node <= 0.25 + 0.04, f"node cgroup used {node:.3f} cores with a 0.25 quota"
+    assert node >= 0.25 - 0.04 or outside < 0.25, f"node cgroup used {node:.3f} cores of its 0.25 on a machine that had them"
+    assert hardware >= 0.6 * outside, (
+        f"the unlimited hardware cgroup used {hardware:.3f} cores, a busy loop outside the runtime {outside:.3f}"
+    )
     assert runtime.cpu_seconds() and runtime.cpu_seconds_by_tier()["onboard"] >= after[("fetch-1", "node")]  # kept after close
+
+
+def read_int(path: str) -> int:
+    with open(path, encoding="utf-8") as handle:
+        return int(handle.read().strip())
+
+
+def process_cpu_seconds(pid: int) -> float:
+    """User + system CPU time of one process (/proc/<pid>/stat, fields 14 and 15, in clock ticks)."""
+    with open(f"/proc/{pid}/stat", encoding="utf-8") as handle:
+        fields = handle.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def test_busy_hosts_share_a_core_in_proportion_to_their_size(rendered_dirs, local_inventory, tmp_path):
