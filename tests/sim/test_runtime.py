@@ -381,7 +381,10 @@ def test_ping_rtt_matches_the_inventory(runtime, local_inventory, target):
 
 
 def test_modules_see_their_node_params_and_the_sim_packages(runtime):
-    modules = [p for p in runtime.processes.values() if p.deployment and "probe" in p.deployment]
+    modules = [
+        p for p in runtime.processes.values()
+        if p.deployment and "probe" in p.deployment and not runtime.rendered.deployments[p.deployment].is_discovery_server
+    ]  # fmt: skip
     assert len(modules) == 4
     for process in modules:
         wait_until(lambda p=process: "SIM=" in p.output(), STARTUP_TIMEOUT, f"{process.name} printed nothing", runtime)
@@ -419,6 +422,48 @@ def test_multicast_does_not_cross_but_the_rendered_discovery_servers_connect(run
     seconds = wait_until(lambda: len(received(listener)) >= 3, DISCOVERY_TIMEOUT, "the listener got no messages", runtime)
     print(f"{multicast} multicast packets dropped in {NEGATIVE_WINDOW:.0f} s without discovery servers; "
           f"through them the listener on cloud-1 had 3 messages from fetch-1 after {seconds:.1f} s")  # fmt: skip
+
+
+def test_a_robots_modules_started_while_the_fleets_servers_are_gone_meet_through_the_robots_own_server(
+    rendered_dirs, local_inventory, tmp_path
+):
+    """The fleet's discovery servers stopped (the robot cut off from the edge, as far as discovery goes): a talker and
+    a listener started then on fetch-1 with an onboard module's environment meet through fetch-1's own server; the
+    same pair with the fleet's servers only (the negative control, on fetch-2) does not. With the fleet's servers
+    back, an edge module's listener on cloud-1 hears fetch-1's talker."""
+    require_environment()
+    require_ros()
+    with Runtime(rendered_dirs["probe"], local_inventory, str(tmp_path), extra_hosts=("cloud-1",)) as runtime:
+        runtime.start(modules=False)
+        onboard = runtime.container_env("sim-probe-onboard-probe-fetch-1")
+        edge = runtime.container_env("sim-probe-edge-probe-fetch-1")
+        fleet_only = dict(onboard, ROS_DISCOVERY_SERVER=edge["ROS_DISCOVERY_SERVER"])
+        assert onboard["ROS_DISCOVERY_SERVER"].startswith(edge["ROS_DISCOVERY_SERVER"] + ";")
+        own = onboard["ROS_DISCOVERY_SERVER"].rsplit(";", 1)[1]
+        assert own.startswith(runtime.host_address("fetch-1") + ":"), own
+        fleet_servers = sorted(n for n, d in runtime.rendered.deployments.items() if d.component == "discovery-server")
+        assert len(fleet_servers) == 2
+        kept = {n: runtime.rendered.deployments[n] for n in fleet_servers}
+        for name in fleet_servers:
+            runtime.stop_deployment(name)
+        control_talker = runtime.start_on("fetch-2", "control-talker", [sys.executable, TALKER, TOPIC], fleet_only)
+        control_listener = runtime.start_on("fetch-2", "control-listener", [sys.executable, LISTENER, TOPIC], fleet_only)
+        talker = runtime.start_on("fetch-1", "talker", [sys.executable, TALKER, TOPIC], onboard)
+        listener = runtime.start_on("fetch-1", "listener", [sys.executable, LISTENER, TOPIC], onboard)
+        met = wait_until(lambda: len(received(listener)) >= 3, DISCOVERY_TIMEOUT, "fetch-1's pair did not meet", runtime)
+        wait_until(lambda: "ready" in control_listener.output().split(), STARTUP_TIMEOUT, "no control listener", runtime)
+        deadline = time.monotonic() + NEGATIVE_WINDOW
+        while time.monotonic() < deadline:
+            assert not received(control_listener), "the pair without the robot's server met with the fleet's servers gone"
+            time.sleep(0.2)
+        assert control_talker.running and len(published(control_talker)) >= 2 and talker.running
+        for name, dep in kept.items():
+            runtime.rendered.deployments[name] = dep
+            runtime.start_deployment(name)
+        remote = runtime.start_on("cloud-1", "edge-listener", [sys.executable, LISTENER, TOPIC], edge)
+        back = wait_until(lambda: len(received(remote)) >= 3, DISCOVERY_TIMEOUT, "cloud-1 never heard fetch-1", runtime)
+    print(f"fleet's servers stopped: fetch-1's pair met through its own server in {met:.1f} s, the pair without it "
+          f"not in {NEGATIVE_WINDOW:.0f} s; servers back, cloud-1 heard fetch-1 after {back:.1f} s")  # fmt: skip
 
 
 def test_64kb_datagrams_cross_unfragmented(runtime):

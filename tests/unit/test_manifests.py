@@ -85,6 +85,24 @@ def test_every_module_is_pinned_and_wired_to_its_fleets_discovery_servers(root, 
         assert env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp"
         servers = env["ROS_DISCOVERY_SERVER"].split(";")
         expected = placement.discovery[inst.fleet]
+        if inst.tier == "onboard":
+            # the robot's own server comes last, at the first id after the fleet's: its deployment's node-local Service
+            # and, on this robot, a server Deployment of that id pinned there
+            host, port = servers.pop().rsplit(":", 1)
+            service = f"kuberos-robot-discovery-{inst.deployment}"
+            assert host == f"$({service.upper().replace('-', '_')}_SERVICE_HOST)", host
+            assert (inst.namespace, service) in services
+            assert int(port) == expected[0].port
+            own = [
+                o for o in objects
+                if o["kind"] == "Deployment" and o["metadata"]["labels"]["kuberos.io/component"] == "robot-discovery-server"
+                and o["metadata"]["labels"]["kuberos.io/deployment"] == inst.deployment
+                and o["spec"]["template"]["spec"]["nodeSelector"] == {labels.HOSTNAME: inst.node}
+            ]  # fmt: skip
+            assert len(own) == 1
+            assert own[0]["spec"]["template"]["spec"]["containers"][0]["args"][:3] == [
+                "fast-discovery-server", "-i", str(len(expected))
+            ]  # fmt: skip
         assert len(servers) == len(expected)
         for server_id, address in enumerate(servers):
             host, port = address.rsplit(":", 1)

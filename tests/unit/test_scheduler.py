@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import PlacementError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import render_deployment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement, robot_server_hosts
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import parse_rosdeployment
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table
@@ -233,3 +236,84 @@ def test_names_that_clash_through_a_robots_name_are_refused_once_the_fleets_robo
         place_modules([spec("m0-x")], inventory)
     assert "would name a Deployment app-m0-x-r1 (the instance of robot" in str(refused.value)
     assert place_modules([spec("m0-y")], inventory).rows(), "without the clash it places"
+
+
+def test_a_robot_discovery_server_takes_room_on_each_robot_that_runs_an_onboard_module():
+    """Each robot with an onboard instance holds its deployment's discovery server (100m, 64Mi), taken before the
+    modules; robots whose modules all run elsewhere hold none; a robot with no room for it is refused, naming the
+    field that goes without it."""
+    inventory = load_inventory(site(robots=2))
+    onboard = {"requirements": {"onboard": True}, "resources": {"cpu": 1}}
+    placement = place_modules([deployment(onboard, {"preference": "edge"})], inventory)
+    free = {n["name"]: n["free_cpu_millis"] for n in placement.nodes}
+    assert free["r1"] == free["r2"] == 2000 - 1000 - 100
+    hosts = robot_server_hosts({"app"}, placement.instances)
+    assert hosts == {("app", "r1"): "r1", ("app", "r2"): "r2"}
+    edge_only = place_modules([deployment({"preference": "edge"})], inventory)
+    assert {n["name"]: n["free_cpu_millis"] for n in edge_only.nodes if n["tier"] == "onboard"} == {"r1": 2000, "r2": 2000}
+    full = {"requirements": {"onboard": True}, "resources": {"cpu": 2}}  # the whole robot: no room for its server
+    with pytest.raises(PlacementError) as refused:
+        place_modules([deployment(full)], inventory)
+    text = str(refused.value)
+    assert "discovery server of deployment app on robot r1's computer" in text and "discovery.robotServers: false" in text
+    assert "r1 (onboard): cpu: needs 0.1, 0 free of 2" in text, text
+    without = deployment(full)
+    without = dataclasses.replace(without, robot_servers=False)
+    assert (
+        robot_server_hosts({"app"} if without.uses_robot_servers else set(), place_modules([without], inventory).instances) == {}
+    )
+
+
+def test_a_robot_discovery_server_follows_an_onboard_fallback_and_is_rendered_for_it():
+    """A module that prefers the edge but falls back onboard (no edge or cloud room) still gets its robot's server,
+    with room taken after placing; its env lists the server after the fleet's."""
+    inventory = load_inventory(site(robots=1, edge=1, cloud=0, edge_cpu=1))
+    spec = deployment({"preference": ["edge", "onboard"], "resources": {"cpu": 1}})
+    placement = place_modules([spec], inventory)
+    assert where(placement) == {("r1", "m0"): "r1"}
+    assert {n["name"]: n["free_cpu_millis"] for n in placement.nodes}["r1"] == 2000 - 1000 - 100
+    objects = render_deployment([spec], placement)
+    module = next(o for o in objects if o["metadata"]["name"] == "app-m0-r1")
+    env = {e["name"]: e.get("value") for e in module["spec"]["template"]["spec"]["containers"][0]["env"]}
+    assert env["ROS_DISCOVERY_SERVER"] == (
+        "$(KUBEROS_DISCOVERY_0_SERVICE_HOST):11811;$(KUBEROS_ROBOT_DISCOVERY_APP_SERVICE_HOST):11811"
+    )
+    server = next(o for o in objects if o["metadata"]["name"] == "kuberos-robot-discovery-app-r1")
+    assert server["spec"]["template"]["spec"]["containers"][0]["args"] == [
+        "fast-discovery-server", "-i", "1", "-l", "0.0.0.0", "-p", "11811"
+    ]  # fmt: skip
+    service = next(o for o in objects if o["kind"] == "Service" and o["metadata"]["name"] == "kuberos-robot-discovery-app")
+    assert service["spec"]["internalTrafficPolicy"] == "Local"
+
+
+@pytest.mark.parametrize("discovery", [{"robotServers": False}, "cyclonedds"])
+def test_no_robot_discovery_servers_when_turned_off_or_for_cyclone_dds(discovery):
+    inventory = load_inventory(site(robots=2))
+    data = {
+        "metadata": {"name": "app", "targetFleet": "f"},
+        "rosModules": [{"name": "m0", "image": "img", "launch": ["ros2 run p n"], "requirements": {"onboard": True}}],
+    }
+    if discovery == "cyclonedds":
+        data["rmw"] = "cyclonedds"
+    else:
+        data["discovery"] = discovery
+    spec = parse_rosdeployment(data, "app.yml")
+    placement = place_modules([spec], inventory)
+    objects = render_deployment([spec], placement)
+    assert not [o for o in objects if "robot-discovery" in o["metadata"]["name"]]
+    # the module's default 100m only
+    assert {n["name"]: n["free_cpu_millis"] for n in placement.nodes if n["tier"] == "onboard"} == {"r1": 1900, "r2": 1900}
+
+
+def test_robot_servers_must_be_true_or_false():
+    with pytest.raises(SpecError) as refused:
+        parse_rosdeployment(
+            {
+                "metadata": {"name": "app", "targetFleet": "f"},
+                "rosModules": [{"name": "m0", "image": "img", "launch": ["ros2 run p n"]}],
+                "discovery": {"robotServers": "yes"},
+            },
+            "app.yml",
+        )
+    assert [(p.source, p.path) for p in refused.value.problems] == [("app.yml", "discovery.robotServers")]
+    assert "true or false" in refused.value.problems[0].message

@@ -27,6 +27,7 @@ from .placement import (
     DiscoveryServer,
     Instance,
     Placement,
+    robot_server_hosts,
 )
 from .quantities import format_cpu, format_memory
 from .spec import RosDeployment, RosModule
@@ -38,6 +39,7 @@ DEPLOYMENT = "kuberos.io/deployment"
 MODULE = "kuberos.io/module"
 INSTANCE = "kuberos.io/instance"
 DISCOVERY_ID = "kuberos.io/discovery-id"
+ROBOT_DISCOVERY = "robot-discovery-server"  # the component of a deployment's discovery server on a robot's computer
 ROBOTS_ANNOTATION = "kuberos.io/robots"
 REASON_ANNOTATION = "kuberos.io/placement-reason"
 TIER_ANNOTATION = "kuberos.io/tier"
@@ -168,6 +170,57 @@ def _namespace(fleet: str, namespace: str) -> dict:
     }
 
 
+def _discovery_deployment(
+    name: str, namespace: str, labels: dict, selector: dict, server_id: int, port: int, node: str, tier: str,
+    robot: str | None, annotations: dict, options: RenderOptions,
+) -> dict:  # fmt: skip
+    """A Fast DDS discovery server: one pod pinned to ``node``, serving UDP ``port`` as server ``server_id``."""
+    pod_spec = {
+        **_selector_and_tolerations(node, tier, robot),
+        "containers": [
+            {
+                "name": "discovery-server",
+                "image": options.discovery_image,
+                "imagePullPolicy": options.image_pull_policy,
+                # args, not command: the image's entrypoint runs first (the published ROS images source their
+                # setup there; nothing of ROS is on their PATH before it)
+                "args": ["fast-discovery-server", "-i", str(server_id), "-l", "0.0.0.0", "-p", str(port)],
+                "ports": [{"name": "discovery", "containerPort": port, "protocol": "UDP"}],
+                "resources": {
+                    "requests": {"cpu": format_cpu(DISCOVERY_CPU_MILLIS), "memory": format_memory(DISCOVERY_MEMORY_BYTES)},
+                    "limits": {"memory": format_memory(DISCOVERY_MEMORY_BYTES)},
+                },
+            }
+        ],
+    }
+    return {
+        "apiVersion": "apps/v1",
+        "kind": "Deployment",
+        "metadata": {"name": name, "namespace": namespace, "labels": labels, "annotations": annotations},
+        "spec": {
+            "replicas": 1,
+            "strategy": {"type": "Recreate"},
+            "selector": {"matchLabels": selector},
+            "template": {"metadata": {"labels": dict(labels)}, "spec": pod_spec},
+        },
+    }
+
+
+def _discovery_service(name: str, namespace: str, labels: dict, selector: dict, port: int, local: bool = False) -> dict:
+    spec = {
+        "selector": selector,
+        "ports": [{"name": "discovery", "port": port, "targetPort": port, "protocol": "UDP"}],
+    }
+    if local:
+        spec["internalTrafficPolicy"] = "Local"  # on each node, only the server that runs there answers
+    return {
+        "apiVersion": "v1",
+        "kind": "Service",
+        "metadata": {"name": name, "namespace": namespace, "labels": labels},
+        "spec": spec,
+    }
+
+
 def _discovery_objects(server: DiscoveryServer, options: RenderOptions) -> list[dict]:
     labels = {
         MANAGED_BY: "kuberos",
@@ -177,58 +230,65 @@ def _discovery_objects(server: DiscoveryServer, options: RenderOptions) -> list[
         INSTANCE: server.name,
     }
     selector = {COMPONENT: "discovery-server", DISCOVERY_ID: str(server.server_id)}
-    pod_spec = {
-        **_selector_and_tolerations(server.node, server.tier, None),
-        "containers": [
-            {
-                "name": "discovery-server",
-                "image": options.discovery_image,
-                "imagePullPolicy": options.image_pull_policy,
-                # args, not command: the image's entrypoint runs first (the published ROS images source their
-                # setup there; nothing of ROS is on their PATH before it)
-                "args": [
-                    "fast-discovery-server",
-                    "-i",
-                    str(server.server_id),
-                    "-l",
-                    "0.0.0.0",
-                    "-p",
-                    str(server.port),
-                ],
-                "ports": [{"name": "discovery", "containerPort": server.port, "protocol": "UDP"}],
-                "resources": {
-                    "requests": {"cpu": format_cpu(DISCOVERY_CPU_MILLIS), "memory": format_memory(DISCOVERY_MEMORY_BYTES)},
-                    "limits": {"memory": format_memory(DISCOVERY_MEMORY_BYTES)},
-                },
-            }
-        ],
-    }
-    deployment = {
-        "apiVersion": "apps/v1",
-        "kind": "Deployment",
-        "metadata": {
-            "name": server.name,
-            "namespace": server.namespace,
-            "labels": labels,
-            "annotations": {REASON_ANNOTATION: server.reason, TIER_ANNOTATION: server.tier},
-        },
-        "spec": {
-            "replicas": 1,
-            "strategy": {"type": "Recreate"},
-            "selector": {"matchLabels": selector},
-            "template": {"metadata": {"labels": dict(labels)}, "spec": pod_spec},
-        },
-    }
-    service = {
-        "apiVersion": "v1",
-        "kind": "Service",
-        "metadata": {"name": server.name, "namespace": server.namespace, "labels": labels},
-        "spec": {
-            "selector": selector,
-            "ports": [{"name": "discovery", "port": server.port, "targetPort": server.port, "protocol": "UDP"}],
-        },
-    }
-    return [deployment, service]
+    annotations = {REASON_ANNOTATION: server.reason, TIER_ANNOTATION: server.tier}
+    return [
+        _discovery_deployment(
+            server.name, server.namespace, labels, selector, server.server_id, server.port, server.node, server.tier,
+            None, annotations, options,
+        ),
+        _discovery_service(server.name, server.namespace, labels, selector, server.port),
+    ]  # fmt: skip
+
+
+def robot_discovery_slot(servers: list[DiscoveryServer]) -> int:
+    """The id (and ``ROS_DISCOVERY_SERVER`` position) of the robot discovery servers: the first after the fleet's."""
+    return max((s.server_id for s in servers), default=-1) + 1
+
+
+def robot_discovery_address(dep: RosDeployment) -> str:
+    """One robot discovery server as its modules name it: the deployment's node-local Service's address."""
+    return f"$({naming.service_host_variable(naming.robot_discovery_service_name(dep.name))}):{dep.discovery_port}"
+
+
+def fleet_discovery_part(value: str) -> str:
+    """A ``ROS_DISCOVERY_SERVER`` value without its robot's own server (an onboard module's lists it last): the
+    fleet's servers, as every module of the fleet lists them."""
+    marker = "$(" + naming.service_host_variable(naming.ROBOT_DISCOVERY_PREFIX)[: -len("_SERVICE_HOST")]
+    return ";".join(entry for entry in value.split(";") if not entry.startswith(marker))
+
+
+def robot_discovery_objects(
+    dep: RosDeployment, hosts: dict[tuple[str, str], str], slot: int, options: RenderOptions
+) -> list[dict]:
+    """``dep``'s discovery servers on its robots' computers (one Deployment per robot in ``hosts``, pinned there and
+    tolerating the robot being offline like its onboard modules) and their one node-local Service.
+
+    A robot's onboard modules list its server after the fleet's: while the robot is cut off from the edge servers
+    they still meet each other through it, also a module that starts during the cut (docs/connectivity.md). It is
+    linked to nothing: the fleet's servers keep telling the rest of the fleet about the robot's modules."""
+    namespace = naming.fleet_namespace(dep.fleet)
+    common = {MANAGED_BY: "kuberos", COMPONENT: ROBOT_DISCOVERY, DEPLOYMENT: dep.name, node_labels.FLEET: dep.fleet}
+    objects = []
+    for (deployment, robot), node in hosts.items():
+        if deployment != dep.name:
+            continue
+        name = naming.robot_discovery_server_name(dep.name, robot)
+        labels = {**common, node_labels.ROBOT: robot, DISCOVERY_ID: str(slot), INSTANCE: name}
+        annotations = {
+            ROBOTS_ANNOTATION: robot,
+            TIER_ANNOTATION: "onboard",
+            REASON_ANNOTATION: "the robot's own discovery server: its onboard modules meet through it while it is cut off",
+        }
+        objects.append(
+            _discovery_deployment(
+                name, namespace, labels, {INSTANCE: name}, slot, dep.discovery_port, node, "onboard", robot, annotations, options
+            )
+        )
+    if objects:
+        service = naming.robot_discovery_service_name(dep.name)
+        selector = {COMPONENT: ROBOT_DISCOVERY, DEPLOYMENT: dep.name}
+        objects.append(_discovery_service(service, namespace, dict(common), selector, dep.discovery_port, local=True))
+    return objects
 
 
 def discovery_from_deployments(objects: list[dict]) -> dict[str, list[DiscoveryServer]]:
@@ -768,6 +828,10 @@ def render_deployment(
         for server in servers:
             objects.extend(_discovery_objects(server, options))
     addresses = {f: discovery_server_list(placement.discovery[f]) for f in fleets}
+    hosts = robot_server_hosts({d.name for d in deployments if d.uses_robot_servers}, placement.instances)
+    for dep in deployments:
+        if dep.fleet in placement.discovery:
+            objects.extend(robot_discovery_objects(dep, hosts, robot_discovery_slot(placement.discovery[dep.fleet]), options))
     modules = {(d.name, m.name): m for d in deployments for m in d.modules}
     seen_params = set()
     for fleet, bridges in sorted(placement.bridges.items()):
@@ -793,6 +857,9 @@ def render_deployment(
             seen_params.add((dep.name, module.name, "robots"))
             handover = (scaling_state or {}).get((dep.name, module.name))
             objects.append(robots_configmap(dep, module, placement, base_labels, handover))
-        objects.append(_module_deployment(dep, module, inst, addresses[dep.fleet], base_labels, options))
+        discovery = addresses[dep.fleet]
+        if inst.tier == "onboard" and inst.robots and (dep.name, inst.robots[0]) in hosts:
+            discovery = f"{discovery};{robot_discovery_address(dep)}"  # the robot's own server, after the fleet's
+        objects.append(_module_deployment(dep, module, inst, discovery, base_labels, options))
     objects.sort(key=object_order)
     return objects

@@ -128,6 +128,20 @@ def discovery_server_name(server_id: int) -> str:
     return f"{DISCOVERY_PREFIX}-{server_id}"
 
 
+ROBOT_DISCOVERY_PREFIX = "kuberos-robot-discovery"
+
+
+def robot_discovery_server_name(deployment: str, robot: str) -> str:
+    """The discovery server of one deployment on one robot's computer (a Deployment, ``kuberos-`` like the fleet's)."""
+    return dns_label(ROBOT_DISCOVERY_PREFIX, deployment, robot, max_len=52)
+
+
+def robot_discovery_service_name(deployment: str) -> str:
+    """The one Service of a deployment's robot discovery servers: node-local (``internalTrafficPolicy: Local``), so its
+    address reaches, on each robot computer, the server that runs there."""
+    return dns_label(ROBOT_DISCOVERY_PREFIX, deployment)
+
+
 def discovery_server_address(namespace: str, server_id: int, port: int, cluster_domain: str = "cluster.local") -> str:
     """The server's cluster DNS name and port: for people and tools; modules name it by its Service's address."""
     return f"{discovery_server_name(server_id)}.{namespace}.svc.{cluster_domain}:{port}"

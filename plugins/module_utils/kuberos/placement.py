@@ -207,6 +207,16 @@ def initial_free(inventory: Inventory, allocated: dict | None) -> dict[str, Free
     return free
 
 
+def robot_server_hosts(uses_robot_servers: set[str] | frozenset[str], instances: list[Instance]) -> dict[tuple[str, str], str]:
+    """(deployment, robot) -> the robot's computer, for each robot that runs an onboard instance of a deployment in
+    ``uses_robot_servers``: where that deployment's robot discovery servers run (one per robot)."""
+    hosts = {}
+    for inst in instances:
+        if inst.deployment in uses_robot_servers and inst.tier == "onboard" and not inst.cluster and len(inst.robots) == 1:
+            hosts[(inst.deployment, inst.robots[0])] = inst.node
+    return dict(sorted(hosts.items()))
+
+
 def node_summaries(inventory: Inventory, free: dict[str, Free], placement: Placement) -> list[dict]:
     robots = {r for dep in placement.deployments for r in dep["robots"]}
     fleets = {dep["fleet"] for dep in placement.deployments}

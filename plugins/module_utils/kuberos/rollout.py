@@ -22,7 +22,7 @@ import copy
 from dataclasses import dataclass, field
 
 from . import labels as node_labels
-from .manifests import COMPONENT, MODULE, ROBOTS_ANNOTATION, VERSION
+from .manifests import COMPONENT, MODULE, ROBOT_DISCOVERY, ROBOTS_ANNOTATION, VERSION
 
 ROLLOUT_KEYS = ("apiVersion", "kind", "metadata", "spec", "data", "binaryData", "type")
 FAILING_REASONS = ("CrashLoopBackOff", "ErrImagePull", "ImagePullBackOff", "CreateContainerConfigError", "RunContainerError")
@@ -183,7 +183,10 @@ def plan_rollout(
         action = "create" if a is None else "remove" if b is None else "update"
         labels = obj["metadata"].get("labels") or {}
         module = labels.get(MODULE, labels.get(COMPONENT, ""))
-        owners = _robots_of(obj) if obj["kind"] == "Deployment" and labels.get(COMPONENT) == "ros-module" else ()
+        # a module instance, or a robot's own discovery server, goes with its robot(s)
+        owners = (
+            _robots_of(obj) if obj["kind"] == "Deployment" and labels.get(COMPONENT) in ("ros-module", ROBOT_DISCOVERY) else ()
+        )
         change = Change(action, key[0], key[1], key[2], ",".join(owners), module, summarize(a, b), a, b)
         if action == "remove":
             plan.removals.append(change)

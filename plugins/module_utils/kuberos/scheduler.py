@@ -31,6 +31,7 @@ from .placement import (
     Placement,
     initial_free,
     node_summaries,
+    robot_server_hosts,
 )
 from .spec import RosDeployment, RosModule, name_clash_problems
 
@@ -129,6 +130,28 @@ class Scheduler:
         free.memory -= memory
         free.gpu -= gpu
         free.pods -= 1
+
+    # -- robot discovery servers -------------------------------------------------------------
+    def take_robot_server(self, dep: RosDeployment, robot: str, node: Node) -> bool:
+        """Take room for ``dep``'s discovery server on ``robot``'s computer; a failure naming the field otherwise."""
+        why = self.capacity_rejection(node, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+        if why is None:
+            self.take(node.name, DISCOVERY_CPU_MILLIS, DISCOVERY_MEMORY_BYTES, 0)
+            return True
+        self.failures.append(
+            f"the discovery server of deployment {dep.name} on robot {robot}'s computer "
+            f"({_fmt_cpu(DISCOVERY_CPU_MILLIS)} cpu, {_fmt_mem(DISCOVERY_MEMORY_BYTES)}) has no room: free room there, or "
+            f"set discovery.robotServers: false in {dep.source} (its onboard modules then meet only through the fleet's "
+            f"servers)\n    {node.name} (onboard): {why}"
+        )
+        return False
+
+    def place_robot_servers(self, deployments: list[RosDeployment], instances: list[Instance]) -> None:
+        """Room for a discovery server on each robot that runs an onboard instance of a deployment that has them,
+        taken once the modules are placed (a robot without room is a failure that names the way out)."""
+        by_name = {d.name: d for d in deployments}
+        for (dep, robot), node in robot_server_hosts({d.name for d in deployments if d.uses_robot_servers}, instances).items():
+            self.take_robot_server(by_name[dep], robot, self.inventory.nodes[node])
 
     def candidates(self, tier: str, fleet: str, robot: str | None) -> tuple[Node, ...]:
         if tier == "onboard":
@@ -599,6 +622,7 @@ def place_modules(
         )
         for module in dep.modules:
             scheduler.place_module(dep, module, robots, placement.instances)
+    scheduler.place_robot_servers(deployments, placement.instances)
     if scheduler.failures:
         raise PlacementError(scheduler.failures)
     placement.nodes = node_summaries(inventory, scheduler.free, placement)

@@ -378,7 +378,7 @@ SCHEMA = {
         },
         "discovery": {
             "type": "object",
-            "x-expected": "a mapping with servers and port",
+            "x-expected": "a mapping with servers, port and robotServers",
             "additionalProperties": False,
             "properties": {
                 "servers": {
@@ -396,6 +396,15 @@ SCHEMA = {
                     "default": 11811,
                     "description": "UDP port of the discovery servers.",
                     "x-expected": "a port number from 1024 to 65535",
+                },
+                "robotServers": {
+                    "type": "boolean",
+                    "default": True,
+                    "description": "A discovery server on each robot computer that runs onboard modules of this deployment, "
+                    "listed after the fleet's servers in those modules' ROS_DISCOVERY_SERVER: they meet each other while "
+                    "the robot is cut off from the edge servers, also a module that starts during the cut "
+                    "(docs/connectivity.md). Fast DDS only.",
+                    "x-expected": "true or false",
                 },
             },
         },

@@ -184,6 +184,7 @@ class RosDeployment:
     ros_domain_id: int = 0
     discovery_servers: int = 2
     discovery_port: int = 11811
+    robot_servers: bool = True  # a discovery server on each robot computer that runs its onboard modules
     labels: tuple[tuple[str, str], ...] = ()
     source: str = "<spec>"
     lines: dict = field(default_factory=dict, compare=False, repr=False)
@@ -197,6 +198,11 @@ class RosDeployment:
 
     def parameter_map(self, name: str) -> ParameterMap | None:
         return next((m for m in self.parameter_maps if m.name == name), None)
+
+    @property
+    def uses_robot_servers(self) -> bool:
+        """Its onboard modules list a discovery server on their robot's computer (Fast DDS; docs/connectivity.md)."""
+        return self.robot_servers and self.rmw == "fastdds"
 
     def field(self, path: str) -> str:
         """``path`` as the spec's own format names it (a reference-format spec's ``metadata.targetRobots[0]`` for
@@ -799,6 +805,7 @@ def _parse_document(doc: Document, catalog: Catalog | None = None, read_file=Non
         ros_domain_id=int(data.get("rosDomainId", 0)),
         discovery_servers=int(discovery.get("servers", 2)),
         discovery_port=int(discovery.get("port", 11811)),
+        robot_servers=bool(discovery.get("robotServers", True)),
         labels=tuple(sorted((metadata.get("labels") or {}).items())),
         source=doc.source,
         lines={format_path(k): v for k, v in doc.lines.items()},

@@ -18,7 +18,7 @@ import yaml
 from ._core import Problem, SpecError, labels, manifests, naming
 
 MANIFEST_DIR = "manifests"
-DISCOVERY_COMPONENT = "discovery-server"
+DISCOVERY_COMPONENTS = ("discovery-server", manifests.ROBOT_DISCOVERY)  # the fleet's, and a robot's own
 # valueFrom.fieldRef paths the runtime can answer, as the kubelet would
 FIELD_PATHS = ("spec.nodeName", "metadata.name", "metadata.namespace", "status.podIP", "status.hostIP")
 _UNSAFE_PATH_CHARS = (",", ":", "\n", "\0")  # they would break the overlay mount options
@@ -56,7 +56,7 @@ class Deployment:
 
     @property
     def is_discovery_server(self) -> bool:
-        return self.component == DISCOVERY_COMPONENT
+        return self.component in DISCOVERY_COMPONENTS
 
 
 @dataclass(frozen=True)
@@ -65,6 +65,7 @@ class Service:
     namespace: str
     selector: dict
     source: str
+    local: bool = False  # internalTrafficPolicy Local: on each node, only a pod on that node answers
 
 
 @dataclass
@@ -84,14 +85,20 @@ class RenderedDir:
         rendered; the first node by name otherwise (a host stands for the cluster IP and for the DNS name)."""
         return [(svc, min(d.node for d in targets)) for svc, targets in self.service_targets() if targets]
 
-    def service_links(self, namespace: str, address_of) -> dict[str, str]:
-        """The service links the kubelet gives every container in ``namespace``: each Service's
-        ``<NAME>_SERVICE_HOST``, here the address (``address_of(node)``) of its node (``service_nodes``)."""
-        return {
-            naming.service_host_variable(svc.name): address_of(node)
-            for svc, node in self.service_nodes()
-            if svc.namespace == namespace
-        }
+    def service_links(self, namespace: str, address_of, node: str | None = None) -> dict[str, str]:
+        """The service links the kubelet gives every container in ``namespace`` (of a pod on ``node``): each Service's
+        ``<NAME>_SERVICE_HOST``, here the address (``address_of(node)``) of its node (``service_nodes``); a node-local
+        Service's, the pod's own node when a Deployment of it runs there (none otherwise: nothing would answer)."""
+        links = {}
+        for svc, targets in self.service_targets():
+            if svc.namespace != namespace or not targets:
+                continue
+            if svc.local:
+                if node in {d.node for d in targets}:
+                    links[naming.service_host_variable(svc.name)] = address_of(node)
+                continue
+            links[naming.service_host_variable(svc.name)] = address_of(min(d.node for d in targets))
+        return links
 
     def service_targets(self) -> list[tuple[Service, list[Deployment]]]:
         """Each Service with its Deployments: same namespace, pod labels matching its selector."""
@@ -314,8 +321,10 @@ def load_rendered(root: str) -> RenderedDir:
                 deployments.append(deployment)
         elif obj["kind"] == "Service":
             name, namespace = _metadata(obj, rel, problems)
-            selector = (obj.get("spec") or {}).get("selector") or {}
-            rendered.services.append(Service(name, namespace, dict(selector) if isinstance(selector, dict) else {}, rel))
+            spec = obj.get("spec") or {}
+            selector = spec.get("selector") or {}
+            local = spec.get("internalTrafficPolicy") == "Local"
+            rendered.services.append(Service(name, namespace, dict(selector) if isinstance(selector, dict) else {}, rel, local))
     names = [d.name for d in deployments]
     for d in deployments:
         if names.count(d.name) > 1:

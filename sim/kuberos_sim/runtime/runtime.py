@@ -405,7 +405,7 @@ class Runtime:
 
     def _resolved_env(self, dep: Deployment, container) -> dict[str, str]:
         """As the kubelet sets it on the Deployment's host, with the service links of its namespace."""
-        links = self.rendered.service_links(dep.namespace, self.host_address)
+        links = self.rendered.service_links(dep.namespace, self.host_address, dep.node)
         return resolve_env(container, dep, self.host_address(dep.node), self.rendered.configmaps, links)
 
     def _volumes(self, dep: Deployment, container_name: str, mounts) -> list[VolumeMount]:
@@ -588,7 +588,11 @@ class Runtime:
         for dep in (d for d in modules if d.pod_labels.get(labels.FLEET, "") == chosen):
             links = self.rendered.service_links(dep.namespace, self.host_address) if self._started else {}
             for container in dep.containers:
-                values = {e["name"]: manifests.expand_references(e["value"], links) for e in container.env if "value" in e}
+                # an onboard module lists its robot's own discovery server too: the fleet's servers are shared
+                raw = {e["name"]: e["value"] for e in container.env if "value" in e}
+                if "ROS_DISCOVERY_SERVER" in raw:
+                    raw["ROS_DISCOVERY_SERVER"] = manifests.fleet_discovery_part(raw["ROS_DISCOVERY_SERVER"])
+                values = {name: manifests.expand_references(value, links) for name, value in raw.items()}
                 shared = values if shared is None else {k: v for k, v in shared.items() if values.get(k) == v}
         if shared is None:
             raise ValueError(f"no rendered module belongs to fleet {chosen!r}; fleets: {fleets}")
