@@ -27,7 +27,6 @@ from .placement import (
     DiscoveryServer,
     Instance,
     Placement,
-    robot_server_hosts,
 )
 from .quantities import format_cpu, format_memory
 from .spec import RosDeployment, RosModule
@@ -828,7 +827,7 @@ def render_deployment(
         for server in servers:
             objects.extend(_discovery_objects(server, options))
     addresses = {f: discovery_server_list(placement.discovery[f]) for f in fleets}
-    hosts = robot_server_hosts({d.name for d in deployments if d.uses_robot_servers}, placement.instances)
+    hosts = {(r.deployment, r.robot): r.node for r in placement.robot_servers}
     for dep in deployments:
         if dep.fleet in placement.discovery:
             objects.extend(robot_discovery_objects(dep, hosts, robot_discovery_slot(placement.discovery[dep.fleet]), options))

@@ -76,6 +76,16 @@ class DiscoveryServer:
     reason: str
 
 
+@dataclass(frozen=True)
+class RobotServer:
+    """A deployment's discovery server on one robot's computer (its onboard modules list it after the fleet's)."""
+
+    deployment: str
+    robot: str
+    node: str
+    name: str
+
+
 @dataclass
 class Placement:
     instances: list[Instance] = field(default_factory=list)
@@ -84,6 +94,7 @@ class Placement:
     # Nodes the deployments could use, with capacity and what is left free after this placement.
     nodes: list[dict] = field(default_factory=list)
     bridges: dict[str, list[BridgeServer]] = field(default_factory=dict)  # fleet -> its bridge servers
+    robot_servers: list[RobotServer] = field(default_factory=list)  # the deployments' servers on robots' computers
 
     def rows(self) -> list[dict]:
         """One row per (robot, module): the answer to 'where does this run for that robot?'."""
@@ -131,6 +142,7 @@ class Placement:
             "placements": self.rows(),
             "nodes": self.nodes,
             "bridges": [asdict(b) for servers in self.bridges.values() for b in servers],
+            "robot_discovery": [asdict(r) for r in self.robot_servers],
         }
 
     @classmethod
@@ -150,9 +162,10 @@ class Placement:
             bridges: dict[str, list[BridgeServer]] = {}
             for entry in data.get("bridges", []):
                 bridges.setdefault(entry["fleet"], []).append(BridgeServer(**entry))
+            robot_servers = [RobotServer(**entry) for entry in data.get("robot_discovery", [])]  # none before they existed
         except (KeyError, TypeError) as exc:
             raise SpecError([Problem("placement", "", f"not a placement produced by place_modules ({exc!r})")]) from None
-        return cls(instances, discovery, list(data.get("deployments", [])), list(data.get("nodes", [])), bridges)
+        return cls(instances, discovery, list(data.get("deployments", [])), list(data.get("nodes", [])), bridges, robot_servers)
 
 
 @dataclass(frozen=True)

@@ -223,7 +223,10 @@ def split_placement(placement: Placement, deployments: list[str]) -> dict[str, P
     out = {}
     for name in deployments:
         fleets = {d["fleet"] for d in described[name]}
-        out[name] = Placement(instances[name], {f: s for f, s in placement.discovery.items() if f in fleets}, described[name], [])
+        out[name] = Placement(
+            instances[name], {f: s for f, s in placement.discovery.items() if f in fleets}, described[name], [],
+            robot_servers=[r for r in placement.robot_servers if r.deployment == name],
+        )  # fmt: skip
     return out
 
 

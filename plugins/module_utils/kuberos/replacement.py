@@ -33,7 +33,12 @@ class _Replacer:
         self.hold = hold
         self.scheduler = Scheduler(inventory, allocated, unavailable)
         self.modules = {(d.name, m.name): (d, m) for d in deployments for m in d.modules}
-        self.result = Replacement(Placement(deployments=list(previous.deployments), bridges=dict(previous.bridges)))
+        self.result = Replacement(
+            Placement(
+                deployments=list(previous.deployments), bridges=dict(previous.bridges),
+                robot_servers=list(previous.robot_servers),  # on robots' computers: never moved
+            )
+        )  # fmt: skip
         self.kept_discovery: dict[str, dict[int, DiscoveryServer]] = {}
         self.leaving_discovery: dict[str, dict[int, tuple[DiscoveryServer, str]]] = {}
         self.slots: list[Instance | None] = []  # the previous instances in order; None where one leaves

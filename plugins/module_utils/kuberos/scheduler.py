@@ -29,6 +29,7 @@ from .placement import (
     DiscoveryServer,
     Instance,
     Placement,
+    RobotServer,
     initial_free,
     node_summaries,
     robot_server_hosts,
@@ -146,12 +147,15 @@ class Scheduler:
         )
         return False
 
-    def place_robot_servers(self, deployments: list[RosDeployment], instances: list[Instance]) -> None:
-        """Room for a discovery server on each robot that runs an onboard instance of a deployment that has them,
+    def place_robot_servers(self, deployments: list[RosDeployment], instances: list[Instance]) -> list[RobotServer]:
+        """A discovery server on each robot that runs an onboard instance of a deployment that has them, its room
         taken once the modules are placed (a robot without room is a failure that names the way out)."""
         by_name = {d.name: d for d in deployments}
+        servers = []
         for (dep, robot), node in robot_server_hosts({d.name for d in deployments if d.uses_robot_servers}, instances).items():
-            self.take_robot_server(by_name[dep], robot, self.inventory.nodes[node])
+            if self.take_robot_server(by_name[dep], robot, self.inventory.nodes[node]):
+                servers.append(RobotServer(dep, robot, node, naming.robot_discovery_server_name(dep, robot)))
+        return servers
 
     def candidates(self, tier: str, fleet: str, robot: str | None) -> tuple[Node, ...]:
         if tier == "onboard":
@@ -622,7 +626,7 @@ def place_modules(
         )
         for module in dep.modules:
             scheduler.place_module(dep, module, robots, placement.instances)
-    scheduler.place_robot_servers(deployments, placement.instances)
+    placement.robot_servers = scheduler.place_robot_servers(deployments, placement.instances)
     if scheduler.failures:
         raise PlacementError(scheduler.failures)
     placement.nodes = node_summaries(inventory, scheduler.free, placement)

@@ -30,6 +30,8 @@ def placement_table(placement: Placement) -> str:
     for fleet, servers in placement.discovery.items():
         for s in servers:
             rows.append((f"(fleet {fleet})", "-", s.name, s.tier, s.node, s.reason))
+    for r in placement.robot_servers:
+        rows.append((r.deployment, r.robot, "(discovery server)", "onboard", r.node, "the robot's own, for its onboard modules"))
     return format_table(header, rows)
 
 
@@ -76,6 +78,12 @@ def _fleet_rows(placement: dict) -> list[dict]:
     for entry in placement.get("discovery", []):
         wanted.extend(_server_row(entry["fleet"], s["name"], s["tier"], s["node"]) for s in entry["servers"])
     wanted.extend(_server_row(b["fleet"], b["name"], b["tier"], b["node"]) for b in placement.get("bridges", []))
+    fleets = {d["name"]: d["fleet"] for d in placement.get("deployments", [])}
+    for server in placement.get("robot_discovery", []):
+        wanted.append(
+            {"deployment": server["deployment"], "fleet": fleets.get(server["deployment"], ""), "robot": server["robot"],
+             "module": "(discovery server)", "tier": "onboard", "node": server["node"], "instance": server["name"]}
+        )  # fmt: skip
     return wanted
 
 

@@ -604,4 +604,4 @@ def live_placement(view: View, key: str, robots: set[str] | None = None) -> Plac
                 "free_gpu": int(total["gpu"] - taken["gpu"]),
             }
         )
-    return Placement(instances, placement.discovery, placement.deployments, nodes, placement.bridges)
+    return Placement(instances, placement.discovery, placement.deployments, nodes, placement.bridges, placement.robot_servers)
