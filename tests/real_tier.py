@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
+import subprocess
 import time
 from pathlib import Path
 
@@ -458,10 +460,74 @@ def new_events(core, namespace, reason, before: dict) -> list[tuple[str, str]]:
 
 
 def placed_instances(placement: dict) -> dict[str, str]:
-    """Deployment name -> node, for every module instance and discovery server of a placement (placement.json)."""
+    """Deployment name -> node, for every module instance and discovery server (the fleet's and each robot's own) of
+    a placement (placement.json)."""
     wanted = {inst["name"]: inst["node"] for inst in placement["instances"]}
     wanted.update({server["name"]: server["node"] for fleet in placement["discovery"] for server in fleet["servers"]})
+    wanted.update({server["name"]: server["node"] for server in placement.get("robot_discovery", [])})
     return wanted
+
+
+# A talker or a listener (argv: role, topic, seconds, fleet_only), run inside a module's container: with fleet_only "1"
+# its ROS_DISCOVERY_SERVER (as the kubelet expanded it) loses its last entry, the robot's own server.
+PAIR_PROGRAM = """
+import os, sys, time
+role, topic, seconds, fleet_only = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4] == "1"
+if fleet_only:
+    os.environ["ROS_DISCOVERY_SERVER"] = os.environ["ROS_DISCOVERY_SERVER"].rsplit(";", 1)[0]
+import rclpy
+from std_msgs.msg import String
+rclpy.init()
+node = rclpy.create_node("kuberos_offline_" + role)
+start = time.monotonic()
+if role == "talker":
+    pub = node.create_publisher(String, topic, 10)
+    count = 0
+    def tick():
+        global count
+        count += 1
+        pub.publish(String(data=str(count)))
+    node.create_timer(0.1, tick)
+else:
+    node.create_subscription(String, topic, lambda m: print(f"received {m.data} {time.monotonic() - start:.2f}", flush=True), 10)
+print("servers " + os.environ.get("ROS_DISCOVERY_SERVER", ""), flush=True)
+while time.monotonic() - start < seconds:
+    rclpy.spin_once(node, timeout_sec=0.1)
+"""
+
+
+def container_of(core, namespace: str, node: str, component: str = "ros-module") -> str:
+    """The containerd id of the first container of a KubeROS pod of ``component`` on ``node``."""
+    for pod in core.list_namespaced_pod(namespace, field_selector=f"spec.nodeName={node}").items:
+        if (pod.metadata.labels or {}).get("kuberos.io/component") == component and pod.status.container_statuses:
+            return pod.status.container_statuses[0].container_id.split("://", 1)[1]
+    raise AssertionError(f"no {component} pod runs on {node}")
+
+
+def pair_in_container(socket: str, container: str, topic: str, seconds: float, fleet_only: bool) -> dict:
+    """A talker and a listener started now inside ``container`` through its node's containerd (``socket``; no API
+    server needed, so also on a robot that is cut off), both with the container's environment (``fleet_only``: without
+    the robot's own discovery server). Seconds from start to the listener's first message (None: none within
+    ``seconds``), and what the listener printed."""
+    ctr = ["ctr", "-a", socket, "-n", "k8s.io", "tasks", "exec"]
+    tag = f"{topic.strip('/')}-{int(time.time() * 1000) % 10**8}"
+    args = [str(seconds), "1" if fleet_only else "0"]
+    talker = subprocess.Popen(
+        [*ctr, "--exec-id", f"t-{tag}", container, "python3", "-c", PAIR_PROGRAM, "talker", topic, *args],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        listener = subprocess.run(
+            [*ctr, "--exec-id", f"l-{tag}", container, "python3", "-c", PAIR_PROGRAM, "listener", topic, *args],
+            capture_output=True, text=True, timeout=seconds + 60,
+        )  # fmt: skip
+    finally:
+        try:
+            talker.wait(timeout=seconds + 30)
+        except subprocess.TimeoutExpired:
+            talker.kill()
+    times = [float(t) for t in re.findall(r"^received \d+ ([\d.]+)$", listener.stdout, re.MULTILINE)]
+    return {"first_s": times[0] if times else None, "messages": len(times), "out": (listener.stdout + listener.stderr)[-2000:]}
 
 
 def running_instances(core, namespace) -> dict[str, str]:
@@ -481,14 +547,18 @@ def running_where_placed(core, namespace, placed: dict) -> dict | None:
 
 
 def cut_off_robot(real, namespace: str, placed: dict, robot: str, control_namespace: str, status: str, hold_s: float,
-                  toleration_s: float) -> dict:  # fmt: skip
+                  toleration_s: float, pair_s: float = 0.0) -> dict:  # fmt: skip
     """Cut ``robot`` off the network (every packet of its control link and its link to the other nodes dropped)
     until a pod without the platform's tolerations (the negative control, in ``control_namespace``, which has the
     ``programs`` ConfigMap) is evicted and ``hold_s`` more, with a controller running; reconnect it. What was seen,
     for a test to assert and a benchmark to record: the robot's pods before, during and after (UID, restarts,
     deleting), when the node was tainted and the control evicted, the status rows of ``status``, the RobotOffline
     and ModuleMoved events of the partition, and how long after reconnecting the node was Ready and every placed
-    instance (``placed``: instance -> node) Running and Ready where placed."""
+    instance (``placed``: instance -> node) Running and Ready where placed. ``pair_s``: once the control is evicted,
+    two talker-listener pairs run that long in an onboard module's container (``pair_in_container``), with and
+    without the robot's own discovery server."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes
 
     core = real.core
@@ -501,6 +571,7 @@ def cut_off_robot(real, namespace: str, placed: dict, robot: str, control_namesp
         seen["running_before"] = wait_for(lambda: running_where_placed(core, namespace, placed), 120, "every module placed")
         moves, offline = events_of(core, namespace, "ModuleMoved"), events_of(core, namespace, "RobotOffline")
         seen["before"] = pods_on(core, namespace, robot)
+        container = container_of(core, namespace, robot) if pair_s else ""
         seen["cut"] = nodes.partition(robot) and nodes.partitioned(robot)
         cut = time.monotonic()
         wait_for(lambda: node_unreachable(core, robot), 120, f"{robot} tainted unreachable")
@@ -508,6 +579,13 @@ def cut_off_robot(real, namespace: str, placed: dict, robot: str, control_namesp
         wait_for(lambda: core.read_namespaced_pod("offline-control", control_namespace).metadata.deletion_timestamp,
                  60 + toleration_s, "the negative control evicted from the unreachable robot")  # fmt: skip
         seen["control_evicted_after_s"] = round(time.monotonic() - cut, 1)
+        if pair_s:
+            # Two modules that start while the robot is cut off: one pair with the container's environment (the
+            # robot's own discovery server listed), one without it (the negative control), side by side.
+            with ThreadPoolExecutor(2) as pool:
+                own = pool.submit(pair_in_container, nodes.socket(robot), container, "/kuberos_cut_own", pair_s, False)
+                fleet = pool.submit(pair_in_container, nodes.socket(robot), container, "/kuberos_cut_fleet", pair_s, True)
+                seen["pair_with_own_server"], seen["pair_fleet_only"] = own.result(), fleet.result()
         time.sleep(hold_s)
 
         def offline_rows():

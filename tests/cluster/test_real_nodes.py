@@ -71,6 +71,7 @@ NODES = ["cloud-1", "edge-1", "edge-2", "robot-1"]
 SPEC = os.path.join(ROOT, "examples", "pick-and-place.yml")
 GRACE = 2
 UNREACHABLE_S = 10  # the API server's default toleration of an unreachable node, shortened (Kubernetes: 300 s)
+PAIR_S = 20.0  # two talker-listener pairs started on the cut-off robot run this long
 
 
 def require_real_nodes() -> None:
@@ -817,7 +818,9 @@ def test_a_robot_cut_off_longer_than_the_eviction_delay_keeps_its_pods_and_nothi
     assert real.play("controller.yml", "-e", json.dumps(extra)).returncode == 0
     status = f"kuberos-status-{deployed['deployments'][0]['name']}"
     try:
-        seen = cut_off_robot(real, namespace, placed_instances(deployed), "robot-1", lab, status, GRACE + 8, UNREACHABLE_S)
+        seen = cut_off_robot(
+            real, namespace, placed_instances(deployed), "robot-1", lab, status, GRACE + 8, UNREACHABLE_S, PAIR_S
+        )
     finally:
         extra["controller_state"] = "stopped"
         real.play("controller.yml", "-e", json.dumps(extra))
@@ -833,11 +836,16 @@ def test_a_robot_cut_off_longer_than_the_eviction_delay_keeps_its_pods_and_nothi
     assert said and all("robot robot-1 is offline" in message for message in said), said
     assert seen["moves_after"] == [], "nothing moved"
     assert seen["control_gone"]
+    own, fleet_only = seen["pair_with_own_server"], seen["pair_fleet_only"]
+    assert "servers " in own["out"] and "servers " in fleet_only["out"], (own, fleet_only)
+    assert own["first_s"] is not None, f"a pair started on the cut-off robot did not meet through its own server: {own}"
+    assert fleet_only["first_s"] is None, f"the pair without the robot's server met with the edge unreachable: {fleet_only}"
     print(
         f"robot-1 cut off {seen['partition_s']:.0f} s: tainted unreachable after {seen['tainted_after_s']:.0f} s, the "
         f"negative control evicted after {seen['control_evicted_after_s']:.0f} s, {len(before)} onboard pods untouched; "
         f"reconnected: Ready after {seen['ready_after_reconnect_s']:.1f} s, every module Running and Ready where placed "
-        f"after {seen['rematch_after_reconnect_s']:.1f} s"
+        f"after {seen['rematch_after_reconnect_s']:.1f} s; a pair started during the cut met through the robot's own "
+        f"server after {own['first_s']:.1f} s, the pair without it not in {PAIR_S:.0f} s"
     )
 
 
