@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-discovery bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit molecule schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-discovery bench-discovery-traffic bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit molecule schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -139,6 +139,10 @@ bench-connectivity:
 bench-discovery: setup
 	$(VENV)/python bench/bench_discovery.py --repeat 3 --json bench/results/discovery.json \
 	  --connectivity bench/results/connectivity.json
+
+## Discovery traffic: bytes and packets for 10, 50 and 200 participants, multicast against discovery servers (as root).
+bench-discovery-traffic: setup
+	$(VENV)/python bench/bench_discovery_traffic.py --json bench/results/discovery_traffic.json
 
 ## Real nodes: image build, cold and warm start, deploy to all pods Running, pick cycles against the netns runtime.
 bench-real-pods:

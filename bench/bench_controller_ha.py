@@ -139,10 +139,7 @@ def record_placement(core) -> dict[str, str]:
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import parse_record
 
     configmap = core.read_namespaced_config_map(f"kuberos-record-{SPEC_NAME}", f"kuberos-{FLEET}")
-    placement = parse_record(core.api_client.sanitize_for_serialization(configmap)).placement
-    where = {i.name: i.node for i in placement.instances}
-    where.update({s.name: s.node for servers in placement.discovery.values() for s in servers})
-    return where
+    return parse_record(core.api_client.sanitize_for_serialization(configmap)).placement.pinned()
 
 
 def count_faults(core, placed: dict[str, str] | None = None, instances: dict | None = None) -> tuple[list[str], list[str]]:

@@ -58,6 +58,7 @@ def timed(what: str, function):
 def instances_running(core, placement: dict) -> bool:
     wanted = {i["name"]: i["node"] for i in placement["instances"]}
     wanted.update({s["name"]: s["node"] for fleet in placement["discovery"] for s in fleet["servers"]})
+    wanted.update({s["name"]: s["node"] for s in placement.get("robot_discovery", [])})
     running = {
         p.metadata.labels.get("kuberos.io/instance"): p.spec.node_name
         for p in core.list_pod_for_all_namespaces(label_selector="kuberos.io/instance").items

@@ -159,10 +159,7 @@ class Fleet:
         return parse_record(self.core.api_client.sanitize_for_serialization(configmap))
 
     def placed(self) -> dict[str, str]:
-        placement = self.record().placement
-        where = {i.name: i.node for i in placement.instances}
-        where.update({s.name: s.node for servers in placement.discovery.values() for s in servers})
-        return where
+        return self.record().placement.pinned()
 
     def pods(self) -> dict[str, list]:
         found: dict[str, list] = {}

@@ -119,6 +119,14 @@ class Placement:
         rows.sort(key=lambda r: (r["deployment"], r["robot"], r["module"]))
         return rows
 
+    def pinned(self) -> dict[str, str]:
+        """Deployment name -> node of every pod KubeROS pins here: module instances (not those of third-party
+        clusters), the fleets' discovery servers and the robots' own."""
+        where = {i.name: i.node for i in self.instances if not i.cluster}
+        where.update({s.name: s.node for servers in self.discovery.values() for s in servers})
+        where.update({r.name: r.node for r in self.robot_servers})
+        return where
+
     def to_dict(self) -> dict:
         return {
             "apiVersion": PLACEMENT_API_VERSION,
