@@ -1,4 +1,5 @@
-"""The network fabric: IP packets between the hosts' TUN devices, each delayed by its pair's one-way delay.
+"""The network fabric: IP packets between the hosts' TUN devices, each delayed by its pair's one-way delay, and
+limited and lost as the two hosts' links are.
 
 This kernel has no netem qdisc, so link delay is emulated in userspace. Every host namespace has a TUN device
 (``eth0``); this process, in the root namespace, attaches to each of them (it enters the host's network
@@ -12,19 +13,28 @@ sends and writes each to the destination host's TUN once ``delay_ms[src][dst]`` 
 - ``queue_full``: a pair already holding ``queue_packets`` packets or ``queue_bytes`` bytes in flight, or all
   pairs together ``total_bytes``;
 - ``write_error``: the destination TUN refused the packet;
-- ``host_removed``: in flight to a host detached by a reload (its fd is closed and its number may be reused).
+- ``host_removed``: in flight to a host detached by a reload (its fd is closed and its number may be reused);
+- ``loss``: lost on the sender's or the receiver's link (``link_loss``: the fraction each link loses, each way);
+- ``link_queue_full``: a limited link (``link_bps``) already holding ``link_queue_s`` seconds of packets to send,
+  as a router's queue in front of a slow link drops (tail drop).
+
+A limited link sends one packet at a time at its rate, each way apart: a packet waits for the sender's link (its
+uplink), then for the receiver's (its downlink), then for the pair's delay.
 
 Standard library only; run as a script (``python fabric.py CONFIG.json``) by the runtime. CONFIG::
 
     {"hosts": [{"node": "edge-1", "netns": "krs-...", "tun": "eth0", "address": "10.213.64.10",
                 "routes": ["10.232.1.0/24"]}, ...],                # optional: networks behind the host (pods)
      "delay_ms": {"fetch-1": {"edge-1": 2.5, ...}, ...},        # one-way, per ordered pair
+     "link_bps": {"fetch-1": 20000000.0},                       # optional: links with a bandwidth, bits/s
+     "link_loss": {"fetch-1": 0.02},                            # optional: links that lose packets, each way
+     "link_queue_s": 0.5, "seed": null,                         # optional
      "stats_file": "...", "stats_interval": 1.0, "queue_packets": 8192, "queue_bytes": 33554432,
      "total_bytes": 268435456}
 
 Prints ``fabric ready`` once every TUN is attached. SIGHUP: read CONFIG again (hosts can come and go while it
-runs): attach the hosts it lists that are new (by ``node``), detach those it no longer lists, take its ``delay_ms``
-(packets in flight keep the time they were given; every other setting stays as started), then print
+runs): attach the hosts it lists that are new (by ``node``), detach those it no longer lists, take its ``delay_ms``,
+``link_bps`` and ``link_loss`` (packets in flight keep the time they were given; every other setting stays as started), then print
 ``fabric reloaded: N hosts``; a new host that cannot be attached, or a CONFIG that cannot be read, changes nothing
 and prints ``fabric reload failed: <reason>``. SIGTERM or SIGINT: stop, write the statistics, exit 0. Every signal
 wakes the loop at once (``signal.set_wakeup_fd``), not only when its wait runs out.
@@ -38,6 +48,7 @@ import fcntl
 import heapq
 import json
 import os
+import random
 import select
 import signal
 import struct
@@ -52,7 +63,9 @@ IFF_NO_PI = 0x1000
 PR_SET_TIMERSLACK = 29
 READ_SIZE = 65536 + 64
 READ_BATCH = 64  # packets read from one TUN before the others get a turn
-DROP_REASONS = ("multicast", "unknown_destination", "not_ipv4", "queue_full", "write_error", "host_removed")
+DROP_REASONS = (
+    "multicast", "unknown_destination", "not_ipv4", "queue_full", "write_error", "host_removed", "loss", "link_queue_full",
+)  # fmt: skip
 
 
 def ipv4_destination(packet: bytes) -> bytes | None:
@@ -124,6 +137,15 @@ class Stats:
         }
 
 
+def _links(config: dict) -> tuple[dict[str, float], dict[str, float]]:
+    """A config's ``link_bps`` (node -> bits/s, above zero) and ``link_loss`` (node -> fraction from 0 to below 1)."""
+    rates = {node: float(bps) for node, bps in (config.get("link_bps") or {}).items()}
+    losses = {node: float(fraction) for node, fraction in (config.get("link_loss") or {}).items()}
+    if any(not bps > 0 for bps in rates.values()) or any(not 0 <= f < 1 for f in losses.values()):
+        raise ValueError(f"link_bps must be above zero and link_loss from 0 to below 1: {rates}, {losses}")
+    return rates, losses
+
+
 def _libc_call(name: str, *args) -> None:
     libc = ctypes.CDLL(None, use_errno=True)
     if getattr(libc, name)(*args) != 0:
@@ -164,6 +186,10 @@ class Fabric:
         self.queue_bytes = int(config.get("queue_bytes", 32 << 20))
         self.total_bytes = int(config.get("total_bytes", 256 << 20))
         self.broadcasts = frozenset(parse_address(b) for b in config.get("broadcasts", []))
+        self.link_bps, self.link_loss = _links(config)
+        self.link_queue_s = float(config.get("link_queue_s", 0.5))
+        self.random = random.Random(config.get("seed"))
+        self.link_free: dict[tuple[str, str], float] = {}  # (node, "up" | "down") -> when its link has sent its queue
         self.fds: dict[int, str] = {}  # fd -> node
         self.by_address: dict[bytes, tuple[int, str]] = {}  # address -> (fd, node)
         self.by_network: list[tuple[int, int, int, str]] = []  # (network, mask, fd, node): networks behind a host
@@ -209,8 +235,11 @@ class Fabric:
             self.fds[fd] = host["node"]
             self.by_address[address] = (fd, host["node"])
             self.by_network.extend((network, mask, fd, host["node"]) for network, mask in routes)
-        self.config = {**self.config, "hosts": list(config["hosts"]), "delay_ms": delay_ms}
-        self.delay_ms = delay_ms
+        link_bps, link_loss = _links(config)
+        self.config = {
+            **self.config, "hosts": list(config["hosts"]), "delay_ms": delay_ms, "link_bps": link_bps, "link_loss": link_loss
+        }  # fmt: skip
+        self.delay_ms, self.link_bps, self.link_loss = delay_ms, link_bps, link_loss
 
     def by_node(self) -> dict[str, int]:
         """Node -> the fd of its TUN, for every attached host."""
@@ -279,12 +308,24 @@ class Fabric:
             or self.stats.in_flight_bytes + size > self.total_bytes
         ):
             return self._drop("queue_full", pair)
+        lost = 1.0 - (1.0 - self.link_loss.get(src, 0.0)) * (1.0 - self.link_loss.get(dst, 0.0))
+        if lost and self.random.random() < lost:
+            return self._drop("loss", pair)
+        sent = now
+        for node, way in ((src, "up"), (dst, "down")):
+            rate = self.link_bps.get(node)
+            if rate:
+                free = max(sent, self.link_free.get((node, way), 0.0))
+                if free - now > self.link_queue_s:
+                    return self._drop("link_queue_full", pair)
+                sent = free + size * 8 / rate
+                self.link_free[(node, way)] = sent
         pair.in_flight_packets += 1
         pair.in_flight_bytes += size
         pair.max_in_flight_bytes = max(pair.max_in_flight_bytes, pair.in_flight_bytes)
         self.stats.in_flight_bytes += size
         self.sequence += 1
-        heapq.heappush(self.heap, (now + self.delay_ms.get(src, {}).get(dst, 0.0) / 1000.0, self.sequence, fd, packet, pair))
+        heapq.heappush(self.heap, (sent + self.delay_ms.get(src, {}).get(dst, 0.0) / 1000.0, self.sequence, fd, packet, pair))
         return None
 
     def deliver_due(self, now: float) -> None:

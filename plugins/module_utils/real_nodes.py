@@ -137,6 +137,7 @@ class RealNodes:
     base: int = 231
     tag: str = "kr"
     registry_port: int = 0  # the lab registry on the management bridge (0: none)
+    links: dict = field(default_factory=dict)  # link_bps and link_loss of the fabric (node -> value)
     log: list = field(default_factory=list)
     _children: dict = field(default_factory=dict, repr=False)  # (component, node) -> Popen, started by this object
     _served: dict = field(default_factory=dict, repr=False)  # built image -> its pull reference in the lab registry
@@ -620,6 +621,7 @@ class RealNodes:
                 for n in self.nets.values()
             ],
             "delay_ms": self.delay_ms,
+            **{key: dict(value) for key, value in self.links.items() if value},
             "broadcasts": [f"10.{self.base + 1}.0.255"],
             "stats_file": self.path("fabric-stats.json"),
             "stats_interval": 1.0,

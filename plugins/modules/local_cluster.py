@@ -39,7 +39,8 @@ options:
   real_nodes:
     description:
       - The real nodes, as returned by P(kuberos.platform.real_nodes#filter) (C(nodes) with name, labels and taints,
-        C(delay_ms)). Empty for none. Stopping stops the real nodes the state directory records, whatever this says.
+        C(delay_ms), and C(link_bps) and C(link_loss) for the links the inventory limits). Empty for none.
+        Stopping stops the real nodes the state directory records, whatever this says.
     type: dict
     default: {}
   real_nodes_base:
@@ -181,6 +182,7 @@ def main():
                 plane, params["real_nodes"]["nodes"], params["real_nodes"].get("delay_ms", {}), params["binaries"],
                 images=params["images"], aliases=params["image_aliases"], base=params["real_nodes_base"],
                 tag=params["real_nodes_tag"], registry_port=params["registry_port"],
+                links={key: params["real_nodes"].get(key, {}) for key in ("link_bps", "link_loss")},
             )  # fmt: skip
         elif params["state"] != "started":
             real = RealNodes.from_state(plane, params["binaries"])

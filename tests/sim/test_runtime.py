@@ -15,6 +15,7 @@ between the run's namespaces.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -42,7 +43,7 @@ from test_discovery_netns import require_ros  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils import render_dir  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, service  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError  # noqa: E402
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import Node  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import Node, load_inventory  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table  # noqa: E402
 
 pytestmark = pytest.mark.sim
@@ -209,11 +210,48 @@ def test_fabric_delays_forwards_in_order_drops_multicast_unknown_and_overflow():
         stats = fabric.stats.to_dict(fabric.delay_ms)
         assert stats["packets"] == 3 and stats["pairs"]["b->a"]["delay_ms"] == 50.0
         assert stats["drops"] == {
-            "multicast": 1, "unknown_destination": 1, "not_ipv4": 1, "queue_full": 1, "write_error": 0, "host_removed": 0
+            "multicast": 1, "unknown_destination": 1, "not_ipv4": 1, "queue_full": 1, "write_error": 0, "host_removed": 0,
+            "loss": 0, "link_queue_full": 0,
         }  # fmt: skip
     finally:
         os.close(read_a)
         os.close(write_a)
+
+
+def test_a_limited_link_sends_at_its_rate_each_way_and_a_lossy_one_drops_its_share():
+    """b's link sends 1 Mbit/s: four 1250-byte packets (10 ms each on the link) leave b one after the other, then wait
+    the pair's 5 ms; a's link is not limited. A queue over link_queue_s is dropped at its tail. A link losing 20 %
+    drops about that share (2000 packets: between 15 % and 25 %), the same with the same seed."""
+    read_a, write_a = os.pipe()
+    os.set_blocking(read_a, False)
+    config = {"hosts": [], "delay_ms": {"b": {"a": 5.0}}, "link_bps": {"b": 1e6}, "link_queue_s": 0.035}
+    fabric = fabric_module.Fabric(config)
+    fabric.by_address[bytes([10, 0, 0, 1])] = (write_a, "a")
+    try:
+        for _ in range(5):
+            fabric.receive("b", ipv4("10.0.0.1", 1250), now=100.0)
+        due = sorted(entry[0] for entry in fabric.heap)
+        assert [round(t - 100.0, 4) for t in due] == [0.015, 0.025, 0.035, 0.045]  # the fifth would wait 40 ms: dropped
+        assert fabric.stats.drops["link_queue_full"] == 1
+        fabric.deliver_due(100.0149)
+        assert fabric.stats.packets == 0
+        fabric.deliver_due(100.0451)
+        assert fabric.stats.packets == 4
+    finally:
+        os.close(read_a)
+        os.close(write_a)
+
+    def lost(seed):
+        lossy = fabric_module.Fabric({"hosts": [], "delay_ms": {}, "link_loss": {"b": 0.2}, "seed": seed})
+        lossy.by_address[bytes([10, 0, 0, 1])] = (-1, "a")
+        for n in range(2000):
+            lossy.receive("b", ipv4("10.0.0.1", 64), now=100.0 + n)
+            lossy.heap.clear()
+        return lossy.stats.drops["loss"]
+
+    assert 300 <= lost(7) <= 500 and lost(7) == lost(7)
+    with pytest.raises(ValueError):
+        fabric_module.Fabric({"hosts": [], "delay_ms": {}, "link_loss": {"b": 1.0}})
 
 
 class PipeHosts:
@@ -491,6 +529,46 @@ def test_64kb_datagrams_cross_unfragmented(runtime):
     got_bytes, seconds = int(got), max(float(seconds), 1e-3)
     print(f"{got_bytes // 64000}/{count} datagrams of 64000 bytes, {got_bytes / seconds / 1e6:.0f} MB/s through the fabric")
     assert got_bytes % 64000 == 0 and got_bytes >= 64000 * count * 0.9, receiver.tail()
+
+
+def test_a_robots_link_bandwidth_and_loss_from_the_inventory_limit_what_crosses_it(rendered_dirs, local_raw, tmp_path):
+    """fetch-1's link at 4 Mbit/s losing 10 % (kuberos_link_bandwidth, kuberos_link_loss): a burst of 1000-byte
+    datagrams to edge-1 arrives at about 4 Mbit/s less the loss (between 2.8 and 4.2), and of 300 datagrams sent
+    10 ms apart (no queue) between 80 % and 97 % arrive."""
+    require_environment()
+    raw = copy.deepcopy(local_raw)
+    raw["hosts"]["fetch-1"].update({"kuberos_link_bandwidth": "4 Mbit/s", "kuberos_link_loss": "10%"})
+    sink = (
+        "import socket, sys, time\n"
+        "s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM); s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)\n"
+        "s.bind(('0.0.0.0', int(sys.argv[1]))); print('bound', flush=True); s.settimeout(20); n = 0; first = last = None\n"
+        "try:\n while True:\n  d = s.recv(70000); last = time.monotonic(); first = first or last; n += 1; s.settimeout(2)\n"
+        "except socket.timeout: pass\n"
+        "print('got', n, (last or 0) - (first or 0), flush=True)"
+    )
+    with Runtime(rendered_dirs["probe"], load_inventory(raw), str(tmp_path)) as runtime:
+        runtime.start(modules=False)
+        edge = runtime.host_address("edge-1")
+        burst = runtime.start_on("edge-1", "sink-burst", [sys.executable, "-c", sink, "7401"])
+        spaced = runtime.start_on("edge-1", "sink-spaced", [sys.executable, "-c", sink, "7402"])
+        wait_until(lambda: "bound" in burst.output() and "bound" in spaced.output(), STARTUP_TIMEOUT, "no sinks", runtime)
+        runtime.start_on(
+            "fetch-1", "source",
+            [sys.executable, "-c", "import socket, time\ns = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)\n"
+             f"for _ in range(3000):\n s.sendto(bytes(1000), ('{edge}', 7401)); time.sleep(0.0005)\n"
+             f"for _ in range(300):\n s.sendto(bytes(100), ('{edge}', 7402)); time.sleep(0.01)\n"],
+            cgroup="hardware",
+        )  # fmt: skip
+        wait_until(lambda: "got" in burst.output() and "got" in spaced.output(), 60, "the sinks did not finish", runtime)
+        stats = runtime.fabric_stats()
+    got, seconds = burst.output().split("got")[1].split()
+    rate = int(got) * 1028 * 8 / max(float(seconds), 1e-3) / 1e6  # IPv4 + UDP headers: 28 bytes
+    arrived = int(spaced.output().split("got")[1].split()[0])
+    print(f"fetch-1 at 4 Mbit/s losing 10 %: a burst arrived at {rate:.2f} Mbit/s ({got}/3000 datagrams), "
+          f"{arrived}/300 spaced datagrams arrived; fabric drops {stats['drops']}")  # fmt: skip
+    assert 2.8 <= rate <= 4.2, rate
+    assert 240 <= arrived <= 291, arrived
+    assert stats["drops"]["loss"] > 0 and stats["drops"]["link_queue_full"] > 0, stats["drops"]
 
 
 def test_cpu_quota_is_enforced_and_hardware_is_accounted_apart(rendered_dirs, local_inventory, tmp_path):

@@ -72,3 +72,39 @@ def test_sample_inventory_is_a_valid_site():
     assert sorted(n for n, node in inv.nodes.items() if node.tier == "edge") == ["edge-a", "edge-b", "edge-c", "edge-d"]
     assert inv.latency_ms("fetch-02", "gpu-vm-1") == 85.0 and inv.latency_ms("fetch-01", "gpu-vm-1") == 40.0
     assert inv.nodes["scanner-01.robots.example.internal"].arch == "arm64"
+
+
+def test_link_bandwidth_and_loss_are_read_and_reach_the_labs_links():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.link_delays import (
+        link_losses,
+        link_rates_bps,
+    )
+
+    def site(**robot_vars):
+        robot = {"kuberos_fleet": "f", "kuberos_cpu": 2, "kuberos_memory": "4Gi", **robot_vars}
+        return {
+            "hosts": {"r1": robot, "e1": {"kuberos_cpu": 4, "kuberos_memory": "8Gi", "kuberos_link_bandwidth": "1 Gbit/s"}},
+            "groups": {"robots": ["r1"], "edge": ["e1"], "cloud": []},
+        }
+
+    inventory = load_inventory(site(kuberos_link_bandwidth="20 Mbit/s", kuberos_link_loss="2%"))
+    assert (inventory.nodes["r1"].link_bps, inventory.nodes["r1"].link_loss) == (20e6, 0.02)
+    assert link_rates_bps(inventory, ["r1", "e1"]) == {"r1": 20e6, "e1": 1e9}
+    assert link_losses(inventory, ["r1", "e1"]) == {"r1": 0.02}
+    plain = load_inventory(site(kuberos_link_bandwidth=54, kuberos_link_loss=0.5))
+    assert (plain.nodes["r1"].link_bps, plain.nodes["r1"].link_loss) == (54e6, 0.005)
+    for var, value, expected in (
+        ("kuberos_link_bandwidth", "fast", "expected a bandwidth above zero"),
+        ("kuberos_link_bandwidth", 0, "expected a bandwidth above zero"),
+        ("kuberos_link_loss", "100%", "from 0 to below 100"),
+        ("kuberos_link_loss", -1, "from 0 to below 100"),
+    ):
+        try:
+            load_inventory(site(**{var: value}))
+        except SpecError as exc:
+            assert [p.path for p in exc.problems] == [f"hosts.r1.{var}"], exc.problems
+            assert expected in exc.problems[0].message
+        else:
+            raise AssertionError(f"{var}: {value!r} was accepted")

@@ -25,7 +25,8 @@ DEFAULT_BRIDGE_NODE_PORT = naming.BRIDGE_NODE_PORT
 # The host variables of the resource model (docs/inventory.md); other kuberos_* variables are site settings.
 HOST_VARS = (
     "kuberos_arch", "kuberos_cpu", "kuberos_default_latency_ms", "kuberos_device_parameters", "kuberos_devices",
-    "kuberos_fleet", "kuberos_fleets", "kuberos_gpu", "kuberos_latency_ms", "kuberos_link_latency_ms", "kuberos_memory",
+    "kuberos_fleet", "kuberos_fleets", "kuberos_gpu", "kuberos_latency_ms", "kuberos_link_bandwidth", "kuberos_link_latency_ms",
+    "kuberos_link_loss", "kuberos_memory",
     "kuberos_node_name", "kuberos_pods", "kuberos_resource_group", "kuberos_robot", "kuberos_shared",
     # third-party clusters (their API server, CA and token are credentials, never part of the model)
     "kuberos_cluster_domain", "kuberos_bridge_endpoint", "kuberos_bridge_node_port",
@@ -62,6 +63,10 @@ class Node:
     shared: bool = True
     resource_group: str = ""
     latency_ms: float = 0.0
+    # Its network link (kuberos_link_bandwidth, kuberos_link_loss): bits per second (None: not limited) and the
+    # fraction of packets lost, each way. The lab's links emulate them; the scheduler does not read them.
+    link_bps: float | None = None
+    link_loss: float = 0.0
 
     def serves_fleet(self, fleet: str) -> bool:
         if self.tier == "onboard":
@@ -168,6 +173,8 @@ _EXPECTED = {
     quantities.parse_cpu: quantities.CPU_EXPECTED,
     quantities.parse_memory: quantities.MEMORY_EXPECTED,
     quantities.parse_latency_ms: quantities.LATENCY_EXPECTED,
+    quantities.parse_bandwidth_bps: quantities.BANDWIDTH_EXPECTED,
+    quantities.parse_loss_fraction: quantities.LOSS_EXPECTED,
 }
 
 
@@ -355,9 +362,15 @@ class _Loader:
                     f"{describe(device)} is not valid; expected device names of lowercase letters, digits and '-'",
                 )  # fmt: skip
         parameters = self.device_parameters(host, hv.get("kuberos_device_parameters"), devices)
+        bandwidth = hv.get("kuberos_link_bandwidth")
+        if bandwidth is not None:
+            bandwidth = _parse_number(bandwidth, quantities.parse_bandwidth_bps, source, host, "kuberos_link_bandwidth", problems)
+        loss = _parse_number(
+            hv.get("kuberos_link_loss"), quantities.parse_loss_fraction, source, host, "kuberos_link_loss", problems, default=0
+        )  # fmt: skip
         return dict(
             name=node_name, tier=tier, cpu_millis=cpu, memory_bytes=memory, gpu=gpu, pods=pods, arch=str(arch),
-            devices=frozenset(devices), device_parameters=parameters,
+            devices=frozenset(devices), device_parameters=parameters, link_bps=bandwidth or None, link_loss=loss,
         )  # fmt: skip
 
     def device_parameters(self, host: str, raw, devices: list) -> tuple:

@@ -8,7 +8,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import Inventory, Node
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantities import format_cpu, format_memory
 
-from .link_delays import one_way_delays_ms
+from .link_delays import link_losses, link_rates_bps, one_way_delays_ms
 
 KWOK_ANNOTATION = "kwok.x-k8s.io/node"
 
@@ -81,7 +81,8 @@ def real_node_names(raw: dict, hostvars: dict, source: str = "inventory") -> lis
 
 def real_nodes(inventory: Inventory, names: list[str]) -> dict:
     """What the local cluster needs to run real nodes: each node's labels and taints (its kubelet registers with
-    them, so no pod lands before they exist), and the one-way delay between every two of them (link_delays)."""
+    them, so no pod lands before they exist), the one-way delay between every two of them, and the bandwidth and loss
+    of the links that have them (link_delays)."""
     nodes = [inventory.nodes[name] for name in sorted(names)]
     return {
         "nodes": [
@@ -94,6 +95,8 @@ def real_nodes(inventory: Inventory, names: list[str]) -> dict:
             for node in nodes
         ],
         "delay_ms": one_way_delays_ms(inventory, [node.name for node in nodes]),
+        "link_bps": link_rates_bps(inventory, [node.name for node in nodes]),
+        "link_loss": link_losses(inventory, [node.name for node in nodes]),
     }
 
 

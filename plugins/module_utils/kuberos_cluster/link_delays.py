@@ -12,6 +12,10 @@ probe (ping, average RTT) the simulator reads it as a round-trip time. For the p
   the robots, as the farther node's uplink dominates; so edge-cloud is the cloud node's latency.
 
 Each direction of a pair is delayed by half the RTT.
+
+Bandwidth and loss belong to a node's own link (``kuberos_link_bandwidth``, ``kuberos_link_loss``: a robot's wireless
+link, a cloud VM's uplink), the same each way: a packet leaves through its sender's link and arrives through its
+receiver's, each limited and lossy as the inventory says (``link_rates_bps``, ``link_losses``).
 """
 
 from __future__ import annotations
@@ -40,3 +44,13 @@ def rtt_ms(inventory, a: str, b: str) -> float:
 def one_way_delays_ms(inventory, nodes: list[str]) -> dict[str, dict[str, float]]:
     """Source node -> destination node -> one-way delay in milliseconds (half the RTT), for every ordered pair."""
     return {a: {b: rtt_ms(inventory, a, b) / 2.0 for b in nodes if b != a} for a in nodes}
+
+
+def link_rates_bps(inventory, nodes: list[str]) -> dict[str, float]:
+    """Node -> its link's bandwidth in bits per second, for the nodes whose link is limited."""
+    return {n: inventory.nodes[n].link_bps for n in nodes if inventory.nodes[n].link_bps}
+
+
+def link_losses(inventory, nodes: list[str]) -> dict[str, float]:
+    """Node -> the fraction of packets its link loses (each way), for the nodes whose link loses any."""
+    return {n: inventory.nodes[n].link_loss for n in nodes if inventory.nodes[n].link_loss}

@@ -3,6 +3,8 @@
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.link_delays import (  # noqa: F401
     LAN_RTT_MS,
+    link_losses,
+    link_rates_bps,
     one_way_delays_ms,
     rtt_ms,
 )

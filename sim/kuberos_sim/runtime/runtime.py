@@ -300,6 +300,8 @@ class Runtime:
         self._fabric_config = {
             "hosts": [{"node": h.node, "netns": h.netns, "tun": netns.TUN, "address": h.address} for h in self.hosts.values()],
             "delay_ms": delays.one_way_delays_ms(self.inventory, list(self.hosts)),
+            "link_bps": delays.link_rates_bps(self.inventory, list(self.hosts)),
+            "link_loss": delays.link_losses(self.inventory, list(self.hosts)),
             "broadcasts": [str(ipaddress.ip_network(self.subnet).broadcast_address)],
             "stats_file": os.path.join(directory, "stats.json"),
             "stats_interval": 1.0,
