@@ -99,6 +99,66 @@ class Cluster:
             if exc.status != 404:
                 raise
 
+    def prestage(self, namespace: str, plan: dict[str, dict], timeout: float, parallel: int, progress) -> dict:
+        """Pull each robot's new images (``RolloutPlan.prestage``) through a short-lived pod on the robot, at most
+        ``parallel`` robots at a time, for at most ``timeout`` seconds in all; the pods are removed after. What was
+        pulled where, and the problems (a failed pull, a robot still pulling at the timeout): the waves go on."""
+        from kubernetes.client.exceptions import ApiException
+
+        started = time.monotonic()
+        waiting = list(plan)
+        running: dict[str, str] = {}  # node -> its pod's name
+        done: dict[str, float] = {}
+        problems: list[str] = []
+        try:
+            while waiting or running:
+                while waiting and len(running) < parallel:
+                    node = waiting.pop(0)
+                    pod = prestage_pod(namespace, node, plan[node])
+                    try:
+                        self.core.create_namespaced_pod(namespace, pod)
+                    except ApiException as exc:
+                        problems.append(f"{node}: the prestage pod was refused ({exc.status} {exc.reason})")
+                        continue
+                    running[node] = pod["metadata"]["name"]
+                if time.monotonic() - started > timeout:
+                    problems += [f"{node}: still pulling after {timeout:g} s" for node in running]
+                    problems += [f"{node}: not started within {timeout:g} s" for node in waiting]
+                    break
+                for node, name in list(running.items()):
+                    try:
+                        pod = self.core.read_namespaced_pod(name, namespace)
+                    except ApiException as exc:
+                        if exc.status != 404:
+                            raise
+                        problems.append(f"{node}: the prestage pod went away")
+                        del running[node]
+                        continue
+                    finished, problem = prestage_verdict(pod)
+                    if finished:
+                        done[node] = round(time.monotonic() - started, 2)
+                        if problem:
+                            problems.append(f"{node}: {problem}")
+                        progress(f"pre-pulled onto {node} after {done[node]:.1f} s" + (f" ({problem})" if problem else ""))
+                        self._delete_pod(namespace, name)
+                        del running[node]
+                time.sleep(PRESTAGE_POLL_S)
+        finally:
+            for name in running.values():
+                self._delete_pod(namespace, name)
+        images = sorted({image for entry in plan.values() for image, _policy in entry["images"]})
+        return {"robots": len(plan), "images": images, "seconds": round(time.monotonic() - started, 2), "done_after_s": done,
+                "problems": problems}  # fmt: skip
+
+    def _delete_pod(self, namespace: str, name: str) -> None:
+        from kubernetes.client.exceptions import ApiException
+
+        try:
+            self.core.delete_namespaced_pod(name, namespace, grace_period_seconds=0)
+        except ApiException as exc:
+            if exc.status != 404:
+                raise
+
     def pods(self, namespace: str, instances: set[str]) -> dict[str, list[PodState]]:
         found: dict[str, list[PodState]] = {}
         if not instances:
@@ -126,6 +186,67 @@ class Cluster:
                 )
             )
         return found
+
+
+PRESTAGE = "prestage"  # the component of the pods that pull a rollout's images onto robots before its first wave
+PRESTAGE_POLL_S = 0.5
+PRESTAGE_WAITING = ("ContainerCreating", "PodInitializing")  # still pulling (or about to)
+
+
+def prestage_pod(namespace: str, node: str, entry: dict) -> dict:
+    """A pod on ``node`` with one container per image of ``entry`` (``RolloutPlan.prestage``): the kubelet pulls
+    each as for the module's own pod; the container itself only runs ``true`` (or fails to start where the image
+    has no ``true``: pulled all the same), never the module."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import ROBOT_TAINT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import dns_label
+
+    return {
+        "apiVersion": "v1",
+        "kind": "Pod",
+        "metadata": {
+            "name": dns_label("kuberos-prestage", node),
+            "namespace": namespace,
+            "labels": {MANAGED_BY: ROLLOUT_MANAGER, COMPONENT: PRESTAGE},
+        },
+        "spec": {
+            "nodeSelector": {HOSTNAME: node},
+            "tolerations": [{"key": ROBOT_TAINT, "operator": "Exists", "effect": "NoSchedule"}],
+            "restartPolicy": "Never",
+            "terminationGracePeriodSeconds": 0,
+            "automountServiceAccountToken": False,
+            "imagePullSecrets": [{"name": name} for name in entry["pull_secrets"]],
+            "containers": [
+                {
+                    "name": f"image-{index}",
+                    "image": image,
+                    "imagePullPolicy": policy,
+                    "command": ["true"],
+                    "resources": {"requests": {"cpu": "1m", "memory": "4Mi"}, "limits": {"memory": "16Mi"}},
+                }
+                for index, (image, policy) in enumerate(entry["images"])
+            ],
+        },
+    }
+
+
+def prestage_verdict(pod) -> tuple[bool, str]:
+    """(done, problem) of a prestage pod: done once every container's image is on the node (the kubelet created or
+    ran its container, or reports its image) or its pull failed (the problem says how; the wave's gate will too)."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import IMAGE_PULL_REASONS
+
+    statuses = {s.name: s for s in (pod.status.container_statuses or [])} if pod.status else {}
+    problems = []
+    for container in pod.spec.containers:
+        status = statuses.get(container.name)
+        if status is None:
+            return False, ""
+        waiting = status.state.waiting if status.state else None
+        if waiting and waiting.reason in IMAGE_PULL_REASONS:
+            problems.append(f"{container.image}: {waiting.reason} {waiting.message or ''}".strip())
+        elif not status.image_id and waiting and (waiting.reason or "ContainerCreating") in PRESTAGE_WAITING:
+            return False, ""
+    return True, "; ".join(problems)
 
 
 def _node_and_image(obj: dict) -> tuple[str, str]:
@@ -470,6 +591,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
             f"{len(plan.pending_robots)} robot(s) offline, left pending (the next rollout run finishes them): "
             + ", ".join(plan.pending_robots)
         )
+    result["prestage_plan"] = {node: [image for image, _policy in entry["images"]] for node, entry in plan.prestage().items()}
     if check_mode or not result["changed"]:
         return result
     cluster = Cluster(clients, record.field_manager)
@@ -486,7 +608,14 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     runner = Rollout(
         cluster, namespace, params["gate_timeout"], params["soak"], ros_probe=params.get("ros_probe"), progress=progress
     )
+    prestage = plan.prestage() if params.get("prestage", True) else {}
     try:
+        if prestage:
+            count = len({image for entry in prestage.values() for image, _policy in entry["images"]})
+            progress(f"pre-pulling {count} image(s) onto {len(prestage)} robot(s) before the first wave")
+            result["prestage"] = cluster.prestage(
+                namespace, prestage, params.get("prestage_timeout", 600.0), params.get("prestage_parallel", 10), progress
+            )
         outcome = runner.run(plan.prepare, plan.waves)
         if outcome["ok"]:
             for obj in records:

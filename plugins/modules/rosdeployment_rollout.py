@@ -72,6 +72,21 @@ options:
     type: list
     elements: str
     default: []
+  prestage:
+    description:
+      - Before the first wave, pull each robot's new images onto the robot (a short-lived pod per robot computer that
+        only pulls), so that no robot's downtime includes pulling an image over its link. Robots that are offline
+        are left out (they are pending). A failed pull is reported and the waves go on (their gates see it).
+    type: bool
+    default: true
+  prestage_timeout:
+    description: Seconds the pre-pulls may take in all; robots still pulling then are reported and the waves go on.
+    type: float
+    default: 600
+  prestage_parallel:
+    description: Robots pulling at the same time.
+    type: int
+    default: 10
 attributes:
   check_mode:
     support: full
@@ -137,6 +152,16 @@ summary:
   description: What changed (or would change), per robot and per wave, as lines of text.
   returned: always
   type: str
+prestage:
+  description:
+    - The pre-pulls before the first wave (O(prestage)) - robots, images, seconds in all, seconds until each robot
+      had its images (done_after_s), problems.
+  returned: when images were pre-pulled
+  type: dict
+prestage_plan:
+  description: Per robot computer, the new images its waves need (what O(prestage) pulls).
+  returned: always
+  type: dict
 pending_robots:
   description:
     - Robots that were offline (their computer's node not Ready). None of their modules was touched and nothing waited
@@ -172,6 +197,9 @@ ARGUMENT_SPEC = dict(
     soak=dict(type="float", default=5.0),
     gate_timeout=dict(type="float", default=120.0),
     ros_probe=dict(type="list", elements="str", default=[]),
+    prestage=dict(type="bool", default=True),
+    prestage_timeout=dict(type="float", default=600.0),
+    prestage_parallel=dict(type="int", default=10),
     **RENDER_ARGS,
 )
 
@@ -199,6 +227,14 @@ def summary_of(result: dict, check_mode: bool) -> str:
     lines += [f"{robot}: {'; '.join(changes)}" for robot, changes in result["per_robot"].items()] or ["nothing to change"]
     if result.get("pending_robots"):
         lines.append(f"pending, offline (the next rollout run finishes them): {', '.join(result['pending_robots'])}")
+    if check_mode and result.get("prestage_plan"):
+        lines.append(f"would pre-pull onto {len(result['prestage_plan'])} robot(s) before the first wave")
+    if result.get("prestage"):
+        staged = result["prestage"]
+        lines.append(
+            f"pre-pulled {len(staged['images'])} image(s) onto {len(staged['done_after_s'])}/{staged['robots']} robot(s) "
+            f"in {staged['seconds']} s" + (f"; problems: {'; '.join(staged['problems'])}" if staged["problems"] else "")
+        )
     for wave in result.get("waves", []):
         label = "canary" if wave["canary"] else f"wave {wave['number']}"
         lines.append(f"{label}: {len(wave['robots'])} robot(s) in {wave['seconds']} s")
@@ -218,6 +254,8 @@ def main():
     require_packages(module)
     if module.params["canary"] < 0 or module.params["wave_size"] < 1:
         module.fail_json(msg="canary must be 0 or more and wave_size 1 or more")
+    if module.params["prestage_timeout"] <= 0 or module.params["prestage_parallel"] < 1:
+        module.fail_json(msg="prestage_timeout must be above 0 and prestage_parallel 1 or more")
     progress = []
     try:
         result = execute(api_clients(module.params["kubeconfig"]), module.params, module.check_mode, progress.append)

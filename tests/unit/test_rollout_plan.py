@@ -222,3 +222,25 @@ def test_the_gate_ignores_the_past_of_pods_from_before_the_wave():
     assert gate_verdict({"i": [old]}, {"i": ("n1", "img:2")}) == (["i: pod a is in CrashLoopBackOff (4 restarts)"], [])
     assert gate_verdict({"i": [old]}, {"i": ("n1", "img:2")}, {"a"}) == ([], ["i"])
     assert gate_verdict({"i": [_pod("a", restarts=4)]}, {"i": ("n1", "img:2")}, {"a"}) == ([], [])
+
+
+def test_prestage_lists_each_robots_new_onboard_images_with_their_pull_secrets_and_nothing_else():
+    """A new control image (onboard) is pre-pulled onto each robot in a wave, with the pull secret its pods use; a
+    new planner image (cloud) is not, nor an offline robot's (pending), nor an image whose policy is Never."""
+    raw = _fleet(3)
+    _d, placement, before = _render(_spec(coordinator="dedicated"), raw)
+    spec = _spec(planner="r/planner:2", control="reg.example/r/control:2", coordinator="dedicated")
+    spec["imageRegistries"] = [{"name": "default", "pullSecret": "robots-pull"}]
+    _d, _p, after = _render(spec, raw, placement)
+    robots = ["robot-00", "robot-01", "robot-02"]
+    plan = plan_rollout(before, after, robots, offline={"robot-02"})
+    assert plan.pending_robots == ("robot-02",)
+    assert plan.prestage() == {
+        robot: {"images": [("reg.example/r/control:2", "IfNotPresent")], "pull_secrets": ["robots-pull"]}
+        for robot in ("robot-00", "robot-01")
+    }
+    spec["imageRegistries"] = [{"name": "default", "pullSecret": "robots-pull", "pullPolicy": "Never"}]
+    _d, _p, never = _render(spec, raw, placement)
+    assert plan_rollout(before, never, robots).prestage() == {}
+    _d, _p, planner_only = _render(_spec(planner="r/planner:2", coordinator="dedicated"), raw, placement)
+    assert plan_rollout(before, planner_only, robots).prestage() == {}

@@ -22,7 +22,7 @@ import copy
 from dataclasses import dataclass, field
 
 from . import labels as node_labels
-from .manifests import COMPONENT, MODULE, ROBOT_DISCOVERY, ROBOTS_ANNOTATION, VERSION
+from .manifests import COMPONENT, MODULE, ROBOT_DISCOVERY, ROBOTS_ANNOTATION, TIER_ANNOTATION, VERSION
 
 ROLLOUT_KEYS = ("apiVersion", "kind", "metadata", "spec", "data", "binaryData", "type")
 FAILING_REASONS = ("CrashLoopBackOff", "ErrImagePull", "ImagePullBackOff", "CreateContainerConfigError", "RunContainerError")
@@ -75,6 +75,31 @@ class RolloutPlan:
     def instances(self) -> list[str]:
         """Every module instance the rollout replaces (the controller leaves them alone meanwhile)."""
         return sorted({c.name for w in self.waves for c in w.changes if c.kind == "Deployment"})
+
+    def prestage(self) -> dict[str, dict]:
+        """Robot computer -> ``{"images": [(image, pull policy), ...], "pull_secrets": [...]}``: what its waves' new
+        module pods will pull, which a rollout pulls onto the robot before its first wave, so that no robot's downtime
+        includes pulling an image over its link. Only onboard pods whose image changes (or that are new), and no image
+        the kubelet never pulls (``imagePullPolicy: Never``)."""
+        nodes: dict[str, dict[str, set]] = {}
+        for change in (c for w in self.waves for c in w.changes):
+            if change.kind != "Deployment" or change.after is None:
+                continue
+            if (change.after["metadata"].get("annotations") or {}).get(TIER_ANNOTATION) != "onboard":
+                continue
+            pod = change.after["spec"]["template"]["spec"]
+            node = next(iter((pod.get("nodeSelector") or {}).values()), "")
+            before = _images(change.before) if change.before else set()
+            for container in [*pod.get("initContainers", []), *pod["containers"]]:
+                policy = container.get("imagePullPolicy", "IfNotPresent")
+                if node and policy != "Never" and container["image"] not in before:
+                    entry = nodes.setdefault(node, {"images": set(), "pull_secrets": set()})
+                    entry["images"].add((container["image"], policy))
+                    entry["pull_secrets"].update(s["name"] for s in pod.get("imagePullSecrets") or [] if s.get("name"))
+        return {
+            node: {"images": sorted(entry["images"]), "pull_secrets": sorted(entry["pull_secrets"])}
+            for node, entry in sorted(nodes.items())
+        }
 
     def per_robot(self) -> dict[str, list[str]]:
         """For --check --diff: per robot, one line per module that changes."""
@@ -152,6 +177,11 @@ def _robots_of(obj: dict) -> tuple[str, ...]:
         return (labels[node_labels.ROBOT],)
     robots = (obj["metadata"].get("annotations") or {}).get(ROBOTS_ANNOTATION, "")
     return tuple(r for r in robots.split(",") if r)
+
+
+def _images(deployment: dict) -> set[str]:
+    pod = deployment["spec"]["template"]["spec"]
+    return {c["image"] for c in [*pod.get("initContainers", []), *pod["containers"]]}
 
 
 def plan_rollout(
