@@ -332,6 +332,27 @@ class RealNodes:
             self.log.append(f"{'cut' if cut else 'reconnected'} {node}")
         return changed
 
+    def shape(self, node: str, rate_bps: float | None) -> bool:
+        """Limit a node's control link (the API server, the lab registry: what image pulls cross) to ``rate_bps`` each
+        way with a token bucket (tbf: this kernel has no netem), as a robot's slow wireless link; ``None`` lifts it.
+        True when something changed. (The links between nodes take the inventory's bandwidth in the fabric.)"""
+        net = self.nets[node]
+        ends = ((in_netns(net.netns, ["tc"]), "mgmt0"), (["tc"], net.veth))  # uplink in the node, downlink on the host
+        changed = False
+        for tc, device in ends:
+            shaped = "tbf" in run(*tc, "qdisc", "show", "dev", device, check=False).stdout
+            if rate_bps is None and shaped:
+                run(*tc, "qdisc", "del", "dev", device, "root")
+                changed = True
+            elif rate_bps is not None:
+                burst = max(16_000, int(rate_bps / 8 / 100))  # 10 ms of traffic, at least a few packets
+                run(*tc, "qdisc", "replace", "dev", device, "root", "tbf", "rate", f"{int(rate_bps)}bit",
+                    "burst", str(burst), "latency", "400ms")  # fmt: skip
+                changed = True
+        if changed:
+            self.log.append(f"{node}: control link " + (f"limited to {rate_bps:g} bit/s" if rate_bps else "not limited"))
+        return changed
+
     # -- state -------------------------------------------------------------------------------------------
     def _read_state(self) -> dict:
         try:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import statistics
 import subprocess
@@ -530,6 +531,94 @@ def test_a_rollout_upgrades_a_real_container_and_a_broken_image_stops_at_the_can
         undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec('^0.1')}", *catalog_var)
         assert undo.returncode == 0, undo.stdout[-3000:]
         real.core.delete_namespaced_secret("rollout-registry", namespace)
+
+
+PRESTAGE_BYTES = 40 * 10**6  # each new version's own layer: random, so the robot must download it
+PRESTAGE_LINK_BPS = 40e6  # robot-1's control link (to the registry) while the versions roll out: about 8 s per layer
+
+
+def test_a_rollout_pre_pulls_a_robots_new_image_so_the_robots_downtime_leaves_out_the_pull(real, deployed, tmp_path):
+    """An onboard module that stops before its new version starts (upgrade: recreate) on robot-1, whose link to the
+    registry is limited to 40 Mbit/s; each new version brings a layer of 40 MB of its own. Rolled out without
+    pre-pulling, the module is down while its image crosses the link; with pre-pulling (the default), the image is
+    on the robot before the wave and the module is down only for the restart. The downtimes side by side."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import RegistryClient, lab_repository
+
+    address, served, password = registry_state(real)
+    ca = os.path.join(real.state_dir, "nodes", "registry", "ca.crt")
+    client = RegistryClient(address, "kuberos", password, ca)
+    built = next(b for b in served if "/ros:" in b)
+    repository, tag = lab_repository(built)
+    base = served[built].split("@")[1]
+    versions = [("1.0.0", f"{address}/{repository}:{tag}", base)]
+    for version in ("1.1.0", "1.2.0"):
+        digest = client.derive_image(repository, base, f"prestage-{version}", extra_bytes=PRESTAGE_BYTES)
+        versions.append((version, f"{address}/{repository}:prestage-{version}", digest))
+    catalog = {
+        "apiVersion": "kuberos.io/v1alpha1",
+        "kind": "RosModuleCatalog",
+        "modules": [
+            {
+                "name": "robot-worker",
+                "versions": [
+                    {"version": version, "image": image, "digest": digest, "rosDistro": "jazzy",
+                     "launch": [shlex.join(["python3", "-c", VERSIONED, version])], "upgrade": "recreate",
+                     "requirements": {"onboard": True}, "resources": {"cpu": "100m", "memory": "128Mi"}}
+                    for version, image, digest in versions
+                ],
+            }
+        ],
+    }  # fmt: skip
+    (tmp_path / "catalog").mkdir()
+    (tmp_path / "catalog" / "worker.yml").write_text(yaml.safe_dump(catalog), encoding="utf-8")
+    namespace = fleet_namespace(deployed)
+    pull_secret(real, namespace, "prestage-registry", address, password)
+    nodes = RealNodes.from_state(real.plane(), {})
+
+    def spec(version):
+        path = tmp_path / f"worker-{version}.yml"
+        document = {
+            "apiVersion": "kuberos.io/v1alpha1",
+            "kind": "RosDeployment",
+            "metadata": {"name": "prestage", "targetFleet": "test-fleet", "robotSelector": {"robot": ["robot-1"]}},
+            "imageRegistries": [{"name": "default", "pullSecret": "prestage-registry"}],
+            "rosModules": [{"name": "worker", "module": f"robot-worker@{version}"}],
+        }
+        path.write_text(yaml.safe_dump(document), encoding="utf-8")
+        return str(path)
+
+    catalog_var = ("-e", f"kuberos_catalog={tmp_path / 'catalog'}")
+
+    def roll(version, prestage):
+        done = real.play(
+            "rollout.yml", "-e", f"rosdeployment_file={spec(version)}", "-e", "rosdeployment_rollout_soak=2",
+            "-e", f"rosdeployment_rollout_prestage={str(prestage).lower()}", "-e", "rosdeployment_rollout_gate_timeout=180",
+            *catalog_var,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stdout[-6000:]
+        found = re.search(r"longest time a module had no Ready pod: ([\d.]+) s", done.stdout)
+        assert found, done.stdout[-3000:]
+        return float(found.group(1)), done.stdout
+
+    try:
+        result = real.deploy(spec("1.0.0"), tmp_path / "render", *catalog_var)
+        assert result.returncode == 0, result.stdout[-6000:]
+        assert nodes.shape("robot-1", PRESTAGE_LINK_BPS)
+        without, _out = roll("1.1.0", prestage=False)
+        with_prestage, out = roll("1.2.0", prestage=True)
+        staged = re.search(r"pre-pulled 1 image\(s\) onto 1/1 robot\(s\) in ([\d.]+) s", out)
+        assert staged, out[-3000:]
+        pull_s = float(staged.group(1))
+        print(f"robot-1 at {PRESTAGE_LINK_BPS / 1e6:g} Mbit/s, a new {PRESTAGE_BYTES / 1e6:g} MB layer per version: "
+              f"downtime {without:.1f} s without pre-pulling, {with_prestage:.1f} s with "
+              f"(the pre-pull took {pull_s:.1f} s)")  # fmt: skip
+        assert pull_s >= PRESTAGE_BYTES * 8 / PRESTAGE_LINK_BPS * 0.8, "the layer crossed the limited link"
+        assert without >= with_prestage + 0.5 * pull_s, (without, with_prestage, pull_s)
+    finally:
+        nodes.shape("robot-1", None)
+        undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec('1.0.0')}", *catalog_var)
+        assert undo.returncode == 0, undo.stdout[-3000:]
+        real.core.delete_namespaced_secret("prestage-registry", namespace)
 
 
 # -- resource defaults: rclpy modules without `resources` under a 1 kHz load -----------------------------------------

@@ -72,6 +72,24 @@ def docker_config_json(address: str, username: str, password: str) -> str:
     return json.dumps({"auths": {address: {"username": username, "password": password, "auth": auth}}}, sort_keys=True)
 
 
+OCI_LAYER = "application/vnd.oci.image.layer.v1.tar+gzip"
+
+
+def _random_layer(size: int) -> tuple[bytes, str]:
+    """A gzipped tar layer holding one file of ``size`` random bytes, and its diff id (the uncompressed tar's digest)."""
+    import gzip
+    import io
+
+    data = os.urandom(size)
+    raw = io.BytesIO()
+    with tarfile.open(fileobj=raw, mode="w", format=tarfile.PAX_FORMAT) as archive:
+        info = tarfile.TarInfo("opt/kuberos-lab/payload.bin")
+        info.size, info.mode, info.mtime = size, 0o644, 0
+        archive.addfile(info, io.BytesIO(data))
+    tar = raw.getvalue()
+    return gzip.compress(tar, compresslevel=1, mtime=0), "sha256:" + hashlib.sha256(tar).hexdigest()
+
+
 class RegistryClient:
     """The registry API v2 at ``https://<address>``, trusting ``ca_file`` (None: the system's CAs)."""
 
@@ -151,14 +169,25 @@ class RegistryClient:
         _status, _headers, body = self._request("GET", path, image, headers={"Accept": accept} if accept else None)
         return body
 
-    def derive_image(self, repository: str, digest: str, tag: str, **config) -> str:
+    def derive_image(self, repository: str, digest: str, tag: str, extra_bytes: int = 0, **config) -> str:
         """A new image in ``repository`` from the one at ``digest``: the same layers, its configuration's
         ``config`` fields replaced (``Entrypoint=[...]``, ``Cmd=[...]``, ``Env=[...]``); tagged ``tag``. Returns
-        the new manifest's digest. (How the lab makes a second version of an image without building it again.)"""
+        the new manifest's digest. (How the lab makes a second version of an image without building it again.)
+        ``extra_bytes``: one more layer, a file of that many random bytes, which a node must download (its content is
+        nowhere else), as a new version of an application brings."""
         image = f"{self.address}/{repository}@{digest}"
         manifest = json.loads(self._get(f"/v2/{repository}/manifests/{digest}", image, ", ".join(MANIFEST_TYPES)))
         configuration = json.loads(self._get(f"/v2/{repository}/blobs/{manifest['config']['digest']}", image))
         configuration.setdefault("config", {}).update(config)
+        if extra_bytes:
+            layer, diff_id = _random_layer(extra_bytes)
+            blob = "sha256:" + hashlib.sha256(layer).hexdigest()
+            if not self._has_blob(repository, blob, image):
+                self._upload_blob(repository, blob, len(layer), layer, image)
+            media_type = manifest["layers"][-1]["mediaType"] if manifest.get("layers") else OCI_LAYER
+            manifest["layers"] = [*manifest.get("layers", []), {"mediaType": media_type, "digest": blob, "size": len(layer)}]
+            configuration.setdefault("rootfs", {"type": "layers", "diff_ids": []})["diff_ids"].append(diff_id)
+            configuration.setdefault("history", []).append({"created_by": f"kuberos lab: {extra_bytes} random bytes"})
         data = json.dumps(configuration, sort_keys=True).encode()
         blob = "sha256:" + hashlib.sha256(data).hexdigest()
         if not self._has_blob(repository, blob, image):
