@@ -527,7 +527,13 @@ def pair_in_container(socket: str, container: str, topic: str, seconds: float, f
         except subprocess.TimeoutExpired:
             talker.kill()
     times = [float(t) for t in re.findall(r"^received \d+ ([\d.]+)$", listener.stdout, re.MULTILINE)]
-    return {"first_s": times[0] if times else None, "messages": len(times), "out": (listener.stdout + listener.stderr)[-2000:]}
+    servers = re.search(r"^servers (.*)$", listener.stdout, re.MULTILINE)
+    return {
+        "first_s": times[0] if times else None,
+        "messages": len(times),
+        "servers": servers.group(1) if servers else None,
+        "out": (listener.stdout + listener.stderr)[-2000:],
+    }
 
 
 def running_instances(core, namespace) -> dict[str, str]:

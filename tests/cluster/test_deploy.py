@@ -18,6 +18,8 @@ import subprocess
 import pytest
 from helpers import ROOT, deployments_denied, venv_tool
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests
+
 pytestmark = pytest.mark.cluster
 
 RECAP = re.compile(r"^(\S+)\s+: ok=\d+\s+changed=(\d+)\s+unreachable=\d+\s+failed=(\d+)", re.M)
@@ -66,13 +68,19 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
         assert pod.spec.node_name == inst["node"], inst["name"]  # bound by kube-scheduler, pinned by nodeSelector
         assert pod.status.phase == "Running"
         env = {e.name: e.value for e in pod.spec.containers[0].env}
-        # the Services' cluster IPs, which the kubelet expands (the fleet's namespace holds both Services)
+        # the Services' cluster IPs, which the kubelet expands (the fleet's namespace holds both Services); an onboard
+        # module lists its robot's own server last (its deployment's node-local Service)
+        own = ";$(KUBEROS_ROBOT_DISCOVERY_PICK_AND_PLACE_SERVICE_HOST):11811" if inst["tier"] == "onboard" else ""
         assert (
-            env["ROS_DISCOVERY_SERVER"] == "$(KUBEROS_DISCOVERY_0_SERVICE_HOST):11811;$(KUBEROS_DISCOVERY_1_SERVICE_HOST):11811"
+            env["ROS_DISCOVERY_SERVER"]
+            == "$(KUBEROS_DISCOVERY_0_SERVICE_HOST):11811;$(KUBEROS_DISCOVERY_1_SERVICE_HOST):11811" + own
         )
         services = {s.metadata.name for s in core.list_namespaced_service(namespace).items}
         assert {"kuberos-discovery-0", "kuberos-discovery-1"} <= services, services
         assert env["ROS_DOMAIN_ID"] == "7" and env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp"
+    assert placement["robot_discovery"], "each robot with an onboard module runs a discovery server of its own"
+    for server in placement["robot_discovery"]:
+        assert pods[server["name"]].spec.node_name == server["node"] and pods[server["name"]].status.phase == "Running"
     for server in placement["discovery"][0]["servers"]:
         assert pods[server["name"]].spec.node_name == server["node"]
         service = core.read_namespaced_service(server["name"], namespace)
@@ -130,11 +138,11 @@ def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
     } == {"inventory-scan"}
     assert len([n for n in warehouse if n.startswith("kuberos-discovery-")]) == 3
     assert "tiago-1" not in test_fleet and "fetch-1" not in {p.spec.node_name for p in warehouse.values()}
-    for name, pod in warehouse.items():
-        if not name.startswith("kuberos-discovery"):
+    for pod in warehouse.values():
+        if pod.metadata.labels.get("kuberos.io/component") == "ros-module":
             env = {e.name: e.value for e in pod.spec.containers[0].env}
             assert (
-                env["ROS_DISCOVERY_SERVER"].count("_SERVICE_HOST):11811") == 3
+                manifests.fleet_discovery_part(env["ROS_DISCOVERY_SERVER"]).count("_SERVICE_HOST):11811") == 3
                 and pod.metadata.namespace == "kuberos-warehouse-fleet"
             )
 

@@ -57,7 +57,9 @@ class Lifecycle(Fleet):
     def images(self) -> dict[str, str]:
         return {
             d.metadata.name: d.spec.template.spec.containers[0].image
-            for d in self.apps.list_namespaced_deployment(NAMESPACE, label_selector=f"kuberos.io/deployment={FIRST}").items
+            for d in self.apps.list_namespaced_deployment(
+                NAMESPACE, label_selector=f"kuberos.io/deployment={FIRST},kuberos.io/component=ros-module"
+            ).items
         }
 
     def versions(self, kind="Deployment") -> dict[str, str]:
