@@ -258,7 +258,11 @@ class Rollout:
     """Runs a plan's waves through their gates; rolls the touched robots back when a gate fails."""
 
     def __init__(self, cluster: Cluster, namespace: str, gate_timeout: float, soak_s: float, poll_s: float = 0.2,
-                 ros_probe: list[str] | None = None, progress=None):  # fmt: skip
+                 ros_probe: list[str] | None = None, progress=None, update_lock: list[str] | None = None,
+                 update_lock_wait: float = 120.0):  # fmt: skip
+        self.update_lock = update_lock or []
+        self.update_lock_wait = update_lock_wait
+        self.locked: dict[str, str] = {}  # robot -> why it was left pending (its update lock held, or not checkable)
         self.cluster = cluster
         self.namespace = namespace
         self.gate_timeout = gate_timeout
@@ -367,12 +371,48 @@ class Rollout:
                 time.sleep(self.poll_s)
         return pending
 
+    # -- the robots' update locks ----------------------------------------------------------------------
+    def held_locks(self, wave: Wave) -> dict[str, str]:
+        """The wave's robots whose update lock is held (robot -> why), by the ``update_lock`` command: exit 0 none,
+        1 with a ``held: <robot>`` line per robot that still holds it after waiting. A command that cannot say
+        (another exit, or still running after ``update_lock_wait`` + 30 s) leaves every robot of the wave alone."""
+        env = {**os.environ, "KUBEROS_NAMESPACE": self.namespace, "KUBEROS_ROBOTS": ",".join(wave.robots)}
+        try:
+            done = subprocess.run(self.update_lock, env=env, capture_output=True, text=True,
+                                  timeout=self.update_lock_wait + 30, check=False)  # fmt: skip
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            return dict.fromkeys(wave.robots, f"the update lock could not be checked ({exc})")
+        if done.returncode == 0:
+            return {}
+        held = [line.split(":", 1)[1].strip() for line in done.stdout.splitlines() if line.startswith("held:")]
+        if done.returncode == 1 and held:
+            return {robot: "update lock held" for robot in held if robot in wave.robots}
+        detail = " | ".join((done.stdout + done.stderr).strip().splitlines()[-2:])
+        return dict.fromkeys(wave.robots, f"the update lock could not be checked (exit {done.returncode}: {detail})")
+
+    def unlocked(self, wave: Wave) -> Wave:
+        """``wave`` without the changes of robots that hold their update lock (they are left pending)."""
+        if not self.update_lock:
+            return wave
+        locked = self.held_locks(wave)
+        if not locked:
+            return wave
+        self.locked.update(locked)
+        for robot, why in sorted(locked.items()):
+            self.progress(f"{robot}: {why}; left pending")
+        changes = [c for c in wave.changes if not set(c.robot.split(",")) & set(locked)]
+        robots = tuple(r for r in wave.robots if r not in locked)
+        return Wave(wave.number, wave.canary, robots, changes)
+
     # -- the whole plan -----------------------------------------------------------------------------
     def run(self, prepare: list[Change], waves: list[Wave]) -> dict:
         """Apply prepare, then every wave through its gate. On a failed gate: undo, and report."""
         for change in prepare:
             self.apply_change(change)
-        for wave in waves:
+        for planned in waves:
+            wave = self.unlocked(planned)
+            if not wave.changes:
+                continue
             label = "canary" if wave.canary else f"wave {wave.number}"
             self.progress(
                 f"{label}: {len(wave.robots)} robot(s) {', '.join(wave.robots[:5])}{' ...' if len(wave.robots) > 5 else ''}"
@@ -606,8 +646,9 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
         manager=ROLLOUT_MANAGER,
     )
     runner = Rollout(
-        cluster, namespace, params["gate_timeout"], params["soak"], ros_probe=params.get("ros_probe"), progress=progress
-    )
+        cluster, namespace, params["gate_timeout"], params["soak"], ros_probe=params.get("ros_probe"), progress=progress,
+        update_lock=params.get("update_lock"), update_lock_wait=params.get("update_lock_wait", 120.0),
+    )  # fmt: skip
     prestage = plan.prestage() if params.get("prestage", True) else {}
     try:
         if prestage:
@@ -628,6 +669,9 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     finally:
         cluster.apply(marker(record, None), manager=ROLLOUT_MANAGER)
     downtime = runner.downtime.finish(time.monotonic())
+    if runner.locked:
+        result["locked_robots"] = dict(sorted(runner.locked.items()))
+        result["pending_robots"] = sorted(set(result["pending_robots"]) | set(runner.locked))
     result.update(
         outcome,
         downtime_s=downtime,

@@ -11,6 +11,11 @@ as a ROS name: ``kuberos.naming.robot_ros_name``, ``fetch-1`` is ``fetch_1``). I
 *super client* (a plain discovery-server client only learns of the participants it shares topics with), waits up to
 ``--timeout`` seconds for every expected node, and exits 0 when all are there, 1 (naming the missing ones) when
 not, 2 on bad arguments.
+
+With ``--absent`` instead (the rollout's update lock, docs/software.md), it waits, up to ``--timeout`` seconds, until
+none of the named nodes is in the graph (after ``--settle`` seconds, so that it has heard of what is there): exit 0
+when none is, 1 when some still are, printing one line ``held: <robot>`` per robot of ``KUBEROS_ROBOTS`` whose
+node it still sees (``--absent '/{robot}/kuberos_update_lock'``: the robots that hold their update lock).
 """
 
 from __future__ import annotations
@@ -48,17 +53,20 @@ def main(argv=None) -> int:
     # A command line program's entry point (python -m ...), not code a module runs: it prints and exits.
     # pylint: disable=ansible-bad-function
     parser = argparse.ArgumentParser(prog="ros_graph_probe", description=__doc__.split("\n\n", maxsplit=1)[0])
-    parser.add_argument("--expect", action="append", required=True, help="a node name; {robot} for each robot of the wave")
-    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for every node (default 10)")
+    group = parser.add_mutually_exclusive_group(required=True)
+    group.add_argument("--expect", action="append", help="a node name; {robot} for each robot of the wave")
+    group.add_argument("--absent", action="append", help="a node name that must not be there; {robot} for each robot")
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait (default 10)")
+    parser.add_argument("--settle", type=float, default=3.0, help="with --absent: seconds to listen first (default 3)")
     args = parser.parse_args(argv)
     robots = [r for r in os.environ.get("KUBEROS_ROBOTS", "").split(",") if r]
     try:
-        wanted = expected_nodes(args.expect, robots)
+        wanted = expected_nodes(args.expect or args.absent, robots)
     except ValueError as exc:
         print(f"ros_graph_probe: {exc}", file=sys.stderr)
         return 2
-    if not 0 < args.timeout <= 600:
-        print("ros_graph_probe: --timeout must be more than 0 and at most 600 s", file=sys.stderr)
+    if not 0 < args.timeout <= 600 or not 0 <= args.settle <= 60:
+        print("ros_graph_probe: --timeout must be more than 0 and at most 600 s, --settle at most 60 s", file=sys.stderr)
         return 2
     if os.environ.get("ROS_DISCOVERY_SERVER"):
         os.environ.setdefault("ROS_SUPER_CLIENT", "TRUE")  # see every participant the servers know of
@@ -66,6 +74,12 @@ def main(argv=None) -> int:
 
     rclpy.init()
     node = rclpy.create_node("kuberos_rollout_probe")
+    if args.absent:
+        try:
+            return _wait_absent(rclpy, node, wanted, robots, args.absent, args.timeout, args.settle)
+        finally:
+            node.destroy_node()
+            rclpy.try_shutdown()
     seen: set[str] = set()
     try:
         deadline = time.monotonic() + args.timeout
@@ -87,6 +101,31 @@ def main(argv=None) -> int:
         f"(seen: {', '.join(others[:20]) or 'no other node'})",
         file=sys.stderr,
     )
+    return 1
+
+
+def holders(patterns: list[str], robots: list[str], present: set[str]) -> list[str]:
+    """The robots for which some ``{robot}`` pattern's node is in ``present``."""
+    return [r for r in robots if any(p.replace("{robot}", robot_ros_name(r)) in present for p in patterns if "{robot}" in p)]
+
+
+def _wait_absent(rclpy, node, wanted: list[str], robots: list[str], patterns: list[str], timeout: float, settle: float) -> int:
+    # pylint: disable=ansible-bad-function
+    start = time.monotonic()
+    present = set(wanted)
+    while True:
+        seen = graph_names(node.get_node_names_and_namespaces())
+        present = {n for n in wanted if n in seen}
+        elapsed = time.monotonic() - start
+        if not present and elapsed >= min(settle, timeout):
+            print(f"ros_graph_probe: none of {len(wanted)} node(s) present after {elapsed:.1f} s")
+            return 0
+        if elapsed >= timeout:
+            break
+        rclpy.spin_once(node, timeout_sec=0.2)
+    for robot in holders(patterns, robots, present):
+        print(f"held: {robot}")
+    print(f"ros_graph_probe: still present after {timeout:g} s: {', '.join(sorted(present))}", file=sys.stderr)
     return 1
 
 

@@ -72,6 +72,21 @@ options:
     type: list
     elements: str
     default: []
+  update_lock:
+    description:
+      - A command (argv list) run before each wave with C(KUBEROS_ROBOTS) (the wave's robots) in its environment, which
+        waits (at most O(update_lock_wait) seconds) until no robot of the wave holds its update lock. Exit 0, every
+        robot is free; exit 1 with a line C(held: <robot>) per robot that still holds it, those robots are left
+        pending (none of their modules is touched; the next rollout run finishes them). A command that cannot say
+        (another exit, or still running O(update_lock_wait) + 30 s later) leaves the whole wave pending. The collection
+        ships one: the ROS graph probe with C(--absent '/{robot}/kuberos_update_lock') (docs/software.md).
+    type: list
+    elements: str
+    default: []
+  update_lock_wait:
+    description: Seconds the O(update_lock) command may wait for the robots' locks (it is given no more than this + 30 s).
+    type: float
+    default: 120
   prestage:
     description:
       - Before the first wave, pull each robot's new images onto the robot (a short-lived pod per robot computer that
@@ -152,6 +167,10 @@ summary:
   description: What changed (or would change), per robot and per wave, as lines of text.
   returned: always
   type: str
+locked_robots:
+  description: Robots left pending because they held their update lock (or it could not be checked), and why.
+  returned: when a robot was left pending for its lock
+  type: dict
 prestage:
   description:
     - The pre-pulls before the first wave (O(prestage)) - robots, images, seconds in all, seconds until each robot
@@ -197,6 +216,8 @@ ARGUMENT_SPEC = dict(
     soak=dict(type="float", default=5.0),
     gate_timeout=dict(type="float", default=120.0),
     ros_probe=dict(type="list", elements="str", default=[]),
+    update_lock=dict(type="list", elements="str", default=[]),
+    update_lock_wait=dict(type="float", default=120.0),
     prestage=dict(type="bool", default=True),
     prestage_timeout=dict(type="float", default=600.0),
     prestage_parallel=dict(type="int", default=10),
@@ -225,8 +246,14 @@ def summary_of(result: dict, check_mode: bool) -> str:
         + (" (check mode: nothing written)" if check_mode else "")
     ]
     lines += [f"{robot}: {'; '.join(changes)}" for robot, changes in result["per_robot"].items()] or ["nothing to change"]
-    if result.get("pending_robots"):
-        lines.append(f"pending, offline (the next rollout run finishes them): {', '.join(result['pending_robots'])}")
+    locked = result.get("locked_robots") or {}
+    offline = [r for r in result.get("pending_robots", []) if r not in locked]
+    if offline:
+        lines.append(f"pending, offline (the next rollout run finishes them): {', '.join(offline)}")
+    if locked:
+        lines.append(
+            "pending, update lock (the next rollout run finishes them): " + ", ".join(f"{r} ({why})" for r, why in locked.items())
+        )
     if check_mode and result.get("prestage_plan"):
         lines.append(f"would pre-pull onto {len(result['prestage_plan'])} robot(s) before the first wave")
     if result.get("prestage"):
@@ -256,6 +283,8 @@ def main():
         module.fail_json(msg="canary must be 0 or more and wave_size 1 or more")
     if module.params["prestage_timeout"] <= 0 or module.params["prestage_parallel"] < 1:
         module.fail_json(msg="prestage_timeout must be above 0 and prestage_parallel 1 or more")
+    if not 0 < module.params["update_lock_wait"] <= 3600:
+        module.fail_json(msg="update_lock_wait must be above 0 and at most 3600 seconds")
     progress = []
     try:
         result = execute(api_clients(module.params["kubeconfig"]), module.params, module.check_mode, progress.append)

@@ -368,6 +368,38 @@ def test_a_rollout_leaves_an_offline_robot_pending_and_the_next_run_finishes_it(
     life.converge()
 
 
+def test_a_robot_holding_its_update_lock_is_left_pending_and_the_next_run_finishes_it(life, tmp_path):
+    """The update lock command says fetch-1 holds its lock (exit 1, ``held: fetch-1``): the rollout (back to 0.1)
+    upgrades fetch-2 and leaves fetch-1 pending, touching none of its modules; run again with the lock free, it
+    finishes fetch-1. A lock command that cannot answer leaves its wave's robots pending too."""
+    spec = _at(tmp_path, "^0.1")
+    before = life.images()
+    assert all(image.endswith(":0.2.0") for image in before.values()), before
+    locked = [
+        "sh", "-c", 'case ",$KUBEROS_ROBOTS," in *,fetch-1,*) echo "held: fetch-1"; exit 1;; esac; exit 0',
+    ]  # fmt: skip
+    done = life.rollout(
+        spec, "-e", json.dumps({"rosdeployment_rollout_update_lock": locked, "rosdeployment_rollout_wave_size": 1})
+    )
+    assert done.returncode == 0, done.stdout[-5000:]
+    assert "pending, update lock (the next rollout run finishes them): fetch-1 (update lock held)" in done.stdout, done.stdout[
+        -3000:
+    ]
+    images = life.images()
+    fetch_1 = {n: images[n] for n in images if n.endswith("-fetch-1")}
+    assert fetch_1 == {n: before[n] for n in fetch_1}, "fetch-1's modules were not touched"
+    assert all(images[n].endswith(":0.1") for n in images if n.endswith("-fetch-2")), images
+    broken = ["sh", "-c", "exit 7"]
+    unknown = life.rollout(spec, "-e", json.dumps({"rosdeployment_rollout_update_lock": broken}))
+    assert unknown.returncode == 0, unknown.stdout[-5000:]
+    assert "fetch-1 (the update lock could not be checked (exit 7" in unknown.stdout, unknown.stdout[-3000:]
+    assert life.images() == images, "a lock that cannot be checked touches nothing"
+    again = life.rollout(spec)
+    assert again.returncode == 0, again.stdout[-5000:]
+    assert all(image.endswith(":0.1") for image in life.images().values()), life.images()
+    life.converge()
+
+
 def _free_port() -> int:
     import socket
 

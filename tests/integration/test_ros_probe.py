@@ -15,11 +15,12 @@ import sys
 import pytest
 from helpers import ROOT
 
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe import expected_nodes, graph_names
+from ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe import expected_nodes, graph_names, holders
 from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_environment, ros_problem
 
 PROBE = "ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe"
 NODE = os.path.join(ROOT, "tests", "integration", "ros", "named_node.py")
+LOCK_EXAMPLE = os.path.join(ROOT, "examples", "ros", "update_lock.py")
 
 
 def _free_udp_port() -> int:
@@ -35,6 +36,8 @@ def test_expected_names_expand_per_robot_as_ros_names():
     with pytest.raises(ValueError, match="not a fully qualified ROS node name"):
         expected_nodes(["planner; rm -rf /"], [])
     assert graph_names([("planner", "/fetch_1"), ("probe", "/")]) == {"/fetch_1/planner", "/probe"}
+    present = {"/fetch_1/kuberos_update_lock", "/r_7x/kuberos_update_lock"}
+    assert holders(["/{robot}/kuberos_update_lock"], ["fetch-1", "fetch-2", "7x"], present) == ["fetch-1", "7x"]
 
 
 @pytest.mark.ros
@@ -74,5 +77,48 @@ def test_the_probe_finds_a_modules_node_through_the_discovery_server(tmp_path):
         assert alone.returncode == 1, "without the discovery server the probe meets nobody"
     finally:
         for process in (node, server):
+            process.kill()
+            process.wait(10)
+
+
+@pytest.mark.ros
+def test_the_update_lock_example_holds_and_releases_the_lock_the_probe_waits_for(tmp_path):
+    """examples/ros/update_lock.py holds fetch-1's update lock: the probe with --absent (as a rollout's update_lock
+    command) names fetch-1, not fetch-2, as holding it, and exits 1; released, the probe exits 0."""
+    problem = ros_problem()
+    if problem:
+        pytest.fail(f"rclpy with Fast DDS is not usable from {sys.prefix}: {problem}", pytrace=False)
+    port = _free_udp_port()
+    env = {
+        **ros_environment(log_dir=str(tmp_path / "ros-log")),
+        "ROS_DISCOVERY_SERVER": f"127.0.0.1:{port}",
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+        "ROS_DOMAIN_ID": "18",
+        "PYTHONPATH": os.path.join(ROOT, ".collections"),
+    }
+    python = os.path.join(sys.prefix, "bin", "python3")
+    server = subprocess.Popen(["fast-discovery-server", "-i", "0", "-l", "127.0.0.1", "-p", str(port)], env=env,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)  # fmt: skip
+    holder = subprocess.Popen([python, LOCK_EXAMPLE, "fetch-1"], env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True)  # fmt: skip
+
+    def probe(timeout):
+        return subprocess.run(
+            [python, "-m", PROBE, "--absent", "/{robot}/kuberos_update_lock", "--timeout", timeout, "--settle", "2"],
+            env={**env, "KUBEROS_ROBOTS": "fetch-1,fetch-2"}, capture_output=True, text=True, timeout=90,
+        )  # fmt: skip
+
+    try:
+        assert holder.stdout.readline().strip() == "held /fetch_1/kuberos_update_lock"
+        held = probe("4")
+        assert held.returncode == 1, held.stdout + held.stderr
+        assert held.stdout.splitlines() == ["held: fetch-1"], held.stdout
+        holder.stdin.close()
+        assert holder.stdout.readline().strip() == "released"
+        free = probe("30")
+        assert free.returncode == 0, free.stdout + free.stderr
+        assert "none of 2 node(s) present" in free.stdout
+    finally:
+        for process in (holder, server):
             process.kill()
             process.wait(10)
