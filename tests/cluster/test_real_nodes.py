@@ -533,6 +533,12 @@ def test_a_rollout_upgrades_a_real_container_and_a_broken_image_stops_at_the_can
         real.core.delete_namespaced_secret("rollout-registry", namespace)
 
 
+# A worker that stops at once on SIGTERM (a python without a handler, as PID 1 of its container, ignores it: its pod
+# would take the whole 30 s grace period to stop, in every downtime alike)
+WORKER = (
+    "import signal, sys, time; signal.signal(signal.SIGTERM, lambda *_: sys.exit(0)); "
+    "print('worker version', sys.argv[1], flush=True); time.sleep(3600)"
+)
 PRESTAGE_BYTES = 40 * 10**6  # each new version's own layer: random, so the robot must download it
 PRESTAGE_LINK_BPS = 40e6  # robot-1's control link (to the registry) while the versions roll out: about 8 s per layer
 
@@ -562,7 +568,7 @@ def test_a_rollout_pre_pulls_a_robots_new_image_so_the_robots_downtime_leaves_ou
                 "name": "robot-worker",
                 "versions": [
                     {"version": version, "image": image, "digest": digest, "rosDistro": "jazzy",
-                     "launch": [shlex.join(["python3", "-c", VERSIONED, version])], "upgrade": "recreate",
+                     "launch": [shlex.join(["python3", "-c", WORKER, version])], "upgrade": "recreate",
                      "requirements": {"onboard": True}, "resources": {"cpu": "100m", "memory": "128Mi"}}
                     for version, image, digest in versions
                 ],
@@ -619,6 +625,8 @@ def test_a_rollout_pre_pulls_a_robots_new_image_so_the_robots_downtime_leaves_ou
         undo = real.play("undeploy.yml", "-e", f"rosdeployment_file={spec('1.0.0')}", *catalog_var)
         assert undo.returncode == 0, undo.stdout[-3000:]
         real.core.delete_namespaced_secret("prestage-registry", namespace)
+        gone = lambda: not real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/deployment=prestage").items  # noqa: E731
+        wait_for(gone, 90, "the prestage deployment's pods gone")
 
 
 # -- resource defaults: rclpy modules without `resources` under a 1 kHz load -----------------------------------------
