@@ -154,6 +154,8 @@ def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
     assert sorted(set(before) - set(after)) == [
         ("ConfigMap", "kuberos-record-picking"),
         ("ConfigMap", "kuberos-rev-picking-1"),
+        ("Deployment", "kuberos-robot-discovery-picking-fetch-1"),
+        ("Deployment", "kuberos-robot-discovery-picking-fetch-2"),
         ("Deployment", "picking-controller-fetch-1"),
         ("Deployment", "picking-controller-fetch-2"),
         ("Deployment", "picking-planner-fetch-1"),
