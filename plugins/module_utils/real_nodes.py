@@ -855,6 +855,11 @@ class RealNodes:
             run("ip", "netns", "delete", net.netns, check=False)
             self.log.append(f"removed network namespace {net.netns} ({time.monotonic() - started:.1f} s for the node)")
             changed = True
+        # The kernel destroys a deleted namespace's devices in the background, and the host end of the node's link
+        # with them: remove it here if it is still there, so that nothing of the node is left when this returns.
+        if os.path.exists(f"/sys/class/net/{net.veth}"):
+            run("ip", "link", "delete", net.veth, check=False)
+            changed = True
         return changed
 
     def _remove_containers(self, net: NodeNet) -> list[str]:
