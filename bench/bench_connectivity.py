@@ -16,7 +16,8 @@ of the server nodes' kubelets every 1 s):
     keep running, as on a machine whose kubelet died); the time from the stop until every module that ran there is
     Running and Ready on another node; moves of modules that were not on it (false moves); the kubelet started again.
 
-Keys of ``--json`` (bench/results/connectivity.json) that this run does not measure are null, said in ``not_measured``.
+Keys of ``--json`` (bench/results/connectivity.json) that this run does not measure are null, said in ``not_measured``,
+unless the file already holds them from the run its ``measured_by`` names (those stay).
 
     .venv/bin/python bench/bench_connectivity.py --json bench/results/connectivity.json
 """
@@ -99,7 +100,7 @@ def main() -> int:
     args = parser.parse_args()
     if os.geteuid() != 0:
         raise SystemExit("bench: real nodes need root")
-    results: dict = {"machine": machine(), "command": " ".join(sys.argv), "not_measured": NOT_MEASURED}
+    results: dict = {"machine": machine(), "command": " ".join(sys.argv), "not_measured": dict(NOT_MEASURED)}
     results.update(dict.fromkeys(NOT_MEASURED))
     before = snapshot_host()
     with tempfile.TemporaryDirectory(prefix="kuberos-bench-conn-") as work:
@@ -167,7 +168,15 @@ def main() -> int:
                 "edge_failover_p50_s", "edge_failover_p95_s", "host_as_before"):  # fmt: skip
         print(f"| {key} | {results.get(key)} |")
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1, default=str) + "\n")
+        path = Path(args.json)
+        earlier = json.loads(path.read_text()) if path.exists() else {}
+        # keys another run measured (bench_discovery.py, the real-node tests) stay, with what measured them
+        for key, how in (earlier.get("measured_by") or {}).items():
+            if results.get(key) is None:
+                results[key] = earlier.get(key)
+                results.setdefault("measured_by", {})[key] = how
+                results["not_measured"].pop(key, None)
+        path.write_text(json.dumps(results, indent=1, default=str) + "\n")
     return 0
 
 

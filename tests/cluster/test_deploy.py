@@ -160,6 +160,7 @@ def test_two_fleets_side_by_side_and_undeploy_removes_one(cluster, tmp_path):
         ("Deployment", "picking-controller-fetch-2"),
         ("Deployment", "picking-planner-fetch-1"),
         ("Deployment", "picking-planner-fetch-2"),
+        ("Service", "kuberos-robot-discovery-picking"),
     ]
     assert all(after[k] == before[k] for k in after), "undeploy touched another deployment"
     # The warehouse fleet has no other deployment: its discovery servers went too.
