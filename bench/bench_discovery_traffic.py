@@ -30,12 +30,12 @@ import platform
 import re
 import subprocess
 import sys
-import tempfile
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path[:0] = [os.path.join(ROOT, "tests"), os.path.join(ROOT, ".collections")]
+sys.path[:0] = [os.path.join(ROOT, "tests"), os.path.join(ROOT, ".collections"), os.path.dirname(os.path.abspath(__file__))]
 
+import bench_discovery  # noqa: E402
 import discovery_faults as faults  # noqa: E402
 from netlab import Lab, Processes  # noqa: E402
 
@@ -113,74 +113,64 @@ def start_servers(procs: Processes, servers: list[tuple[str, str, int]]) -> None
             time.sleep(0.1)
 
 
+def traffic(
+    lab: Lab, procs: Processes, design: str, robots: list[str], per_robot: int, startup_s: float, steady_s: float
+) -> dict:
+    """One design's fleet in ``lab`` (namespaces edge-1, edge-2 and ``robots``): its servers, then its participants,
+    counted over the two windows."""
+    fleet = faults.discovery_servers([lab.addresses["edge-1"], lab.addresses["edge-2"]])
+    if design == "multicast":
+        lab.set_multicast_flood(True)
+    else:
+        servers = [("ds-0", "edge-1", 0), ("ds-1", "edge-2", 1)]
+        if design == "robot-servers":
+            servers += [(f"rs-{r}", r, 2) for r in robots]
+        start_servers(procs, servers)
+
+    def env(servers_list: str) -> dict[str, str]:
+        out = faults.module_env(servers_list)
+        if design == "multicast":
+            out.pop("ROS_DISCOVERY_SERVER")
+        return out
+
+    ports = list(lab.ports)
+    before = {p: counters(p) for p in ports}
+    started = time.time()
+    workers = []
+    for index, robot in enumerate(robots):
+        own = f";{lab.addresses[robot]}:{faults.PORT}" if design == "robot-servers" else ""
+        command = [sys.executable, "-c", PARTICIPANTS, str(index), str(per_robot), "0"]
+        workers.append(procs.start(f"robot-{robot}", robot, command, env(fleet + own)))
+    edge = [sys.executable, "-c", PARTICIPANTS, str(len(robots)), "1", "1"]
+    workers.append(procs.start("edge-view", "edge-1", edge, env(fleet)))
+    time.sleep(max(0.0, started + startup_s - time.time()))
+    middle = {p: counters(p) for p in ports}
+    outputs = [w.output() for w in workers]
+    time.sleep(steady_s)
+    end = {p: counters(p) for p in ports}
+    last = [re.findall(r"^matched (\d+)/(\d+) ([\d.]+)$", out, re.MULTILINE)[-1:] for out in outputs]
+    complete = [float(line[0][2]) for line in last if line and line[0][0] == line[0][1]]
+    return {
+        "design": design,
+        "participants": len(robots) * per_robot + 1,
+        "robots": len(robots),
+        "subscriptions": len(robots) * per_robot + len(robots),
+        "subscriptions_matched": sum(int(line[0][0]) for line in last if line),
+        "matched_s": round(max(complete) - started, 1) if len(complete) == len(workers) else None,
+        "processes_alive": f"{sum(1 for w in workers if w.popen.poll() is None)}/{len(workers)}",
+        "startup": window(lab, robots, before, middle),
+        "steady": window(lab, robots, middle, end),
+        "startup_s": startup_s,
+        "steady_s": steady_s,
+    }
+
+
 def run_one(design: str, size: int, per_robot: int, startup_s: float, steady_s: float) -> dict:
     robots = [f"r{i}" for i in range(max(1, size // per_robot))]
-    lab = Lab()
-    directory = tempfile.mkdtemp(prefix="kuberos-bench-traffic-")
-    procs = None
-    try:
-        lab.create_bridge()
-        for role in ("edge-1", "edge-2", *robots):
-            lab.add(role)
-        procs = Processes(lab, directory)
-        fleet = faults.discovery_servers([lab.addresses["edge-1"], lab.addresses["edge-2"]])
-        if design == "multicast":
-            lab.set_multicast_flood(True)
-        else:
-            servers = [("ds-0", "edge-1", 0), ("ds-1", "edge-2", 1)]
-            if design == "robot-servers":
-                servers += [(f"rs-{r}", r, 2) for r in robots]
-            start_servers(procs, servers)
-        ports = list(lab.ports)
-        before = {p: counters(p) for p in ports}
-        started = time.time()
-        workers = []
-        for index, robot in enumerate(robots):
-            servers_list = fleet + (f";{lab.addresses[robot]}:{faults.PORT}" if design == "robot-servers" else "")
-            env = faults.module_env(servers_list)
-            if design == "multicast":
-                env.pop("ROS_DISCOVERY_SERVER")
-            workers.append(
-                procs.start(f"robot-{robot}", robot, [sys.executable, "-c", PARTICIPANTS, str(index), str(per_robot), "0"], env)
-            )
-        edge_env = faults.module_env(fleet)
-        if design == "multicast":
-            edge_env.pop("ROS_DISCOVERY_SERVER")
-        workers.append(
-            procs.start("edge-view", "edge-1", [sys.executable, "-c", PARTICIPANTS, str(len(robots)), "1", "1"], edge_env)
-        )
-        time.sleep(max(0.0, started + startup_s - time.time()))
-        middle = {p: counters(p) for p in ports}
-        outputs = [w.output() for w in workers]
-        time.sleep(steady_s)
-        end = {p: counters(p) for p in ports}
-        wanted = len(robots) * per_robot + len(robots)
-        matched_at = []
-        for out in outputs:
-            lines = re.findall(r"^matched (\d+)/(\d+) ([\d.]+)$", out, re.MULTILINE)
-            if lines and lines[-1][0] == lines[-1][1]:
-                matched_at.append(float(lines[-1][2]))
-        done = sum(int(line[0]) for out in outputs for line in re.findall(r"^matched (\d+)/(\d+)", out, re.MULTILINE)[-1:])
-        alive = sum(1 for w in workers if w.popen.poll() is None)
-        figures = {
-            "design": design,
-            "participants": len(robots) * per_robot + 1,
-            "robots": len(robots),
-            "subscriptions": wanted,
-            "subscriptions_matched": done,
-            "matched_s": round(max(matched_at) - started, 1) if len(matched_at) == len(workers) else None,
-            "processes_alive": f"{alive}/{len(workers)}",
-            "startup": window(lab, robots, before, middle),
-            "steady": window(lab, robots, middle, end),
-            "startup_s": startup_s,
-            "steady_s": steady_s,
-        }
-    finally:
-        if procs:
-            procs.close()
-        lab.close()
-    print(json.dumps(figures), flush=True)
-    return figures
+    return bench_discovery.run_one(
+        ("edge-1", "edge-2", *robots), traffic, design=design, robots=robots, per_robot=per_robot, startup_s=startup_s,
+        steady_s=steady_s,
+    )  # fmt: skip
 
 
 def machine() -> dict:

@@ -40,8 +40,12 @@ def test_expected_names_expand_per_robot_as_ros_names():
     assert holders(["/{robot}/kuberos_update_lock"], ["fetch-1", "fetch-2", "7x"], present) == ["fetch-1", "7x"]
 
 
-@pytest.mark.ros
-def test_the_probe_finds_a_modules_node_through_the_discovery_server(tmp_path):
+PYTHON = os.path.join(sys.prefix, "bin", "python3")
+
+
+@pytest.fixture
+def graph(tmp_path):
+    """A discovery server on a free loopback port and the environment of a module that uses it: (env, server)."""
     problem = ros_problem()
     if problem:
         pytest.fail(f"rclpy with Fast DDS is not usable from {sys.prefix}: {problem}", pytrace=False)
@@ -50,12 +54,22 @@ def test_the_probe_finds_a_modules_node_through_the_discovery_server(tmp_path):
         **ros_environment(log_dir=str(tmp_path / "ros-log")),
         "ROS_DISCOVERY_SERVER": f"127.0.0.1:{port}",
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
-        "ROS_DOMAIN_ID": "17",
+        "ROS_DOMAIN_ID": str(17 + port % 100),
         "PYTHONPATH": os.pathsep.join([os.path.join(ROOT, ".collections"), os.path.dirname(NODE)]),
     }
-    python = os.path.join(sys.prefix, "bin", "python3")
     server = subprocess.Popen(["fast-discovery-server", "-i", "0", "-l", "127.0.0.1", "-p", str(port)], env=env,
                               stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)  # fmt: skip
+    try:
+        yield env, server
+    finally:
+        server.kill()
+        server.wait(10)
+
+
+@pytest.mark.ros
+def test_the_probe_finds_a_modules_node_through_the_discovery_server(graph):
+    env, server = graph
+    python = PYTHON
     node = subprocess.Popen([python, NODE, "motion_planner", "/fetch_1"], env=env, stdout=subprocess.PIPE, text=True)
     try:
         assert node.stdout.readline().strip() == "up"
@@ -76,29 +90,16 @@ def test_the_probe_finds_a_modules_node_through_the_discovery_server(tmp_path):
         alone = probe("/{robot}/motion_planner", timeout="3")
         assert alone.returncode == 1, "without the discovery server the probe meets nobody"
     finally:
-        for process in (node, server):
-            process.kill()
-            process.wait(10)
+        node.kill()
+        node.wait(10)
 
 
 @pytest.mark.ros
-def test_the_update_lock_example_holds_and_releases_the_lock_the_probe_waits_for(tmp_path):
+def test_the_update_lock_example_holds_and_releases_the_lock_the_probe_waits_for(graph):
     """examples/ros/update_lock.py holds fetch-1's update lock: the probe with --absent (as a rollout's update_lock
     command) names fetch-1, not fetch-2, as holding it, and exits 1; released, the probe exits 0."""
-    problem = ros_problem()
-    if problem:
-        pytest.fail(f"rclpy with Fast DDS is not usable from {sys.prefix}: {problem}", pytrace=False)
-    port = _free_udp_port()
-    env = {
-        **ros_environment(log_dir=str(tmp_path / "ros-log")),
-        "ROS_DISCOVERY_SERVER": f"127.0.0.1:{port}",
-        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
-        "ROS_DOMAIN_ID": "18",
-        "PYTHONPATH": os.path.join(ROOT, ".collections"),
-    }
-    python = os.path.join(sys.prefix, "bin", "python3")
-    server = subprocess.Popen(["fast-discovery-server", "-i", "0", "-l", "127.0.0.1", "-p", str(port)], env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)  # fmt: skip
+    env, _server = graph
+    python = PYTHON
     holder = subprocess.Popen([python, LOCK_EXAMPLE, "fetch-1"], env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                               text=True)  # fmt: skip
 
@@ -119,6 +120,5 @@ def test_the_update_lock_example_holds_and_releases_the_lock_the_probe_waits_for
         assert free.returncode == 0, free.stdout + free.stderr
         assert "none of 2 node(s) present" in free.stdout
     finally:
-        for process in (holder, server):
-            process.kill()
-            process.wait(10)
+        holder.kill()
+        holder.wait(10)
