@@ -62,9 +62,10 @@ def test_listing_1_renders_then_changes_nothing(tmp_path):
     assert all(p["reason"] for p in placement["placements"])
     # The table is printed at the end of the run.
     assert re.search(r"kubeross-demo-picking\s+fetch-1\s+fetch-motion-planner\s+cloud\s+cloud-1", first.stdout)
-    # Namespace, 2 discovery Services and Deployments, 4 module Deployments, the deployment record ConfigMap,
-    # its revision 1 and the site's software catalog (inventories/local/catalog).
-    assert len(manifests(out)) == 12
+    # Namespace, 2 discovery Services and Deployments, 4 module Deployments, the robots' own discovery servers (a
+    # Deployment on each robot and their Service), the deployment record ConfigMap, its revision 1 and the site's
+    # software catalog (inventories/local/catalog).
+    assert len(manifests(out)) == 15
     second = deploy("examples/listing1.yml", out)
     assert second.returncode == 0 and second.changed == 0, second.stdout
 
