@@ -504,36 +504,44 @@ def container_of(core, namespace: str, node: str, component: str = "ros-module")
     raise AssertionError(f"no {component} pod runs on {node}")
 
 
-def pair_in_container(socket: str, container: str, topic: str, seconds: float, fleet_only: bool) -> dict:
-    """A talker and a listener started now inside ``container`` through its node's containerd (``socket``; no API
-    server needed, so also on a robot that is cut off), both with the container's environment (``fleet_only``: without
-    the robot's own discovery server). Seconds from start to the listener's first message (None: none within
-    ``seconds``), and what the listener printed."""
-    ctr = ["ctr", "-a", socket, "-n", "k8s.io", "tasks", "exec"]
-    tag = f"{topic.strip('/')}-{int(time.time() * 1000) % 10**8}"
-    args = [str(seconds), "1" if fleet_only else "0"]
-    talker = subprocess.Popen(
-        [*ctr, "--exec-id", f"t-{tag}", container, "python3", "-c", PAIR_PROGRAM, "talker", topic, *args],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
+def ros_in_container(socket: str, container: str, role: str, topic: str, seconds: float, fleet_only: bool):
+    """A talker or a listener (``PAIR_PROGRAM``) started now inside ``container`` through its node's containerd
+    (``socket``; no API server needed, so also on a robot that is cut off), with the container's environment
+    (``fleet_only``: without the robot's own discovery server), for ``seconds``: its ``ctr`` process."""
+    tag = f"{role[0]}-{topic.strip('/')}-{int(time.time() * 1000) % 10**8}"
+    command = ["ctr", "-a", socket, "-n", "k8s.io", "tasks", "exec", "--exec-id", tag, container,
+               "python3", "-c", PAIR_PROGRAM, role, topic, str(seconds), "1" if fleet_only else "0"]  # fmt: skip
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def heard(listener, seconds: float) -> dict:
+    """What a ``ros_in_container`` listener heard, once it ends: seconds from its start to its first message (None:
+    none), how many, the servers it was given, and the end of its output."""
     try:
-        listener = subprocess.run(
-            [*ctr, "--exec-id", f"l-{tag}", container, "python3", "-c", PAIR_PROGRAM, "listener", topic, *args],
-            capture_output=True, text=True, timeout=seconds + 60,
-        )  # fmt: skip
+        out, _ = listener.communicate(timeout=seconds + 60)
+    except subprocess.TimeoutExpired:
+        listener.kill()
+        out, _ = listener.communicate()
+    times = [float(t) for t in re.findall(r"^received \d+ ([\d.]+)$", out, re.MULTILINE)]
+    servers = re.search(r"^servers (.*)$", out, re.MULTILINE)
+    return {
+        "first_s": times[0] if times else None,
+        "messages": len(times),
+        "servers": servers.group(1) if servers else None,
+        "out": out[-2000:],
+    }
+
+
+def pair_in_container(socket: str, container: str, topic: str, seconds: float, fleet_only: bool) -> dict:
+    """A talker and a listener started now side by side in one container (``ros_in_container``): ``heard``."""
+    talker = ros_in_container(socket, container, "talker", topic, seconds, fleet_only)
+    try:
+        return heard(ros_in_container(socket, container, "listener", topic, seconds, fleet_only), seconds)
     finally:
         try:
             talker.wait(timeout=seconds + 30)
         except subprocess.TimeoutExpired:
             talker.kill()
-    times = [float(t) for t in re.findall(r"^received \d+ ([\d.]+)$", listener.stdout, re.MULTILINE)]
-    servers = re.search(r"^servers (.*)$", listener.stdout, re.MULTILINE)
-    return {
-        "first_s": times[0] if times else None,
-        "messages": len(times),
-        "servers": servers.group(1) if servers else None,
-        "out": (listener.stdout + listener.stderr)[-2000:],
-    }
 
 
 def running_instances(core, namespace) -> dict[str, str]:

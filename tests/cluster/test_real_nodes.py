@@ -38,9 +38,11 @@ from real_tier import (
     RealCluster,
     apply_objects,
     bridge_round_trips,
+    container_of,
     controller_pods,
     cut_off_robot,
     events_of,
+    heard,
     lease_holder,
     logs,
     placed_instances,
@@ -49,6 +51,7 @@ from real_tier import (
     programs_configmap,
     prometheus_api,
     prometheus_objects,
+    ros_in_container,
     running_instances,
     wait_for,
 )  # fmt: skip
@@ -286,6 +289,45 @@ def test_the_discovery_servers_run_the_published_ros_layout_through_its_entrypoi
         assert status.ready and status.restart_count == 0, status
         assert "/ros-base:" in status.image or status.image.endswith("ros:jazzy-ros-base"), status.image
         assert "### Server is running ###" in logs(real.core, namespace, pod.metadata.name)
+
+
+def test_the_fleets_discovery_servers_restarted_in_turn_a_module_started_after_meets_one_that_ran_before(real, deployed):
+    """A talker starts in an edge module's container; then the fleet's two discovery server pods are deleted in turn,
+    each replaced by its Deployment (a new pod address behind the same Service address) before the next goes. A
+    listener started afterwards in robot-1's onboard container, with the fleet's servers only, hears the talker that
+    ran before the restarts: every node of the fleet rediscovers (docs/connectivity.md)."""
+    namespace = fleet_namespace(deployed)
+    nodes = RealNodes.from_state(real.plane(), {})
+    edge = next(
+        p for p in real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/component=ros-module").items
+        if p.spec.node_name != "robot-1" and pod_ready(p)
+    )  # fmt: skip
+    edge_container = edge.status.container_statuses[0].container_id.split("://", 1)[1]
+    robot_container = container_of(real.core, namespace, "robot-1")
+    talker = ros_in_container(nodes.socket(edge.spec.node_name), edge_container, "talker", "/kuberos_restart", 150, False)
+    try:
+        time.sleep(5)
+        restarted = []
+        for server in deployed["discovery"][0]["servers"]:
+            (old,) = real.core.list_namespaced_pod(namespace, label_selector=f"kuberos.io/instance={server['name']}").items
+            started = time.monotonic()
+            real.core.delete_namespaced_pod(old.metadata.name, namespace, grace_period_seconds=0)
+
+            def replaced(name=server["name"], gone=old.metadata.name):
+                pods = real.core.list_namespaced_pod(namespace, label_selector=f"kuberos.io/instance={name}").items
+                return [p for p in pods if p.metadata.name != gone and pod_ready(p) and not p.metadata.deletion_timestamp]
+
+            (new,) = wait_for(replaced, 90, f"{server['name']} replaced", 0.5)
+            restarted.append((server["name"], round(time.monotonic() - started, 1), old.status.pod_ip, new.status.pod_ip))
+        listener = ros_in_container(nodes.socket("robot-1"), robot_container, "listener", "/kuberos_restart", 40, True)
+        got = heard(listener, 40)
+    finally:
+        talker.kill()
+    print(f"discovery servers deleted in turn {restarted}; a listener started after on robot-1 heard the edge talker "
+          f"that ran before after {got['first_s']} s ({got['messages']} messages)")  # fmt: skip
+    assert all(old_ip != new_ip for _name, _s, old_ip, new_ip in restarted), restarted
+    assert got["servers"] and len(got["servers"].split(";")) == 2, got
+    assert got["first_s"] is not None, f"a module started after the servers' restarts never heard one from before: {got}"
 
 
 # -- the lab registry: pulls by digest with pull secrets ---------------------------------------------------------
