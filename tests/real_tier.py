@@ -561,7 +561,7 @@ def running_where_placed(core, namespace, placed: dict) -> dict | None:
 
 
 def cut_off_robot(real, namespace: str, placed: dict, robot: str, control_namespace: str, status: str, hold_s: float,
-                  toleration_s: float, pair_s: float = 0.0) -> dict:  # fmt: skip
+                  toleration_s: float, pair_s: float = 0.0, during=None) -> dict:  # fmt: skip
     """Cut ``robot`` off the network (every packet of its control link and its link to the other nodes dropped)
     until a pod without the platform's tolerations (the negative control, in ``control_namespace``, which has the
     ``programs`` ConfigMap) is evicted and ``hold_s`` more, with a controller running; reconnect it. What was seen,
@@ -570,7 +570,8 @@ def cut_off_robot(real, namespace: str, placed: dict, robot: str, control_namesp
     and ModuleMoved events of the partition, and how long after reconnecting the node was Ready and every placed
     instance (``placed``: instance -> node) Running and Ready where placed. ``pair_s``: once the control is evicted,
     two talker-listener pairs run that long in an onboard module's container (``pair_in_container``), with and
-    without the robot's own discovery server."""
+    without the robot's own discovery server. ``during``: called once the control is evicted (its result in
+    ``during_result``)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes
@@ -600,6 +601,8 @@ def cut_off_robot(real, namespace: str, placed: dict, robot: str, control_namesp
                 own = pool.submit(pair_in_container, nodes.socket(robot), container, "/kuberos_cut_own", pair_s, False)
                 fleet = pool.submit(pair_in_container, nodes.socket(robot), container, "/kuberos_cut_fleet", pair_s, True)
                 seen["pair_with_own_server"], seen["pair_fleet_only"] = own.result(), fleet.result()
+        if during is not None:
+            seen["during_result"] = during()  # e.g. a rollout while the robot is away
         time.sleep(hold_s)
 
         def offline_rows():

@@ -956,10 +956,23 @@ def test_a_robot_cut_off_longer_than_the_eviction_delay_keeps_its_pods_and_nothi
     extra = {"controller_kubeconfig": real.kubeconfig, "controller_state_dir": state, "controller_grace": GRACE}
     assert real.play("controller.yml", "-e", json.dumps(extra)).returncode == 0
     status = f"kuberos-status-{deployed['deployments'][0]['name']}"
+    # a rollout while robot-1 is away: the controller's environment changes (an onboard module of robot-1's)
+    text = open(SPEC, encoding="utf-8").read().replace(
+        "    devices: [gripper]\n  resources: {cpu: 500m, memory: 512Mi}\n",
+        "    devices: [gripper]\n  resources: {cpu: 500m, memory: 512Mi}\n  env: {KUBEROS_TRY: '2'}\n", 1,
+    )  # fmt: skip
+    changed = tmp_path_factory.mktemp("offline-rollout") / "pick-and-place.yml"
+    changed.write_text(text, encoding="utf-8")
+    assert "KUBEROS_TRY" in text
+
+    def rollout():
+        return real.play("rollout.yml", "-e", f"rosdeployment_file={changed}", "-e", "rosdeployment_rollout_soak=2")
+
     try:
         seen = cut_off_robot(
-            real, namespace, placed_instances(deployed), "robot-1", lab, status, GRACE + 8, UNREACHABLE_S, PAIR_S
-        )
+            real, namespace, placed_instances(deployed), "robot-1", lab, status, GRACE + 8, UNREACHABLE_S, PAIR_S,
+            during=rollout,
+        )  # fmt: skip
     finally:
         extra["controller_state"] = "stopped"
         real.play("controller.yml", "-e", json.dumps(extra))
@@ -975,6 +988,15 @@ def test_a_robot_cut_off_longer_than_the_eviction_delay_keeps_its_pods_and_nothi
     assert said and all("robot robot-1 is offline" in message for message in said), said
     assert seen["moves_after"] == [], "nothing moved"
     assert seen["control_gone"]
+    away = seen["during_result"]
+    assert away.returncode == 0, away.stdout[-4000:]
+    assert "pending, offline (the next rollout run finishes them): robot-1" in away.stdout, away.stdout[-3000:]
+    finished = real.play("rollout.yml", "-e", f"rosdeployment_file={changed}", "-e", "rosdeployment_rollout_soak=2")
+    assert finished.returncode == 0 and "robot-1: " in finished.stdout, finished.stdout[-3000:]
+    controller = next(
+        d for d in real.apps.list_namespaced_deployment(namespace, label_selector="kuberos.io/module=controller").items
+    )  # fmt: skip
+    assert any(e.name == "KUBEROS_TRY" for e in controller.spec.template.spec.containers[0].env or []), "robot-1 finished"
     own, fleet_only = seen["pair_with_own_server"], seen["pair_fleet_only"]
     # the kubelet expanded the rendered list: three cluster IPs, the robot's own server last; the control lacks it
     assert own["servers"] and len(own["servers"].split(";")) == 3, own
