@@ -76,10 +76,10 @@ options:
     description:
       - A command (argv list) run before each wave with C(KUBEROS_ROBOTS) (the wave's robots) in its environment, which
         waits (at most O(update_lock_wait) seconds) until no robot of the wave holds its update lock. Exit 0, every
-        robot is free; exit 1 with a line C(held: <robot>) per robot that still holds it, those robots are left
+        robot is free; exit 1 with a line C(held:) and the robot's name per robot that still holds it, those robots are left
         pending (none of their modules is touched; the next rollout run finishes them). A command that cannot say
         (another exit, or still running O(update_lock_wait) + 30 s later) leaves the whole wave pending. The collection
-        ships one: the ROS graph probe with C(--absent '/{robot}/kuberos_update_lock') (docs/software.md).
+        ships one, the ROS graph probe with C(--absent '/{robot}/kuberos_update_lock') (docs/software.md).
     type: list
     elements: str
     default: []
