@@ -810,10 +810,13 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
         ).status.token
         address = real.core.read_namespaced_service("kuberos-controller", "kuberos-system").spec.cluster_ip
         netns = RealNodes.from_state(real.plane(), {}).nets["edge-1"].netns
-        done = subprocess.run(
-            ["ip", "netns", "exec", netns, sys.executable, "-c", IN_NODE, address, name, str(tmp_path / "ca.crt"), token],
-            capture_output=True, text=True, timeout=60,
-        )  # fmt: skip
+        command = ["ip", "netns", "exec", netns, sys.executable, "-c", IN_NODE, address, name, str(tmp_path / "ca.crt"), token]
+        deadline = time.monotonic() + 30  # edge-1's kube-proxy learns the Ready pods' endpoints a moment after they are
+        while True:
+            done = subprocess.run(command, capture_output=True, text=True, timeout=60)
+            if done.returncode == 0 or "Connection refused" not in done.stderr or time.monotonic() > deadline:
+                break
+            time.sleep(1)
         assert done.returncode == 0, done.stderr[-3000:]
         answers = json.loads(done.stdout)
         assert answers["/metrics True"][0] == 200 and "kuberos_" in answers["/metrics True"][1], answers["/metrics True"][1][:500]
