@@ -144,6 +144,22 @@ def test_an_offline_robot_is_left_pending_and_the_next_run_finishes_it():
     assert not plan_rollout(behind_live(after, caught_up), after, order).changed, "nothing behind: nothing to do"
 
 
+def test_a_pending_robot_behind_on_its_environment_alone_is_finished_by_the_next_run():
+    """A change of a module's environment only (no new image or version), left pending on robot-00: the live
+    Deployment still has the old environment, so the next plan has robot-00 in a wave; once caught up, nothing."""
+    raw = _fleet(2)
+    _d, placement, before = _render(_spec(coordinator="dedicated"), raw)
+    spec = _spec(coordinator="dedicated")
+    spec["rosModules"][1]["env"] = {"GRIP_FORCE": "40"}
+    _d, _p, after = _render(spec, raw, placement)
+    order = ["robot-00", "robot-01"]
+    live = [o for o in before if o["kind"] == "Deployment" and "robot-00" in o["metadata"]["name"]]
+    still = plan_rollout(behind_live(after, live), after, order)
+    assert [w.robots for w in still.waves] == [("robot-00",)] and {c.module for c in still.waves[0].changes} == {"control"}
+    caught_up = [o for o in after if o["kind"] == "Deployment" and "robot-00" in o["metadata"]["name"]]
+    assert not plan_rollout(behind_live(after, caught_up), after, order).changed
+
+
 def test_the_fleets_discovery_servers_can_be_left_out():
     raw = _fleet(2)
     deps, placement, before = _render(_spec(), raw)

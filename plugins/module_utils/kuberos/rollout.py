@@ -241,10 +241,22 @@ def plan_rollout(
     return plan
 
 
+def _containers(obj: dict) -> list[dict]:
+    return ((obj.get("spec") or {}).get("template") or {}).get("spec", {}).get("containers") or []
+
+
+def _signature(container: dict) -> tuple:
+    """What a rendering sets of a container, as the API server gives it back: image, command, args, env (an entry
+    from elsewhere by its name only; an empty value as the server leaves it out)."""
+    env = tuple((e.get("name"), "<from>" if "valueFrom" in e else (e.get("value") or "")) for e in container.get("env") or [])
+    return container.get("image"), tuple(container.get("command") or ()), tuple(container.get("args") or ()), env
+
+
 def behind_live(rendered: list[dict], live: list[dict]) -> list[dict]:
-    """``rendered`` (what the record says runs) with each module Deployment whose live object runs another image or
-    version (a robot a rollout left pending while it was offline) given the live image and version, so that a plan
-    against the new state includes it again. Other objects as they are."""
+    """``rendered`` (what the record says runs) with each module Deployment whose live containers differ from it (a
+    robot a rollout left pending while it was offline or held its update lock: another image, version, command or
+    environment) given the live containers and version, so that a plan against the new state includes it again.
+    Other objects as they are."""
     running = {}
     for obj in live:
         meta = obj.get("metadata") or {}
@@ -256,12 +268,25 @@ def behind_live(rendered: list[dict], live: list[dict]) -> list[dict]:
         if now is None:
             out.append(obj)
             continue
-        image, version = _container(now).get("image"), (now["metadata"].get("labels") or {}).get(VERSION)
-        if image == _container(obj).get("image") and version == (meta.get("labels") or {}).get(VERSION):
+        version = (now["metadata"].get("labels") or {}).get(VERSION)
+        live_containers = {c.get("name"): c for c in _containers(now)}
+        same = version == (meta.get("labels") or {}).get(VERSION) and all(
+            c.get("name") in live_containers and _signature(c) == _signature(live_containers[c.get("name")])
+            for c in _containers(obj)
+        )
+        if same:
             out.append(obj)
             continue
         older = copy.deepcopy(obj)
-        _container(older)["image"] = image
+        for container in _containers(older):
+            running_container = live_containers.get(container.get("name"))
+            if running_container is None:
+                continue
+            for key in ("image", "command", "args", "env"):
+                if key in running_container:
+                    container[key] = copy.deepcopy(running_container[key])
+                else:
+                    container.pop(key, None)
         labels = older["metadata"].setdefault("labels", {})
         if version is None:
             labels.pop(VERSION, None)
