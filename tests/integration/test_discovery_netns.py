@@ -85,7 +85,8 @@ def rendered(local_inventory) -> Rendered:
     }
     links = {naming.service_host_variable(d["metadata"]["name"]): d["metadata"]["name"] for d in by_component["discovery-server"]}
     module_env = {d["metadata"]["name"]: container_env(d) for d in by_component["ros-module"]}
-    values = {env["ROS_DISCOVERY_SERVER"] for env in module_env.values()}
+    # onboard modules also list their robot's own server, last (docs/connectivity.md); the fleet's part is shared
+    values = {manifests.fleet_discovery_part(env["ROS_DISCOVERY_SERVER"]) for env in module_env.values()}
     assert len(values) == 1, f"modules of one fleet disagree on ROS_DISCOVERY_SERVER: {values}"
     assert all(env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp" for env in module_env.values())
     addresses = {}
@@ -103,7 +104,10 @@ def module_env(rendered: Rendered, lab: Lab, module: str, robot: str) -> dict[st
     addresses of the namespaces that run their servers."""
     (name,) = [n for n, env in rendered.module_env.items() if n.endswith(f"-{module}-{robot}")]
     links = {variable: lab.addresses[server_role(rendered, server)] for variable, server in rendered.addresses.items()}
-    return {k: manifests.expand_references(v, links) for k, v in rendered.module_env[name].items()}
+    env = dict(rendered.module_env[name])
+    # the fleet's servers only: these tests are about them (the robot's own server: tests/sim/test_runtime.py)
+    env["ROS_DISCOVERY_SERVER"] = manifests.fleet_discovery_part(env["ROS_DISCOVERY_SERVER"])
+    return {k: manifests.expand_references(v, links) for k, v in env.items()}
 
 
 def without_discovery(env: dict[str, str]) -> dict[str, str]:
