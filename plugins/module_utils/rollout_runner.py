@@ -631,7 +631,8 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
             f"{len(plan.pending_robots)} robot(s) offline, left pending (the next rollout run finishes them): "
             + ", ".join(plan.pending_robots)
         )
-    result["prestage_plan"] = {node: [image for image, _policy in entry["images"]] for node, entry in plan.prestage().items()}
+    prestage = plan.prestage()
+    result["prestage_plan"] = {node: [image for image, _policy in entry["images"]] for node, entry in prestage.items()}
     if check_mode or not result["changed"]:
         return result
     cluster = Cluster(clients, record.field_manager)
@@ -649,9 +650,8 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
         cluster, namespace, params["gate_timeout"], params["soak"], ros_probe=params.get("ros_probe"), progress=progress,
         update_lock=params.get("update_lock"), update_lock_wait=params.get("update_lock_wait", 120.0),
     )  # fmt: skip
-    prestage = plan.prestage() if params.get("prestage", True) else {}
     try:
-        if prestage:
+        if prestage and params.get("prestage", True):
             count = len({image for entry in prestage.values() for image, _policy in entry["images"]})
             progress(f"pre-pulling {count} image(s) onto {len(prestage)} robot(s) before the first wave")
             result["prestage"] = cluster.prestage(

@@ -112,7 +112,6 @@ def holders(patterns: list[str], robots: list[str], present: set[str]) -> list[s
 def _wait_absent(rclpy, node, wanted: list[str], robots: list[str], patterns: list[str], timeout: float, settle: float) -> int:
     # pylint: disable=ansible-bad-function
     start = time.monotonic()
-    present = set(wanted)
     while True:
         seen = graph_names(node.get_node_names_and_namespaces())
         present = {n for n in wanted if n in seen}

@@ -27,6 +27,7 @@ from .placement import (
     DiscoveryServer,
     Instance,
     Placement,
+    RobotServer,
 )
 from .quantities import format_cpu, format_memory
 from .spec import RosDeployment, RosModule
@@ -256,11 +257,9 @@ def fleet_discovery_part(value: str) -> str:
     return ";".join(entry for entry in value.split(";") if not entry.startswith(marker))
 
 
-def robot_discovery_objects(
-    dep: RosDeployment, hosts: dict[tuple[str, str], str], slot: int, options: RenderOptions
-) -> list[dict]:
-    """``dep``'s discovery servers on its robots' computers (one Deployment per robot in ``hosts``, pinned there and
-    tolerating the robot being offline like its onboard modules) and their one node-local Service.
+def robot_discovery_objects(dep: RosDeployment, servers: list[RobotServer], slot: int, options: RenderOptions) -> list[dict]:
+    """``dep``'s discovery servers on its robots' computers (``servers``: the placement's, one Deployment each, pinned
+    there and tolerating the robot being offline like its onboard modules) and their one node-local Service.
 
     A robot's onboard modules list its server after the fleet's: while the robot is cut off from the edge servers
     they still meet each other through it, also a module that starts during the cut (docs/connectivity.md). It is
@@ -268,21 +267,19 @@ def robot_discovery_objects(
     namespace = naming.fleet_namespace(dep.fleet)
     common = {MANAGED_BY: "kuberos", COMPONENT: ROBOT_DISCOVERY, DEPLOYMENT: dep.name, node_labels.FLEET: dep.fleet}
     objects = []
-    for (deployment, robot), node in hosts.items():
-        if deployment != dep.name:
-            continue
-        name = naming.robot_discovery_server_name(dep.name, robot)
-        labels = {**common, node_labels.ROBOT: robot, DISCOVERY_ID: str(slot), INSTANCE: name}
+    for server in servers:
+        labels = {**common, node_labels.ROBOT: server.robot, DISCOVERY_ID: str(slot), INSTANCE: server.name}
         annotations = {
-            ROBOTS_ANNOTATION: robot,
+            ROBOTS_ANNOTATION: server.robot,
             TIER_ANNOTATION: "onboard",
             REASON_ANNOTATION: "the robot's own discovery server: its onboard modules meet through it while it is cut off",
         }
         objects.append(
             _discovery_deployment(
-                name, namespace, labels, {INSTANCE: name}, slot, dep.discovery_port, node, "onboard", robot, annotations, options
+                server.name, namespace, labels, {INSTANCE: server.name}, slot, dep.discovery_port, server.node, "onboard",
+                server.robot, annotations, options,
             )
-        )
+        )  # fmt: skip
     if objects:
         service = naming.robot_discovery_service_name(dep.name)
         selector = {COMPONENT: ROBOT_DISCOVERY, DEPLOYMENT: dep.name}
@@ -827,10 +824,11 @@ def render_deployment(
         for server in servers:
             objects.extend(_discovery_objects(server, options))
     addresses = {f: discovery_server_list(placement.discovery[f]) for f in fleets}
-    hosts = {(r.deployment, r.robot): r.node for r in placement.robot_servers}
+    robot_servers = {(r.deployment, r.robot) for r in placement.robot_servers}
     for dep in deployments:
         if dep.fleet in placement.discovery:
-            objects.extend(robot_discovery_objects(dep, hosts, robot_discovery_slot(placement.discovery[dep.fleet]), options))
+            mine = [r for r in placement.robot_servers if r.deployment == dep.name]
+            objects.extend(robot_discovery_objects(dep, mine, robot_discovery_slot(placement.discovery[dep.fleet]), options))
     modules = {(d.name, m.name): m for d in deployments for m in d.modules}
     seen_params = set()
     for fleet, bridges in sorted(placement.bridges.items()):
@@ -857,7 +855,7 @@ def render_deployment(
             handover = (scaling_state or {}).get((dep.name, module.name))
             objects.append(robots_configmap(dep, module, placement, base_labels, handover))
         discovery = addresses[dep.fleet]
-        if inst.tier == "onboard" and inst.robots and (dep.name, inst.robots[0]) in hosts:
+        if inst.tier == "onboard" and inst.robots and (dep.name, inst.robots[0]) in robot_servers:
             discovery = f"{discovery};{robot_discovery_address(dep)}"  # the robot's own server, after the fleet's
         objects.append(_module_deployment(dep, module, inst, discovery, base_labels, options))
     objects.sort(key=object_order)
