@@ -141,32 +141,40 @@ def _ready(pod: dict) -> bool:
     return any(c.get("type") == "Ready" and c.get("status") == "True" for c in (pod.get("status") or {}).get("conditions") or [])
 
 
-def _image_problem(clients, pod: dict) -> str:
-    """Why a container of the pod cannot start because of its image ("" when none is stuck on its image). While
-    the kubelet backs off, the container says only "Back-off pulling image": the cause is the pod's last
-    Failed event."""
+# Waiting reasons the kubelet tries again (with back-off): one failed try is not yet the answer.
+RETRIED_PULL_REASONS = ("ErrImagePull", "ImagePullBackOff")
+
+
+def _image_problem(clients, pod: dict) -> tuple[str, bool]:
+    """(why a container of the pod cannot start because of its image, whether that is final); ("", False) when none
+    is stuck on its image. The cause is the pod's latest "Failed to pull image" event (while the kubelet backs off,
+    the container says only "Back-off pulling image"). A failed pull is final once the kubelet has failed it twice:
+    its first try can predate what a deploy created just before (a pull secret not yet in the kubelet's cache), and
+    while it tries again the container still shows the first failure, for as long as that second pull takes."""
     status = pod.get("status") or {}
     for container in (status.get("initContainerStatuses") or []) + (status.get("containerStatuses") or []):
         waiting = (container.get("state") or {}).get("waiting") or {}
         if waiting.get("reason") not in IMAGE_PULL_REASONS:
             continue
         message = waiting.get("message", "")
-        if waiting["reason"] == "ImagePullBackOff":
-            meta = pod["metadata"]
-            events = _items(
-                clients["core"].list_namespaced_event(
-                    meta["namespace"], field_selector=f"involvedObject.uid={meta['uid']},reason=Failed", _preload_content=False
-                )
+        if waiting["reason"] not in RETRIED_PULL_REASONS:
+            return image_pull_problem(container.get("image", ""), waiting["reason"], message), True
+        meta = pod["metadata"]
+        events = _items(
+            clients["core"].list_namespaced_event(
+                meta["namespace"], field_selector=f"involvedObject.uid={meta['uid']},reason=Failed", _preload_content=False
             )
-            failed = [e for e in events if "pull" in (e.get("message") or "").lower()]
-            # The kubelet also records "Error: ErrImagePull" and "Error: ImagePullBackOff" as Failed events, often
-            # in the same second as the one that says why ("Failed to pull image ...: <cause>"): that one wins.
-            failed = [e for e in failed if not e["message"].startswith("Error: ")] or failed
-            if failed:
-                latest = max(failed, key=lambda e: e.get("lastTimestamp") or e.get("eventTime") or "")
-                message = latest["message"]
-        return image_pull_problem(container.get("image", ""), waiting["reason"], message)
-    return ""
+        )
+        failed = [e for e in events if "pull" in (e.get("message") or "").lower()]
+        # The kubelet also records "Error: ErrImagePull" and "Error: ImagePullBackOff" as Failed events, often
+        # in the same second as the one that says why ("Failed to pull image ...: <cause>"): that one wins.
+        causes = [e for e in failed if not e["message"].startswith("Error: ")]
+        if waiting["reason"] == "ImagePullBackOff" and (causes or failed):
+            latest = max(causes or failed, key=lambda e: e.get("lastTimestamp") or e.get("eventTime") or "")
+            message = latest["message"]
+        tries = sum(int(e.get("count") or 1) for e in causes)
+        return image_pull_problem(container.get("image", ""), waiting["reason"], message), tries >= 2
+    return "", False
 
 
 def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[dict]:
@@ -183,6 +191,7 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
             discovery = pod_labels.get(COMPONENT) in FLEET_COMPONENTS
             if not (discovery or pod_labels.get(DEPLOYMENT) in deployments) or meta.get("deletionTimestamp"):
                 continue
+            problem, final = _image_problem(clients, pod)
             rows.append(
                 {
                     "fleet": fleet,
@@ -193,7 +202,8 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
                     "node": (pod.get("spec") or {}).get("nodeName"),
                     "phase": (pod.get("status") or {}).get("phase"),
                     "ready": _ready(pod),
-                    "problem": _image_problem(clients, pod),
+                    "problem": problem,
+                    "problem_final": final,
                 }
             )
     return rows

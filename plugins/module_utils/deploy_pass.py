@@ -79,9 +79,9 @@ def refusal(exc) -> str:
         return f"{exc.status} {exc.reason}"
 
 
-# Seconds a pod's image problem must last before the deploy's wait gives up on it: past the kubelet's first
-# back-off (10 s), so the problem is what its second try said.
-PULL_PROBLEM_GRACE = 15.0
+# Seconds an image problem that is not yet final (the kubelet has failed the pull once) may last before the deploy's
+# wait gives up on it anyway: the kubelet tries again after 10-15 s, and a second pull of a large image takes a while.
+PULL_PROBLEM_LIMIT = 120.0
 
 
 class Api:
@@ -482,9 +482,10 @@ class DeployPass:
 
     def wait(self) -> dict:
         """Until every module runs on its placed node (or ``wait_timeout``): the table read back from the cluster.
-        A pod whose image still cannot be pulled after the kubelet's next try (PULL_PROBLEM_GRACE seconds) ends the
-        wait (``problems``, the kubelet's latest words): waiting longer does not help. The first failure alone is
-        not final: a pull secret created just before the deploy may not have reached the kubelet yet."""
+        A pod whose image the kubelet has failed to pull twice ends the wait (``problems``, the kubelet's latest
+        words): waiting longer does not help. The first failure alone is not final: a pull secret created just before
+        the deploy may not have reached the kubelet's cache yet (the same problem lasting PULL_PROBLEM_LIMIT seconds
+        ends the wait too)."""
         placement = self.placement.to_dict()
         fleets = [d["fleet"] for d in placement["deployments"]]
         names = [d["name"] for d in placement["deployments"]]
@@ -494,10 +495,11 @@ class DeployPass:
             rows = compare(placement, running_modules(self.clients, fleets, names))
             ready = all(r["ready"] for r in rows)
             now = time.monotonic()
-            stuck = {r["pod"]: r["problem"] for r in rows if r["problem"] and not r["ready"]}
+            stuck = {r["pod"]: r for r in rows if r["problem"] and not r["ready"]}
             stuck_since = {pod: stuck_since.get(pod, now) for pod in stuck}
-            problems = sorted(set(stuck.values()))
-            if ready or now >= deadline or any(now - since >= PULL_PROBLEM_GRACE for since in stuck_since.values()):
+            problems = sorted({r["problem"] for r in stuck.values()})
+            final = any(r["problem_final"] or now - stuck_since[pod] >= PULL_PROBLEM_LIMIT for pod, r in stuck.items())
+            if ready or now >= deadline or final:
                 break
             time.sleep(0.5)
         self._lap("wait")

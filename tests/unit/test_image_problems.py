@@ -70,11 +70,34 @@ def test_every_compared_row_says_its_problem_remote_rows_included():
     assert compare({"placements": [row]}, [])[0]["problem"] == "", "no pod yet: no problem"
 
 
+class _Events:
+    """The core client's event LIST for one pod, as the kubelet's Failed events."""
+
+    def __init__(self, events):
+        self.events = events
+
+    def list_namespaced_event(self, namespace, field_selector, _preload_content):
+        import json
+
+        assert (namespace, field_selector) == ("ns", "involvedObject.uid=u1,reason=Failed")
+
+        class Response:
+            data = json.dumps({"items": self.events}).encode()
+
+        return Response()
+
+
+def _stuck_pod(reason, message):
+    waiting = {"reason": reason, "message": message}
+    return {
+        "metadata": {"namespace": "ns", "uid": "u1"},
+        "status": {"containerStatuses": [{"image": IMAGE, "state": {"waiting": waiting}}]},
+    }
+
+
 def test_a_backing_off_container_takes_its_cause_from_the_event_that_names_it_not_the_generic_ones():
     """The kubelet records "Error: ErrImagePull" and "Error: ImagePullBackOff" as Failed events too, often later in
     the same second than the one that says why; the cause comes from "Failed to pull image ...", whatever the order."""
-    import json
-
     from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import _image_problem
 
     events = [
@@ -82,19 +105,33 @@ def test_a_backing_off_container_takes_its_cause_from_the_event_that_names_it_no
         {"message": "Error: ErrImagePull", "lastTimestamp": "2026-11-27T09:00:01Z"},
         {"message": "Error: ImagePullBackOff", "lastTimestamp": "2026-11-27T09:00:02Z"},
     ]
-
-    class Response:
-        data = json.dumps({"items": events}).encode()
-
-    class Core:
-        def list_namespaced_event(self, namespace, field_selector, _preload_content):
-            assert (namespace, field_selector) == ("ns", "involvedObject.uid=u1,reason=Failed")
-            return Response()
-
-    waiting = {"reason": "ImagePullBackOff", "message": f'Back-off pulling image "{IMAGE}"'}
-    pod = {
-        "metadata": {"namespace": "ns", "uid": "u1"},
-        "status": {"containerStatuses": [{"image": IMAGE, "state": {"waiting": waiting}}]},
-    }
-    text = _image_problem({"core": Core()}, pod)
+    text, final = _image_problem({"core": _Events(events)}, _stuck_pod("ImagePullBackOff", f'Back-off pulling image "{IMAGE}"'))
     assert text.startswith(f"image {IMAGE} from registry 10.241.0.1:5443: the registry refused the credentials"), text
+    assert not final, "one failed try: the kubelet tries again (a pull secret may not have reached its cache yet)"
+
+
+@pytest.mark.parametrize(
+    "counts, final",
+    [((1,), False), ((2,), True), ((1, 1), True), ((), False)],
+)
+def test_a_failed_pull_is_final_once_the_kubelet_has_failed_it_twice(counts, final):
+    """Two tries (one event seen twice, or two events with different words) make the problem final; one does not,
+    even while the container still shows that first failure during the second pull."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import _image_problem
+
+    events = [
+        {"message": f'Failed to pull image "{IMAGE}": {PREFIX}attempt {n}: 401 Unauthorized', "count": count,
+         "lastTimestamp": f"2026-11-27T09:00:0{n}Z"}
+        for n, count in enumerate(counts)
+    ] + [{"message": "Error: ErrImagePull", "count": 5}]  # fmt: skip
+    text, is_final = _image_problem({"core": _Events(events)}, _stuck_pod("ErrImagePull", PREFIX + "401 Unauthorized"))
+    assert "the registry refused the credentials" in text and is_final is final
+
+
+def test_an_image_the_kubelet_never_tries_again_is_final_at_once():
+    from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import _image_problem
+
+    never = _stuck_pod("ErrImageNeverPull", f'Container image "{IMAGE}" is not present with pull policy of Never')
+    text, final = _image_problem({"core": _Events([])}, never)
+    assert "imagePullPolicy is Never" in text and final
+    assert _image_problem({"core": _Events([])}, {"metadata": {}, "status": {}}) == ("", False)

@@ -99,7 +99,7 @@ def compare(placement: dict, pods: list[dict]) -> list[dict]:
             rows.append(
                 {"deployment": row["deployment"], "robot": row["robot"], "module": row["module"], "tier": row["tier"],
                  "placed_node": row["node"], "node": row["node"], "phase": "Remote", "ready": True, "pod": None,
-                 "problem": ""}
+                 "problem": "", "problem_final": False}
             )  # fmt: skip
             continue
         live = by_instance.get((row["fleet"], row["instance"]), [])
@@ -116,6 +116,7 @@ def compare(placement: dict, pods: list[dict]) -> list[dict]:
                 "ready": bool(pod and pod["ready"] and pod["node"] == row["node"]),
                 "pod": pod["pod"] if pod else None,
                 "problem": (pod or {}).get("problem", ""),
+                "problem_final": bool((pod or {}).get("problem_final")),
             }
         )
     return rows
