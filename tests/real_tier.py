@@ -468,13 +468,17 @@ def placed_instances(placement: dict) -> dict[str, str]:
     return wanted
 
 
-# A talker or a listener (argv: role, topic, seconds, fleet_only), run inside a module's container: with fleet_only "1"
-# its ROS_DISCOVERY_SERVER (as the kubelet expanded it) loses its last entry, the robot's own server.
+# A talker or a listener (argv: role, topic, seconds, servers), run inside a module's container. Its
+# ROS_DISCOVERY_SERVER (as the kubelet expanded it) is the container's with servers "all"; loses its last entry, the
+# robot's own server, with "fleet"; keeps only the entry at position k (the others empty, so k stays its id) with "k".
 PAIR_PROGRAM = """
 import os, sys, time
-role, topic, seconds, fleet_only = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4] == "1"
-if fleet_only:
+role, topic, seconds, servers = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
+if servers == "fleet":
     os.environ["ROS_DISCOVERY_SERVER"] = os.environ["ROS_DISCOVERY_SERVER"].rsplit(";", 1)[0]
+elif servers.isdigit():
+    entries = os.environ["ROS_DISCOVERY_SERVER"].split(";")
+    os.environ["ROS_DISCOVERY_SERVER"] = ";".join(e if i == int(servers) else "" for i, e in enumerate(entries))
 import rclpy
 from std_msgs.msg import String
 rclpy.init()
@@ -504,13 +508,15 @@ def container_of(core, namespace: str, node: str, component: str = "ros-module")
     raise AssertionError(f"no {component} pod runs on {node}")
 
 
-def ros_in_container(socket: str, container: str, role: str, topic: str, seconds: float, fleet_only: bool):
+def ros_in_container(socket: str, container: str, role: str, topic: str, seconds: float, fleet_only: bool | int):
     """A talker or a listener (``PAIR_PROGRAM``) started now inside ``container`` through its node's containerd
     (``socket``; no API server needed, so also on a robot that is cut off), with the container's environment
-    (``fleet_only``: without the robot's own discovery server), for ``seconds``: its ``ctr`` process."""
+    (``fleet_only``: without the robot's own discovery server; an int k: with the fleet's server k only), for
+    ``seconds``: its ``ctr`` process."""
     tag = f"{role[0]}-{topic.strip('/')}-{int(time.time() * 1000) % 10**8}"
+    servers = str(fleet_only) if fleet_only is not True and fleet_only is not False else ("fleet" if fleet_only else "all")
     command = ["ctr", "-a", socket, "-n", "k8s.io", "tasks", "exec", "--exec-id", tag, container,
-               "python3", "-c", PAIR_PROGRAM, role, topic, str(seconds), "1" if fleet_only else "0"]  # fmt: skip
+               "python3", "-c", PAIR_PROGRAM, role, topic, str(seconds), servers]  # fmt: skip
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
@@ -542,6 +548,14 @@ def pair_in_container(socket: str, container: str, topic: str, seconds: float, f
             talker.wait(timeout=seconds + 30)
         except subprocess.TimeoutExpired:
             talker.kill()
+
+
+def udp_flows(netns: str, port: int) -> list[str]:
+    """The connection-tracking entries of UDP flows to ``port`` in a node's network namespace (where kube-proxy's
+    rules translate a Service's address to a pod's), as `conntrack -L` prints them."""
+    done = subprocess.run(["ip", "netns", "exec", netns, "conntrack", "-L", "-p", "udp", "--dport", str(port)],
+                          capture_output=True, text=True, timeout=30)  # fmt: skip
+    return [line for line in done.stdout.splitlines() if line.startswith("udp")]
 
 
 def running_instances(core, namespace) -> dict[str, str]:
