@@ -4,9 +4,10 @@ Real rclpy processes and the rendered discovery servers in network namespaces on
 (tests/netlab.py), through the procedures the tests assert on (tests/discovery_faults.py):
 
 - restart: the fleet's servers killed (SIGKILL) and started again after ``--down`` seconds, as a kubelet restarts a
-  container, ``--repeat`` times each variant: one server; one server with its backup (``-b``); two servers
-  restarted in turn; two linked servers (each connects to the other) restarted in turn; two servers restarted
-  together (one node running both). Figures: seconds until a
+  container (the rendered server then waits out its lease before it serves), ``--repeat`` times each variant: one
+  server; the same serving at once (``_at_once``: as rendered before the start delay); one server with its backup
+  (``-b``); two servers restarted in turn; two linked servers (each connects to the other) restarted in turn; two
+  servers restarted together (one node running both), also serving at once. Figures: seconds until a
   participant started afterwards meets one that ran before (new meets old; None: not within 60 s), until one that
   ran before meets one started afterwards (old meets new), and the messages a pair matched before lost meanwhile;
 - cut: a robot cut off from the edge for ``--cut`` seconds (the cluster's DNS with it): its modules naming the
@@ -93,10 +94,12 @@ def main() -> int:
     if args.only in (None, "restart"):
         variants = {
             "restart_one_server": {"servers": 1},
+            "restart_one_server_at_once": {"servers": 1, "delay_s": 0},
             "restart_one_server_backup": {"servers": 1, "backup": True},
             "restart_two_servers_in_turn": {"servers": 2},
             "restart_two_linked_servers_in_turn": {"servers": 2, "linked": True},
             "restart_two_servers_together": {"servers": 2, "together": True},
+            "restart_two_servers_together_at_once": {"servers": 2, "together": True, "delay_s": 0},
         }
         for name, options in variants.items():
             options = {"backup": False, **options, "down_s": args.down}

@@ -48,12 +48,25 @@ def _server(server_id: int) -> DiscoveryServer:
     return DiscoveryServer(FLEET, naming.fleet_namespace(FLEET), server_id, name, "edge", "edge", PORT, "")
 
 
-def server_command(server_id: int, backup: bool) -> list[str]:
-    """The rendered discovery server's container arguments, with or without its backup (``-b``)."""
+def server_container(server_id: int) -> dict:
+    """The rendered discovery server's container (its args and environment)."""
     objects = manifests._discovery_objects(_server(server_id), manifests.RenderOptions())
     (deployment,) = [o for o in objects if o["kind"] == "Deployment"]
-    args = [a for a in deployment["spec"]["template"]["spec"]["containers"][0]["args"] if a != "-b"]
+    return deployment["spec"]["template"]["spec"]["containers"][0]
+
+
+def server_command(server_id: int, backup: bool, delay_s: int | None = None) -> list[str]:
+    """The rendered discovery server's container arguments, with or without its backup (``-b``); ``delay_s``
+    replaces its start delay (0: a server that serves at once, as rendered before the delay)."""
+    args = [a for a in server_container(server_id)["args"] if a != "-b"]
+    if delay_s is not None:
+        args[3] = str(delay_s)
     return args + (["-b"] if backup else [])
+
+
+def server_env() -> dict[str, str]:
+    """The rendered discovery server's environment (its Fast DDS profile)."""
+    return {e["name"]: e["value"] for e in server_container(0)["env"]}
 
 
 def discovery_servers(addresses: list[str], dns: bool = False) -> str:
@@ -77,7 +90,9 @@ def module_env(servers: str) -> dict[str, str]:
     }
 
 
-def start_server(procs: Processes, name: str, role: str, server_id: int, backup: bool, peers: str = "") -> Process:
+def start_server(
+    procs: Processes, name: str, role: str, server_id: int, backup: bool, peers: str = "", delay_s: int | None = None
+) -> Process:
     """A server in its own working directory (its backup file lives there, as in the pod's volume); started again
     under the same name it appends to the same log, and is up when it has said so once more. ``peers``: the other
     servers it connects to (ROS_DISCOVERY_SERVER with its own position empty), sharing what each knows."""
@@ -85,8 +100,8 @@ def start_server(procs: Processes, name: str, role: str, server_id: int, backup:
     os.makedirs(directory, exist_ok=True)
     log = os.path.join(procs.directory, f"{name}.log")
     before = _server_lines(log)
-    env = {"ROS_DISCOVERY_SERVER": peers} if peers else None
-    process = procs.start(name, role, server_command(server_id, backup), env, cwd=directory)
+    env = {**server_env(), **({"ROS_DISCOVERY_SERVER": peers} if peers else {})}
+    process = procs.start(name, role, server_command(server_id, backup, delay_s), env, cwd=directory)
     procs.wait_until(
         lambda: _server_lines(log) > before or process.popen.poll() is not None,
         STARTUP_TIMEOUT,
@@ -145,16 +160,19 @@ def restart_server(
     linked: bool = False,
     together: bool = False,
     wait_s: float = REDISCOVERY_TIMEOUT,
+    delay_s: int | None = None,
 ) -> dict:
     """Each edge server in turn killed (SIGKILL) and started again after ``down_s`` seconds (then 3 s to settle),
     with or without its backup; with ``linked`` each server connects to the others; with ``together`` all are killed
-    and started again at once (one node running every server of the fleet)."""
+    and started again at once (one node running every server of the fleet). A server started runs the rendered
+    container: it waits its start delay (``delay_s`` replaces it; 0 serves at once, as rendered before) and
+    announces the rendered lease."""
     addresses = [lab.addresses[role] for role in SERVER_ROLES[:servers]]
     env = module_env(discovery_servers(addresses))
 
     def start(server_id):
         peers = linked_peers(addresses, server_id) if linked else ""
-        return start_server(procs, f"server-{server_id}", SERVER_ROLES[server_id], server_id, backup, peers)
+        return start_server(procs, f"server-{server_id}", SERVER_ROLES[server_id], server_id, backup, peers, delay_s)
 
     running = [start(i) for i in range(servers)]
     talker = procs.start_talker("talker", "talk", env, period="0.1")
@@ -174,7 +192,8 @@ def restart_server(
             for server_id in ids:
                 start(server_id)
         except ServerCrashed as crash:
-            return {"backup": backup, "servers": servers, "linked": linked, "down_s": down_s, "crashed": str(crash)}
+            return {"backup": backup, "servers": servers, "linked": linked, "down_s": down_s, "delay_s": delay_s,
+                    "crashed": str(crash)}  # fmt: skip
         time.sleep(3.0)
     late = procs.start_listener("listener-late", "late", env)
     new_meets_old = seconds_until(lambda: bool(late.received()), wait_s)
@@ -187,6 +206,7 @@ def restart_server(
         "linked": linked,
         "together": together,
         "down_s": down_s,
+        "delay_s": manifests.DISCOVERY_START_DELAY_S if delay_s is None else delay_s,
         "crashed": "",
         "new_meets_old_s": new_meets_old,
         "old_meets_new_s": old_meets_new,

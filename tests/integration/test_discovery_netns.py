@@ -60,6 +60,7 @@ def require_ros() -> None:
 @dataclass(frozen=True)
 class Rendered:
     servers: dict[str, list[str]]  # discovery server Deployment name -> its container args
+    server_env: dict[str, dict[str, str]]  # discovery server Deployment name -> its container's environment
     addresses: dict[str, str]  # service link in ROS_DISCOVERY_SERVER -> the discovery server Deployment it names
     module_env: dict[str, dict[str, str]]  # module Deployment name -> its container's environment (as rendered)
 
@@ -83,6 +84,7 @@ def rendered(local_inventory) -> Rendered:
     servers = {
         d["metadata"]["name"]: d["spec"]["template"]["spec"]["containers"][0]["args"] for d in by_component["discovery-server"]
     }
+    server_env = {d["metadata"]["name"]: container_env(d) for d in by_component["discovery-server"]}
     links = {naming.service_host_variable(d["metadata"]["name"]): d["metadata"]["name"] for d in by_component["discovery-server"]}
     module_env = {d["metadata"]["name"]: container_env(d) for d in by_component["ros-module"]}
     # onboard modules also list their robot's own server, last (docs/connectivity.md); the fleet's part is shared
@@ -96,7 +98,7 @@ def rendered(local_inventory) -> Rendered:
         assert host == f"$({variable})" and variable in links, f"{host} in ROS_DISCOVERY_SERVER names no discovery Service"
         addresses[variable] = links[variable]
     assert len(servers) == 2 and set(addresses.values()) == set(servers), (servers, addresses)
-    return Rendered(servers=servers, addresses=addresses, module_env=module_env)
+    return Rendered(servers=servers, server_env=server_env, addresses=addresses, module_env=module_env)
 
 
 def module_env(rendered: Rendered, lab: Lab, module: str, robot: str) -> dict[str, str]:
@@ -143,7 +145,7 @@ def start_servers(procs: Processes, rendered: Rendered) -> dict[str, Process]:
     """Each discovery server Deployment's command, exactly as rendered, in its own namespace."""
     servers = {}
     for name, command in sorted(rendered.servers.items()):
-        servers[name] = procs.start(name, server_role(rendered, name), command)
+        servers[name] = procs.start(name, server_role(rendered, name), command, rendered.server_env[name])
     for name, process in servers.items():
         server_id = rendered.servers[name][rendered.servers[name].index("-i") + 1]
         procs.wait_until(

@@ -12,7 +12,7 @@ import kubernetes_validate
 import pytest
 import yaml
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels, manifests
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     RenderOptions,
     render_deployment,
@@ -100,9 +100,9 @@ def test_every_module_is_pinned_and_wired_to_its_fleets_discovery_servers(root, 
                 and o["spec"]["template"]["spec"]["nodeSelector"] == {labels.HOSTNAME: inst.node}
             ]  # fmt: skip
             assert len(own) == 1
-            assert own[0]["spec"]["template"]["spec"]["containers"][0]["args"][:3] == [
-                "fast-discovery-server", "-i", str(len(expected))
-            ]  # fmt: skip
+            assert own[0]["spec"]["template"]["spec"]["containers"][0]["args"] == manifests.discovery_server_args(
+                len(expected), 11811
+            )
         assert len(servers) == len(expected)
         for server_id, address in enumerate(servers):
             host, port = address.rsplit(":", 1)
@@ -143,7 +143,8 @@ def test_discovery_server_objects(local_inventory, root):
         for obj, server in zip(sorted(deploys, key=lambda o: o["metadata"]["name"]), servers, strict=True):
             container = obj["spec"]["template"]["spec"]["containers"][0]
             assert "command" not in container  # the image's entrypoint stays (published ROS images source ROS there)
-            assert container["args"] == ["fast-discovery-server", "-i", str(server.server_id), "-l", "0.0.0.0", "-p", "11811"]
+            assert container["args"] == manifests.discovery_server_args(server.server_id, 11811)
+            assert container["args"][-6:] == ["-i", str(server.server_id), "-l", "0.0.0.0", "-p", "11811"]
             assert obj["spec"]["template"]["spec"]["nodeSelector"] == {labels.HOSTNAME: server.node}
         svcs = [o for o in objects if o["kind"] == "Service" and o["metadata"]["namespace"] == namespace]
         assert all(

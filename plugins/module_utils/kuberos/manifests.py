@@ -170,6 +170,47 @@ def _namespace(fleet: str, namespace: str) -> dict:
     }
 
 
+# How long a discovery server's clients keep it without hearing from it (the lease it announces, with an announcement
+# every DISCOVERY_ANNOUNCE_S), and how long a server waits before it serves. Fast DDS clients that hear a server again
+# within its lease take it for the one they knew and never send it their endpoints again (eProsima/Fast-DDS#2534):
+# a server restarted that quickly knows the old participants but not their publishers and subscriptions, so a module
+# started afterwards never meets them. A server that starts only once its predecessor's lease has run out meets
+# clients that have let it go, and every one of them registers anew (measured: docs/connectivity.md).
+DISCOVERY_LEASE_S = 4
+DISCOVERY_ANNOUNCE_S = 1
+DISCOVERY_START_DELAY_S = DISCOVERY_LEASE_S + 1
+DISCOVERY_PROFILE_ENV = "KUBEROS_DISCOVERY_PROFILE"
+DISCOVERY_PROFILE = f"""<?xml version="1.0" encoding="UTF-8" ?>
+<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <profiles>
+    <participant profile_name="kuberos_discovery_server" is_default_profile="true">
+      <rtps>
+        <builtin>
+          <discovery_config>
+            <discoveryProtocol>SERVER</discoveryProtocol>
+            <leaseDuration><sec>{DISCOVERY_LEASE_S}</sec></leaseDuration>
+            <leaseAnnouncement><sec>{DISCOVERY_ANNOUNCE_S}</sec></leaseAnnouncement>
+          </discovery_config>
+        </builtin>
+      </rtps>
+    </participant>
+  </profiles>
+</dds>
+"""
+# The server's container: waits out the delay (a stop meanwhile ends it at once), writes the profile from the
+# environment to a file of its own, and becomes fast-discovery-server (PID 1 of the container, so a stop reaches
+# it: it says goodbye to its clients, who then let it go at once). $0 is the delay, "$@" the server's arguments.
+DISCOVERY_START = (
+    'trap "exit 0" TERM INT; sleep "$0" & wait $!; profile="${TMPDIR:-/tmp}/kuberos-discovery-$$.xml"; '
+    f'printf %s "${DISCOVERY_PROFILE_ENV}" > "$profile" && exec fast-discovery-server -x "$profile" "$@"'
+)
+
+
+def discovery_server_args(server_id: int, port: int, delay_s: int = DISCOVERY_START_DELAY_S) -> list[str]:
+    """The container args of a discovery server (run by the image's entrypoint, as any module's)."""
+    return ["sh", "-c", DISCOVERY_START, str(delay_s), "-i", str(server_id), "-l", "0.0.0.0", "-p", str(port)]
+
+
 def _discovery_deployment(
     name: str, namespace: str, labels: dict, selector: dict, server_id: int, port: int, node: str, tier: str,
     robot: str | None, annotations: dict, options: RenderOptions,
@@ -184,7 +225,8 @@ def _discovery_deployment(
                 "imagePullPolicy": options.image_pull_policy,
                 # args, not command: the image's entrypoint runs first (the published ROS images source their
                 # setup there; nothing of ROS is on their PATH before it)
-                "args": ["fast-discovery-server", "-i", str(server_id), "-l", "0.0.0.0", "-p", str(port)],
+                "args": discovery_server_args(server_id, port),
+                "env": [{"name": DISCOVERY_PROFILE_ENV, "value": DISCOVERY_PROFILE}],
                 "ports": [{"name": "discovery", "containerPort": port, "protocol": "UDP"}],
                 "resources": {
                     "requests": {"cpu": format_cpu(DISCOVERY_CPU_MILLIS), "memory": format_memory(DISCOVERY_MEMORY_BYTES)},
