@@ -142,10 +142,13 @@ def procs(lab, tmp_path):
 
 
 def start_servers(procs: Processes, rendered: Rendered) -> dict[str, Process]:
-    """Each discovery server Deployment's command, exactly as rendered, in its own namespace."""
+    """Each discovery server Deployment's command and environment, exactly as rendered (the other servers' Service
+    links expanded to their namespaces' addresses), in its own namespace."""
     servers = {}
     for name, command in sorted(rendered.servers.items()):
-        servers[name] = procs.start(name, server_role(rendered, name), command, rendered.server_env[name])
+        links = {variable: procs.lab.addresses[server_role(rendered, server)] for variable, server in rendered.addresses.items()}
+        env = {k: manifests.expand_references(v, links) for k, v in rendered.server_env[name].items()}
+        servers[name] = procs.start(name, server_role(rendered, name), command, env)
     for name, process in servers.items():
         server_id = rendered.servers[name][rendered.servers[name].index("-i") + 1]
         procs.wait_until(

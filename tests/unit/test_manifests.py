@@ -145,6 +145,9 @@ def test_discovery_server_objects(local_inventory, root):
             assert "command" not in container  # the image's entrypoint stays (published ROS images source ROS there)
             assert container["args"] == manifests.discovery_server_args(server.server_id, 11811)
             assert container["args"][-6:] == ["-i", str(server.server_id), "-l", "0.0.0.0", "-p", "11811"]
+            peers = {e["name"]: e["value"] for e in container["env"]}.get("ROS_DISCOVERY_SERVER", "").split(";")
+            # linked to the fleet's other servers (a replaced one copies what they know), never to itself
+            assert sum(bool(p) for p in peers) == len(servers) - 1 and not peers[server.server_id], peers
             assert obj["spec"]["template"]["spec"]["nodeSelector"] == {labels.HOSTNAME: server.node}
         svcs = [o for o in objects if o["kind"] == "Service" and o["metadata"]["namespace"] == namespace]
         assert all(

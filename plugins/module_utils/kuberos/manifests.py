@@ -136,6 +136,14 @@ def discovery_server_list(servers: list[DiscoveryServer]) -> str:
 _REFERENCE = re.compile(r"\$\$|\$\(([A-Za-z_][A-Za-z0-9_.-]*)\)")
 
 
+def linked_server_list(servers: list[DiscoveryServer], server: DiscoveryServer) -> str:
+    """ROS_DISCOVERY_SERVER of one of the fleet's servers: the others, its own position empty. Linked, a server that
+    starts copies what the others know: a replaced pod (a new address with the old identity) learns the fleet's
+    topics again from the other server (docs/connectivity.md)."""
+    slots = discovery_server_list(servers).split(";")
+    return ";".join("" if index == server.server_id else slot for index, slot in enumerate(slots))
+
+
 def expand_references(value: str, variables: dict[str, str]) -> str:
     """An env value as the kubelet expands it: ``$(NAME)`` becomes ``variables[NAME]`` when defined and stays as it
     is otherwise, ``$$`` becomes ``$`` (for tools that start containers without a kubelet: the simulator, tests)."""
@@ -213,9 +221,10 @@ def discovery_server_args(server_id: int, port: int, delay_s: int = DISCOVERY_ST
 
 def _discovery_deployment(
     name: str, namespace: str, labels: dict, selector: dict, server_id: int, port: int, node: str, tier: str,
-    robot: str | None, annotations: dict, options: RenderOptions,
+    robot: str | None, annotations: dict, options: RenderOptions, peers: str = "",
 ) -> dict:  # fmt: skip
-    """A Fast DDS discovery server: one pod pinned to ``node``, serving UDP ``port`` as server ``server_id``."""
+    """A Fast DDS discovery server: one pod pinned to ``node``, serving UDP ``port`` as server ``server_id``, linked
+    to the servers ``peers`` names (a ROS_DISCOVERY_SERVER value, its own position empty)."""
     pod_spec = {
         **_selector_and_tolerations(node, tier, robot),
         "containers": [
@@ -226,7 +235,10 @@ def _discovery_deployment(
                 # args, not command: the image's entrypoint runs first (the published ROS images source their
                 # setup there; nothing of ROS is on their PATH before it)
                 "args": discovery_server_args(server_id, port),
-                "env": [{"name": DISCOVERY_PROFILE_ENV, "value": DISCOVERY_PROFILE}],
+                "env": [
+                    {"name": DISCOVERY_PROFILE_ENV, "value": DISCOVERY_PROFILE},
+                    *([{"name": "ROS_DISCOVERY_SERVER", "value": peers}] if peers.strip(";") else []),
+                ],
                 "ports": [{"name": "discovery", "containerPort": port, "protocol": "UDP"}],
                 "resources": {
                     "requests": {"cpu": format_cpu(DISCOVERY_CPU_MILLIS), "memory": format_memory(DISCOVERY_MEMORY_BYTES)},
@@ -263,7 +275,8 @@ def _discovery_service(name: str, namespace: str, labels: dict, selector: dict, 
     }
 
 
-def _discovery_objects(server: DiscoveryServer, options: RenderOptions) -> list[dict]:
+def _discovery_objects(server: DiscoveryServer, options: RenderOptions, fleet: list[DiscoveryServer] = ()) -> list[dict]:
+    """A fleet server's Deployment and Service, linked to the others of ``fleet``."""
     labels = {
         MANAGED_BY: "kuberos",
         COMPONENT: "discovery-server",
@@ -276,7 +289,7 @@ def _discovery_objects(server: DiscoveryServer, options: RenderOptions) -> list[
     return [
         _discovery_deployment(
             server.name, server.namespace, labels, selector, server.server_id, server.port, server.node, server.tier,
-            None, annotations, options,
+            None, annotations, options, linked_server_list(list(fleet), server) if fleet else "",
         ),
         _discovery_service(server.name, server.namespace, labels, selector, server.port),
     ]  # fmt: skip
@@ -864,7 +877,7 @@ def render_deployment(
         namespace = naming.fleet_namespace(fleet)
         objects.append(_namespace(fleet, namespace))
         for server in servers:
-            objects.extend(_discovery_objects(server, options))
+            objects.extend(_discovery_objects(server, options, servers))
     addresses = {f: discovery_server_list(placement.discovery[f]) for f in fleets}
     robot_servers = {(r.deployment, r.robot) for r in placement.robot_servers}
     for dep in deployments:
