@@ -58,10 +58,8 @@ def server_container(server_id: int) -> dict:
 def server_command(server_id: int, backup: bool, delay_s: int | None = None) -> list[str]:
     """The rendered discovery server's container arguments, with or without its backup (``-b``); ``delay_s``
     replaces its start delay (0: a server that serves at once, as rendered before the delay)."""
-    args = [a for a in server_container(server_id)["args"] if a != "-b"]
-    if delay_s is not None:
-        args[3] = str(delay_s)
-    return args + (["-b"] if backup else [])
+    args = server_container(server_id)["args"] if delay_s is None else manifests.discovery_server_args(server_id, PORT, delay_s)
+    return [a for a in args if a != "-b"] + (["-b"] if backup else [])
 
 
 def server_env() -> dict[str, str]:
@@ -147,8 +145,11 @@ def lost(talker: Process, listener: Process, first: int, last: int) -> int:
 
 
 def linked_peers(addresses: list[str], server_id: int) -> str:
-    """What server ``server_id`` of servers at ``addresses`` connects to: every other one, its own position empty."""
-    return ";".join("" if i == server_id else f"{address}:{PORT}" for i, address in enumerate(addresses))
+    """What server ``server_id`` of servers at ``addresses`` connects to, as rendered (``manifests.linked_server_list``,
+    the Services' links expanded to these addresses): every other one, its own position empty."""
+    servers = [_server(i) for i in range(len(addresses))]
+    links = {naming.service_host_variable(s.name): address for s, address in zip(servers, addresses, strict=True)}
+    return manifests.expand_references(manifests.linked_server_list(servers, servers[server_id]), links)
 
 
 def restart_server(

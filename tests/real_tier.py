@@ -514,7 +514,7 @@ def ros_in_container(socket: str, container: str, role: str, topic: str, seconds
     (``fleet_only``: without the robot's own discovery server; an int k: with the fleet's server k only), for
     ``seconds``: its ``ctr`` process."""
     tag = f"{role[0]}-{topic.strip('/')}-{int(time.time() * 1000) % 10**8}"
-    servers = str(fleet_only) if fleet_only is not True and fleet_only is not False else ("fleet" if fleet_only else "all")
+    servers = ("fleet" if fleet_only else "all") if isinstance(fleet_only, bool) else str(fleet_only)
     command = ["ctr", "-a", socket, "-n", "k8s.io", "tasks", "exec", "--exec-id", tag, container,
                "python3", "-c", PAIR_PROGRAM, role, topic, str(seconds), servers]  # fmt: skip
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

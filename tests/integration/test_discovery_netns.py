@@ -101,11 +101,16 @@ def rendered(local_inventory) -> Rendered:
     return Rendered(servers=servers, server_env=server_env, addresses=addresses, module_env=module_env)
 
 
+def service_links(rendered: Rendered, lab: Lab) -> dict[str, str]:
+    """The discovery Services' links as the kubelet sets them, each the address of the namespace running its server."""
+    return {variable: lab.addresses[server_role(rendered, server)] for variable, server in rendered.addresses.items()}
+
+
 def module_env(rendered: Rendered, lab: Lab, module: str, robot: str) -> dict[str, str]:
     """A module container's environment as the kubelet sets it: the discovery Services' links expanded to the
     addresses of the namespaces that run their servers."""
     (name,) = [n for n, env in rendered.module_env.items() if n.endswith(f"-{module}-{robot}")]
-    links = {variable: lab.addresses[server_role(rendered, server)] for variable, server in rendered.addresses.items()}
+    links = service_links(rendered, lab)
     env = dict(rendered.module_env[name])
     # the fleet's servers only: these tests are about them (the robot's own server: tests/sim/test_runtime.py)
     env["ROS_DISCOVERY_SERVER"] = manifests.fleet_discovery_part(env["ROS_DISCOVERY_SERVER"])
@@ -145,8 +150,8 @@ def start_servers(procs: Processes, rendered: Rendered) -> dict[str, Process]:
     """Each discovery server Deployment's command and environment, exactly as rendered (the other servers' Service
     links expanded to their namespaces' addresses), in its own namespace."""
     servers = {}
+    links = service_links(rendered, procs.lab)
     for name, command in sorted(rendered.servers.items()):
-        links = {variable: procs.lab.addresses[server_role(rendered, server)] for variable, server in rendered.addresses.items()}
         env = {k: manifests.expand_references(v, links) for k, v in rendered.server_env[name].items()}
         servers[name] = procs.start(name, server_role(rendered, name), command, env)
     for name, process in servers.items():

@@ -289,7 +289,7 @@ def _discovery_objects(server: DiscoveryServer, options: RenderOptions, fleet: l
     return [
         _discovery_deployment(
             server.name, server.namespace, labels, selector, server.server_id, server.port, server.node, server.tier,
-            None, annotations, options, linked_server_list(list(fleet), server) if fleet else "",
+            None, annotations, options, linked_server_list(list(fleet), server),
         ),
         _discovery_service(server.name, server.namespace, labels, selector, server.port),
     ]  # fmt: skip
