@@ -81,6 +81,7 @@ LAYOUTS = {
 @dataclass(frozen=True)
 class Rendered:
     server: list[str]  # discovery server 0's container args (its argv: the wheels' program is on PATH here)
+    server_env: dict[str, str]  # its container's environment (the Fast DDS profile it serves with)
     module_env: dict[str, str]  # a module container's environment, ROS_DISCOVERY_SERVER naming only server 0 here
 
 
@@ -95,11 +96,13 @@ def rendered(local_inventory) -> Rendered:
         if obj["kind"] == "Deployment":
             by_component.setdefault(obj["metadata"]["labels"][manifests.COMPONENT], []).append(obj)
     (server,) = [d for d in by_component["discovery-server"] if d["metadata"]["labels"][manifests.DISCOVERY_ID] == "0"]
-    command = server["spec"]["template"]["spec"]["containers"][0]["args"]  # the image's entrypoint runs it: here, PATH
+    server_container = server["spec"]["template"]["spec"]["containers"][0]
+    command = server_container["args"]  # the image's entrypoint runs it: here, PATH
+    server_env = {e["name"]: e["value"] for e in server_container["env"] if "value" in e}
     container = by_component["ros-module"][0]["spec"]["template"]["spec"]["containers"][0]
     env = {e["name"]: e["value"] for e in container["env"] if "value" in e}
     port = command[command.index("-p") + 1]
-    return Rendered(server=command, module_env={**env, "ROS_DISCOVERY_SERVER": f"{SERVER}:{port}"})
+    return Rendered(server=command, server_env=server_env, module_env={**env, "ROS_DISCOVERY_SERVER": f"{SERVER}:{port}"})
 
 
 def with_transport_env(env: dict[str, str]) -> dict[str, str]:
@@ -225,7 +228,7 @@ class Exchange:
 def exchange(pods: Pods, rendered: Rendered, layout: str, env: dict[str, str]) -> Exchange:
     """The discovery server, then a listener and a talker placed as the layout says, all with env; N messages."""
     talker_role, listener_role, one_pod = LAYOUTS[layout]
-    server = pods.container("discovery-server", pods.pod("server-pod", "server"), rendered.server, env)
+    server = pods.container("discovery-server", pods.pod("server-pod", "server"), rendered.server, {**env, **rendered.server_env})
     pods.wait_until(
         lambda: re.search(r"Server ID:\s+0\b", server.output()), STARTUP_TIMEOUT, "the discovery server did not start"
     )
