@@ -7,7 +7,11 @@ Real rclpy processes and the rendered discovery servers in network namespaces on
   container (the rendered server then waits out its lease before it serves), ``--repeat`` times each variant: one
   server; the same serving at once (``_at_once``: as rendered before the start delay); one server with its backup
   (``-b``); two servers restarted in turn; two linked servers (each connects to the other) restarted in turn; two
-  servers restarted together (one node running both), also serving at once. Figures: seconds until a
+  servers restarted together (one node running both), also serving at once. move (``--only move``): the servers
+  named by their Services' addresses (translated as kube-proxy does) and each started again in another namespace
+  (a replaced pod: a new address behind the same Service's), stopped (SIGTERM: a goodbye) or killed; announcing
+  their Service's address (as rendered) or every address of their own namespace (``_pod_address``: as rendered
+  before). Figures, for restart and move: seconds until a
   participant started afterwards meets one that ran before (new meets old; None: not within 60 s), until one that
   ran before meets one started afterwards (old meets new), and the messages a pair matched before lost meanwhile;
 - cut: a robot cut off from the edge for ``--cut`` seconds (the cluster's DNS with it): its modules naming the
@@ -17,7 +21,7 @@ Real rclpy processes and the rendered discovery servers in network namespaces on
   the onboard talker (during the cut, or after the link is back), and until an edge listener hears the robot again.
 
 Run as root: .venv/bin/python bench/bench_discovery.py [--repeat 3] [--json bench/results/discovery.json]
-(--only restart|cut). Every wait is bounded; the namespaces and processes are removed at the end.
+(--only restart|move|cut). Every wait is bounded; the namespaces and processes are removed at the end.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import datetime
 import json
 import os
 import platform
+import signal
 import statistics
 import subprocess
 import sys
@@ -72,7 +77,7 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--down", type=float, default=1.0, help="seconds the restarted server is down")
     parser.add_argument("--cut", type=float, default=30.0, help="seconds the robot is cut off")
-    parser.add_argument("--only", choices=("restart", "cut"))
+    parser.add_argument("--only", choices=("restart", "move", "cut"))
     parser.add_argument("--json", help="write the results here")
     parser.add_argument(
         "--connectivity",
@@ -91,8 +96,9 @@ def main() -> int:
         "command": " ".join(["bench/bench_discovery.py", *sys.argv[1:]]),
     }
     runs = range(args.repeat)
+    restarts = {}
     if args.only in (None, "restart"):
-        variants = {
+        restarts |= {
             "restart_one_server": {"servers": 1},
             "restart_one_server_at_once": {"servers": 1, "delay_s": 0},
             "restart_one_server_backup": {"servers": 1, "backup": True},
@@ -101,7 +107,16 @@ def main() -> int:
             "restart_two_servers_together": {"servers": 2, "together": True},
             "restart_two_servers_together_at_once": {"servers": 2, "together": True, "delay_s": 0},
         }
-        for name, options in variants.items():
+    if args.only in (None, "move"):
+        for name, options in {
+            "move_one_server_stopped": {"servers": 1, "stop": signal.SIGTERM},
+            "move_two_linked_servers_in_turn_stopped": {"servers": 2, "linked": True, "stop": signal.SIGTERM},
+            "move_two_linked_servers_in_turn_killed": {"servers": 2, "linked": True},
+        }.items():
+            restarts[name] = {**options, "moved": True}
+            restarts[f"{name}_pod_address"] = {**options, "moved": True, "announce_service": False}
+    if restarts:
+        for name, options in restarts.items():
             options = {"backup": False, **options, "down_s": args.down}
             rows = [run_one(faults.RESTART_ROLES, faults.restart_server, **options) for _ in runs]
             crashed = [r for r in rows if r["crashed"]]

@@ -105,7 +105,15 @@ def window(lab: Lab, robots: list[str], before: dict, after: dict) -> dict:
 def start_servers(procs: Processes, servers: list[tuple[str, str, int]]) -> None:
     """Discovery servers (name, role, id), started together, each up once it has said so."""
     started = [
-        (name, procs.start(name, role, faults.server_command(server_id, False, delay_s=0), faults.server_env()))
+        (
+            name,
+            procs.start(
+                name,
+                role,
+                faults.server_command(server_id, False, delay_s=0),
+                faults.server_env(server_id, procs.lab.addresses[role]),
+            ),
+        )
         for name, role, server_id in servers
     ]  # the rendered servers (their lease and announcements), serving at once: nothing ran before them
     deadline = time.monotonic() + SERVER_START_TIMEOUT

@@ -23,7 +23,8 @@ import re
 import signal
 import time
 
-from netlab import STARTUP_TIMEOUT, Lab, Process, Processes
+from netlab import STARTUP_TIMEOUT, SUBNET, Lab, Process, Processes
+from sshlab import run
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, manifests, naming
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import DiscoveryServer
@@ -34,7 +35,8 @@ PORT = 11811
 MEET_TIMEOUT = 30.0  # two participants that can meet do so within this, with a server up (test_discovery_netns)
 REDISCOVERY_TIMEOUT = 60.0  # three default leases (20 s) after a fault: a participant not met by then never is
 SERVER_ROLES = ("edge", "edge2")
-RESTART_ROLES = ("edge", "edge2", "talk", "listen", "late", "talk2")
+MOVED_ROLES = ("edge3", "edge4")  # where server 0, 1 move to (a replaced pod: a new address behind its Service's)
+RESTART_ROLES = ("edge", "edge2", "talk", "listen", "late", "talk2", *MOVED_ROLES)
 CUT_ROLES = ("edge", "robot", "talk", "listen", "late")
 
 
@@ -62,9 +64,12 @@ def server_command(server_id: int, backup: bool, delay_s: int | None = None) -> 
     return [a for a in args if a != "-b"] + (["-b"] if backup else [])
 
 
-def server_env() -> dict[str, str]:
-    """The rendered discovery server's environment (its Fast DDS profile)."""
-    return {e["name"]: e["value"] for e in server_container(0)["env"]}
+def server_env(server_id: int, address: str = "") -> dict[str, str]:
+    """The rendered discovery server's environment (its Fast DDS profile, no links), its Service's link expanded to
+    ``address``, the address it announces (empty: announcing every address of its namespace, as rendered before)."""
+    env = {e["name"]: e["value"] for e in server_container(server_id)["env"]}
+    links = {naming.service_host_variable(_server(server_id).name): address}
+    return {name: manifests.expand_references(value, links) for name, value in env.items()}
 
 
 def discovery_servers(addresses: list[str], dns: bool = False) -> str:
@@ -89,16 +94,24 @@ def module_env(servers: str) -> dict[str, str]:
 
 
 def start_server(
-    procs: Processes, name: str, role: str, server_id: int, backup: bool, peers: str = "", delay_s: int | None = None
+    procs: Processes,
+    name: str,
+    role: str,
+    server_id: int,
+    backup: bool,
+    peers: str = "",
+    delay_s: int | None = None,
+    address: str = "",
 ) -> Process:
     """A server in its own working directory (its backup file lives there, as in the pod's volume); started again
     under the same name it appends to the same log, and is up when it has said so once more. ``peers``: the other
-    servers it connects to (ROS_DISCOVERY_SERVER with its own position empty), sharing what each knows."""
+    servers it connects to (ROS_DISCOVERY_SERVER with its own position empty), sharing what each knows; ``address``:
+    the one it announces, its Service's (empty: every address of its namespace)."""
     directory = os.path.join(procs.directory, name)
     os.makedirs(directory, exist_ok=True)
     log = os.path.join(procs.directory, f"{name}.log")
     before = _server_lines(log)
-    env = {**server_env(), **({"ROS_DISCOVERY_SERVER": peers} if peers else {})}
+    env = {**server_env(server_id, address), **({"ROS_DISCOVERY_SERVER": peers} if peers else {})}
     process = procs.start(name, role, server_command(server_id, backup, delay_s), env, cwd=directory)
     procs.wait_until(
         lambda: _server_lines(log) > before or process.popen.poll() is not None,
@@ -152,6 +165,25 @@ def linked_peers(addresses: list[str], server_id: int) -> str:
     return manifests.expand_references(manifests.linked_server_list(servers, servers[server_id]), links)
 
 
+def service_address(server_id: int) -> str:
+    """Server ``server_id``'s Service address (its cluster IP): on the lab's subnet, owned by no namespace."""
+    return f"{SUBNET}.{250 + server_id}"
+
+
+def route_service(lab: Lab, server_id: int, role: str) -> None:
+    """What kube-proxy does on every node when a Service's endpoint changes, in every namespace of the lab: UDP to
+    server ``server_id``'s Service address translated to the address of ``role`` (where its server now runs), and
+    the flows tracked to the old one dropped."""
+    chain, address = f"KR-SVC-{server_id}", service_address(server_id)
+    for namespace in lab.namespaces.values():
+        iptables = ["ip", "netns", "exec", namespace, "iptables", "-t", "nat"]
+        if run(*iptables, "-F", chain, check=False).returncode != 0:
+            run(*iptables, "-N", chain)
+            run(*iptables, "-A", "OUTPUT", "-d", address, "-p", "udp", "-j", chain)
+        run(*iptables, "-A", chain, "-p", "udp", "-j", "DNAT", "--to-destination", lab.addresses[role])
+        run("ip", "netns", "exec", namespace, "conntrack", "-D", "-p", "udp", "--orig-dst", address, check=False)
+
+
 def restart_server(
     lab: Lab,
     procs: Processes,
@@ -162,18 +194,31 @@ def restart_server(
     together: bool = False,
     wait_s: float = REDISCOVERY_TIMEOUT,
     delay_s: int | None = None,
+    stop: signal.Signals = signal.SIGKILL,
+    moved: bool = False,
+    announce_service: bool = True,
 ) -> dict:
-    """Each edge server in turn killed (SIGKILL) and started again after ``down_s`` seconds (then 3 s to settle),
-    with or without its backup; with ``linked`` each server connects to the others; with ``together`` all are killed
-    and started again at once (one node running every server of the fleet). A server started runs the rendered
-    container: it waits its start delay (``delay_s`` replaces it; 0 serves at once, as rendered before) and
-    announces the rendered lease."""
-    addresses = [lab.addresses[role] for role in SERVER_ROLES[:servers]]
+    """Each edge server in turn killed (``stop``: SIGKILL, or SIGTERM as a kubelet stops a pod: the server says
+    goodbye) and started again after ``down_s`` seconds (then 3 s to settle), with or without its backup; with
+    ``linked`` each server connects to the others; with ``together`` all are killed and started again at once (one
+    node running every server of the fleet). A server started runs the rendered container: it waits its start delay
+    (``delay_s`` replaces it; 0 serves at once, as rendered before), announces the rendered lease and its Service's
+    address (``announce_service=False``: every address of its namespace, as rendered before). With ``moved`` everyone
+    names the servers by their Services' addresses, and each server started again runs in another namespace (a
+    replaced pod: a new address behind the same Service's)."""
+    homes = list(SERVER_ROLES[:servers])
+    if moved:
+        addresses = [service_address(i) for i in range(servers)]
+        for server_id, role in enumerate(homes):
+            route_service(lab, server_id, role)
+    else:
+        addresses = [lab.addresses[role] for role in homes]
     env = module_env(discovery_servers(addresses))
 
     def start(server_id):
         peers = linked_peers(addresses, server_id) if linked else ""
-        return start_server(procs, f"server-{server_id}", SERVER_ROLES[server_id], server_id, backup, peers, delay_s)
+        address = addresses[server_id] if announce_service else ""
+        return start_server(procs, f"server-{server_id}", homes[server_id], server_id, backup, peers, delay_s, address)
 
     running = [start(i) for i in range(servers)]
     talker = procs.start_talker("talker", "talk", env, period="0.1")
@@ -187,10 +232,13 @@ def restart_server(
     rounds = [list(range(servers))] if together else [[i] for i in range(servers)]
     for ids in rounds:
         for server_id in ids:
-            running[server_id].kill(signal.SIGKILL)
+            running[server_id].kill(stop)
         time.sleep(down_s)
         try:
             for server_id in ids:
+                if moved:
+                    homes[server_id] = (MOVED_ROLES if homes[server_id] in SERVER_ROLES else SERVER_ROLES)[server_id]
+                    route_service(lab, server_id, homes[server_id])
                 start(server_id)
         except ServerCrashed as crash:
             return {"backup": backup, "servers": servers, "linked": linked, "down_s": down_s, "delay_s": delay_s,
@@ -207,6 +255,9 @@ def restart_server(
         "linked": linked,
         "together": together,
         "down_s": down_s,
+        "stop": stop.name,
+        "moved": moved,
+        "announce_service": announce_service,
         "delay_s": manifests.DISCOVERY_START_DELAY_S if delay_s is None else delay_s,
         "crashed": "",
         "new_meets_old_s": new_meets_old,
@@ -240,10 +291,10 @@ def cut_off_robot(
         "listed": module_env(both),
         "linked": module_env(";" + both.split(";")[1]),  # the robot's server alone, at its position
     }[robot_server]
-    start_server(procs, "edge-server", "edge", 0, backup=False)
+    start_server(procs, "edge-server", "edge", 0, backup=False, address=lab.addresses["edge"])
     if robot_server != "none":
         peers = both.split(";")[0] if robot_server == "linked" else ""
-        start_server(procs, "robot-server", "robot", 1, backup=False, peers=peers)
+        start_server(procs, "robot-server", "robot", 1, backup=False, peers=peers, address=lab.addresses["robot"])
     talker = procs.start_talker("talker", "talk", env, period="0.1")
     listener = procs.start_listener("listener", "listen", env)
     edge = procs.start_listener("listener-edge", "edge", edge_env if robot_server == "linked" else env)

@@ -32,7 +32,7 @@ from helpers import ROOT
 from netlab import Process, spawn
 from sshlab import run
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, manifests, scheduler, spec
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, manifests, naming, scheduler, spec
 from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import PRIVATE_SHM, ros_environment, ros_problem
 
 pytestmark = pytest.mark.ros
@@ -98,7 +98,8 @@ def rendered(local_inventory) -> Rendered:
     (server,) = [d for d in by_component["discovery-server"] if d["metadata"]["labels"][manifests.DISCOVERY_ID] == "0"]
     server_container = server["spec"]["template"]["spec"]["containers"][0]
     command = server_container["args"]  # the image's entrypoint runs it: here, PATH
-    server_env = {e["name"]: e["value"] for e in server_container["env"] if "value" in e}
+    link = {naming.service_host_variable(server["metadata"]["name"]): SERVER}  # its Service's address: its own here
+    server_env = {e["name"]: manifests.expand_references(e["value"], link) for e in server_container["env"]}
     container = by_component["ros-module"][0]["spec"]["template"]["spec"]["containers"][0]
     env = {e["name"]: e["value"] for e in container["env"] if "value" in e}
     port = command[command.index("-p") + 1]

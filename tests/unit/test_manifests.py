@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 
 import kubernetes_validate
 import pytest
 import yaml
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels, manifests
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels, manifests, naming
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
     RenderOptions,
     render_deployment,
@@ -144,8 +145,12 @@ def test_discovery_server_objects(local_inventory, root):
             container = obj["spec"]["template"]["spec"]["containers"][0]
             assert "command" not in container  # the image's entrypoint stays (published ROS images source ROS there)
             assert container["args"] == manifests.discovery_server_args(server.server_id, 11811)
-            assert container["args"][-6:] == ["-i", str(server.server_id), "-l", "0.0.0.0", "-p", "11811"]
-            peers = {e["name"]: e["value"] for e in container["env"]}.get("ROS_DISCOVERY_SERVER", "").split(";")
+            assert container["args"][-4:] == ["-i", str(server.server_id), "-p", "11811"]
+            env = {e["name"]: e["value"] for e in container["env"]}
+            # it announces its Service's address: replaced at a new pod address, its clients still reach it
+            assert env[manifests.DISCOVERY_ADDRESS_ENV] == f"$({naming.service_host_variable(obj['metadata']['name'])})"
+            assert any(s["metadata"]["name"] == obj["metadata"]["name"] for s in objects if s["kind"] == "Service")
+            peers = env.get("ROS_DISCOVERY_SERVER", "").split(";")
             # linked to the fleet's other servers (a replaced one copies what they know), never to itself
             assert sum(bool(p) for p in peers) == len(servers) - 1 and not peers[server.server_id], peers
             assert obj["spec"]["template"]["spec"]["nodeSelector"] == {labels.HOSTNAME: server.node}
@@ -155,6 +160,33 @@ def test_discovery_server_objects(local_inventory, root):
         )
     namespaces = [o["metadata"]["name"] for o in objects if o["kind"] == "Namespace"]
     assert namespaces == ["kuberos-test-fleet", "kuberos-warehouse-fleet"]
+
+
+def _run_discovery_container(tmp_path, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """The rendered server container's args run by sh, with a fast-discovery-server on PATH that prints its argv and
+    the profile file it was given (the real program: tests/integration/test_discovery_netns.py)."""
+    fake = tmp_path / "fast-discovery-server"
+    fake.write_text('#!/bin/sh\nprintf "%s\\n" "$@"; cat "$2"\n')
+    fake.chmod(0o755)
+    args = manifests.discovery_server_args(3, 11811, delay_s=0)
+    base = {"PATH": f"{tmp_path}:/usr/bin:/bin", "TMPDIR": str(tmp_path), manifests.DISCOVERY_PROFILE_ENV: "<dds/>"}
+    return subprocess.run(args, env={**base, **env}, capture_output=True, text=True, timeout=30, check=False)
+
+
+def test_the_discovery_container_announces_its_services_address_and_refuses_to_start_without_it(tmp_path):
+    served = _run_discovery_container(tmp_path, {manifests.DISCOVERY_ADDRESS_ENV: "10.96.0.17"})
+    assert served.returncode == 0, served.stderr
+    argv = served.stdout.splitlines()
+    assert argv[0] == "-x" and argv[2:8] == ["-l", "10.96.0.17", "-i", "3", "-p", "11811"], argv
+    assert argv[-1] == "<dds/>"  # the profile from the environment, written to a file of its own
+    # the Service did not exist when the container started: the kubelet left the reference as it was
+    unresolved = f"$({naming.service_host_variable('kuberos-discovery-3')})"
+    refused = _run_discovery_container(tmp_path, {manifests.DISCOVERY_ADDRESS_ENV: unresolved})
+    assert refused.returncode == 1 and not refused.stdout, refused
+    assert "its Service did not exist when the container started" in refused.stderr and unresolved in refused.stderr
+    # without the variable (what a server rendered before announced): every address of its pod
+    before = _run_discovery_container(tmp_path, {})
+    assert before.stdout.splitlines()[2:4] == ["-l", "0.0.0.0"], before
 
 
 def test_gpu_parameters_and_multi_command_launch(local_inventory, root):

@@ -279,7 +279,10 @@ def test_a_robot_discovery_server_follows_an_onboard_fallback_and_is_rendered_fo
         "$(KUBEROS_DISCOVERY_0_SERVICE_HOST):11811;$(KUBEROS_ROBOT_DISCOVERY_APP_SERVICE_HOST):11811"
     )
     server = next(o for o in objects if o["metadata"]["name"] == "kuberos-robot-discovery-app-r1")
-    assert server["spec"]["template"]["spec"]["containers"][0]["args"][-6:] == ["-i", "1", "-l", "0.0.0.0", "-p", "11811"]
+    container = server["spec"]["template"]["spec"]["containers"][0]
+    assert container["args"][-4:] == ["-i", "1", "-p", "11811"]
+    # it announces the node-local Service's address, which its robot's modules name
+    assert {"name": "KUBEROS_DISCOVERY_ADDRESS", "value": "$(KUBEROS_ROBOT_DISCOVERY_APP_SERVICE_HOST)"} in container["env"]
     service = next(o for o in objects if o["kind"] == "Service" and o["metadata"]["name"] == "kuberos-robot-discovery-app")
     assert service["spec"]["internalTrafficPolicy"] == "Local"
 

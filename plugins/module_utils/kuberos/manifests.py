@@ -205,26 +205,46 @@ DISCOVERY_PROFILE = f"""<?xml version="1.0" encoding="UTF-8" ?>
   </profiles>
 </dds>
 """
-# The server's container: waits out the delay (a stop meanwhile ends it at once), writes the profile from the
-# environment to a file of its own, and becomes fast-discovery-server (PID 1 of the container, so a stop reaches
-# it: it says goodbye to its clients, who then let it go at once). $0 is the delay, "$@" the server's arguments.
+# The address a server announces: its Service's (the cluster IP, in the container's environment from the Service's
+# link). A server announcing its pod's address sends its clients there; when its pod is replaced (a new address behind
+# the same Service) they keep sending to the old one and never hear what the new one relays (measured:
+# docs/connectivity.md). Announcing the Service's address, a replaced server is to its clients one restarted in place.
+DISCOVERY_ADDRESS_ENV = "KUBEROS_DISCOVERY_ADDRESS"
+# The server's container: checks that its Service's address is known (a pod started before its Service was made has
+# no link; it exits and starts again, when the kubelet gives it one), waits out the delay (a stop meanwhile ends it at
+# once), writes the profile from the environment to a file of its own, and becomes fast-discovery-server (PID 1 of
+# the container, so a stop reaches it: it says goodbye to its clients, who then let it go at once). $0 is the delay,
+# "$@" the server's arguments; without an address (as before) it announces every address of its pod.
 DISCOVERY_START = (
-    'trap "exit 0" TERM INT; sleep "$0" & wait $!; profile="${TMPDIR:-/tmp}/kuberos-discovery-$$.xml"; '
-    f'printf %s "${DISCOVERY_PROFILE_ENV}" > "$profile" && exec fast-discovery-server -x "$profile" "$@"'
+    f'address="${{{DISCOVERY_ADDRESS_ENV}:-0.0.0.0}}"; case "$address" in [$]*) echo "kuberos: no address for this '
+    'discovery server yet ($address: its Service did not exist when the container started); starting again" >&2; '
+    'exit 1;; esac; trap "exit 0" TERM INT; sleep "$0" & wait $!; profile="${TMPDIR:-/tmp}/kuberos-discovery-$$.xml"; '
+    f'printf %s "${DISCOVERY_PROFILE_ENV}" > "$profile" && exec fast-discovery-server -x "$profile" -l "$address" "$@"'
 )
 
 
 def discovery_server_args(server_id: int, port: int, delay_s: int = DISCOVERY_START_DELAY_S) -> list[str]:
     """The container args of a discovery server (run by the image's entrypoint, as any module's)."""
-    return ["sh", "-c", DISCOVERY_START, str(delay_s), "-i", str(server_id), "-l", "0.0.0.0", "-p", str(port)]
+    return ["sh", "-c", DISCOVERY_START, str(delay_s), "-i", str(server_id), "-p", str(port)]
+
+
+def discovery_server_env(service: str, peers: str = "") -> list[dict]:
+    """A discovery server container's environment: its profile, the address it announces (its Service's ``service``),
+    and the servers it is linked to (``peers``: a ROS_DISCOVERY_SERVER value, its own position empty)."""
+    return [
+        {"name": DISCOVERY_PROFILE_ENV, "value": DISCOVERY_PROFILE},
+        {"name": DISCOVERY_ADDRESS_ENV, "value": f"$({naming.service_host_variable(service)})"},
+        *([{"name": "ROS_DISCOVERY_SERVER", "value": peers}] if peers.strip(";") else []),
+    ]
 
 
 def _discovery_deployment(
     name: str, namespace: str, labels: dict, selector: dict, server_id: int, port: int, node: str, tier: str,
-    robot: str | None, annotations: dict, options: RenderOptions, peers: str = "",
+    robot: str | None, annotations: dict, options: RenderOptions, service: str, peers: str = "",
 ) -> dict:  # fmt: skip
-    """A Fast DDS discovery server: one pod pinned to ``node``, serving UDP ``port`` as server ``server_id``, linked
-    to the servers ``peers`` names (a ROS_DISCOVERY_SERVER value, its own position empty)."""
+    """A Fast DDS discovery server: one pod pinned to ``node``, serving UDP ``port`` as server ``server_id`` at the
+    address of its Service ``service``, linked to the servers ``peers`` names (a ROS_DISCOVERY_SERVER value, its own
+    position empty)."""
     pod_spec = {
         **_selector_and_tolerations(node, tier, robot),
         "containers": [
@@ -235,10 +255,7 @@ def _discovery_deployment(
                 # args, not command: the image's entrypoint runs first (the published ROS images source their
                 # setup there; nothing of ROS is on their PATH before it)
                 "args": discovery_server_args(server_id, port),
-                "env": [
-                    {"name": DISCOVERY_PROFILE_ENV, "value": DISCOVERY_PROFILE},
-                    *([{"name": "ROS_DISCOVERY_SERVER", "value": peers}] if peers.strip(";") else []),
-                ],
+                "env": discovery_server_env(service, peers),
                 "ports": [{"name": "discovery", "containerPort": port, "protocol": "UDP"}],
                 "resources": {
                     "requests": {"cpu": format_cpu(DISCOVERY_CPU_MILLIS), "memory": format_memory(DISCOVERY_MEMORY_BYTES)},
@@ -289,7 +306,7 @@ def _discovery_objects(server: DiscoveryServer, options: RenderOptions, fleet: l
     return [
         _discovery_deployment(
             server.name, server.namespace, labels, selector, server.server_id, server.port, server.node, server.tier,
-            None, annotations, options, linked_server_list(list(fleet), server),
+            None, annotations, options, server.name, linked_server_list(list(fleet), server),
         ),
         _discovery_service(server.name, server.namespace, labels, selector, server.port),
     ]  # fmt: skip
@@ -321,7 +338,7 @@ def robot_discovery_objects(dep: RosDeployment, servers: list[RobotServer], slot
     linked to nothing: the fleet's servers keep telling the rest of the fleet about the robot's modules."""
     namespace = naming.fleet_namespace(dep.fleet)
     common = {MANAGED_BY: "kuberos", COMPONENT: ROBOT_DISCOVERY, DEPLOYMENT: dep.name, node_labels.FLEET: dep.fleet}
-    objects = []
+    objects, service = [], naming.robot_discovery_service_name(dep.name)
     for server in servers:
         labels = {**common, node_labels.ROBOT: server.robot, DISCOVERY_ID: str(slot), INSTANCE: server.name}
         annotations = {
@@ -332,11 +349,10 @@ def robot_discovery_objects(dep: RosDeployment, servers: list[RobotServer], slot
         objects.append(
             _discovery_deployment(
                 server.name, namespace, labels, {INSTANCE: server.name}, slot, dep.discovery_port, server.node, "onboard",
-                server.robot, annotations, options,
+                server.robot, annotations, options, service,
             )
         )  # fmt: skip
     if objects:
-        service = naming.robot_discovery_service_name(dep.name)
         selector = {COMPONENT: ROBOT_DISCOVERY, DEPLOYMENT: dep.name}
         objects.append(_discovery_service(service, namespace, dict(common), selector, dep.discovery_port, local=True))
     return objects
