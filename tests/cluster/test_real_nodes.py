@@ -362,19 +362,15 @@ def test_a_fleet_discovery_server_killed_and_restarted_and_who_still_meets_the_p
     )
 
 
-@pytest.mark.skipif(
-    not os.environ.get("KUBEROS_DISCOVERY_RESTART"),
-    reason="both of a fleet's server pods replaced in turn: with the linked servers killed met (4.0 s), stopped did not "
-    "(one run each; docs/connectivity.md); set KUBEROS_DISCOVERY_RESTART=1 to run it",
-)
 @pytest.mark.parametrize("how", ["killed", "stopped"])
 def test_the_fleets_discovery_servers_restarted_in_turn_a_module_started_after_meets_one_that_ran_before(real, deployed, how):
     """A talker starts in an edge module's container; then the fleet's two discovery server pods are deleted in turn,
     each replaced by its Deployment (a new pod address behind the same Service address) before the next goes:
     ``killed`` (no grace: as a crash or a lost node) or ``stopped`` (the default grace: the server hears SIGTERM and
     says goodbye). A listener started afterwards in robot-1's onboard container, with the fleet's servers only,
-    hears the talker that ran before the restarts: every node of the fleet rediscovers (docs/connectivity.md). The
-    connection tracking of the servers' port on the talker's node is printed before and after."""
+    hears the talker that ran before the restarts: every node of the fleet rediscovers, because each server announces
+    its Service's address and waits out its lease before it serves (docs/connectivity.md). The connection tracking of
+    the servers' port on the talker's node is printed before and after."""
     namespace = fleet_namespace(deployed)
     nodes, edge, edge_container, robot_container = talker_and_listener_homes(real, namespace)
     port = real.core.read_namespaced_service(deployed["discovery"][0]["servers"][0]["name"], namespace).spec.ports[0].port
