@@ -9,11 +9,11 @@ Real rclpy processes and the rendered discovery servers in network namespaces on
   (``-b``); two servers restarted in turn; two linked servers (each connects to the other) restarted in turn; two
   servers restarted together (one node running both), also serving at once. move (``--only move``): the servers
   named by their Services' addresses (translated as kube-proxy does) and each started again in another namespace
-  (a replaced pod: a new address behind the same Service's), stopped (SIGTERM: a goodbye) or killed; announcing
-  their Service's address (as rendered) or every address of their own namespace (``_pod_address``: as rendered
-  before). Figures, for restart and move: seconds until a
-  participant started afterwards meets one that ran before (new meets old; None: not within 60 s), until one that
-  ran before meets one started afterwards (old meets new), and the messages a pair matched before lost meanwhile;
+  (a replaced pod: a new address behind the same Service's), stopped (SIGTERM: a goodbye) or killed, in turn or
+  together; announcing their Service's address (as rendered) or every address of their own namespace
+  (``_pod_address``: as rendered before). Figures, for restart and move: seconds until a participant started
+  afterwards meets one that ran before (new meets old; None: not within 60 s), until one that ran before meets one
+  started afterwards (old meets new), and the messages a pair matched before lost meanwhile;
 - cut: a robot cut off from the edge for ``--cut`` seconds (the cluster's DNS with it): its modules naming the
   fleet's edge server by DNS name (as the collection rendered before), by its Service's address (as rendered now),
   also naming a server on the robot, or naming only a server on the robot that is linked to the edge server.
@@ -112,6 +112,7 @@ def main() -> int:
             "move_one_server_stopped": {"servers": 1, "stop": signal.SIGTERM},
             "move_two_linked_servers_in_turn_stopped": {"servers": 2, "linked": True, "stop": signal.SIGTERM},
             "move_two_linked_servers_in_turn_killed": {"servers": 2, "linked": True},
+            "move_two_linked_servers_together_stopped": {"servers": 2, "linked": True, "together": True, "stop": signal.SIGTERM},
         }.items():
             restarts[name] = {**options, "moved": True}
             restarts[f"{name}_pod_address"] = {**options, "moved": True, "announce_service": False}

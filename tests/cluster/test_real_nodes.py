@@ -362,15 +362,16 @@ def test_a_fleet_discovery_server_killed_and_restarted_and_who_still_meets_the_p
     )
 
 
-@pytest.mark.parametrize("how", ["killed", "stopped"])
+@pytest.mark.parametrize("how", ["killed", "stopped", "stopped-together"])
 def test_the_fleets_discovery_servers_restarted_in_turn_a_module_started_after_meets_one_that_ran_before(real, deployed, how):
     """A talker starts in an edge module's container; then the fleet's two discovery server pods are deleted in turn,
     each replaced by its Deployment (a new pod address behind the same Service address) before the next goes:
     ``killed`` (no grace: as a crash or a lost node) or ``stopped`` (the default grace: the server hears SIGTERM and
-    says goodbye). A listener started afterwards in robot-1's onboard container, with the fleet's servers only,
-    hears the talker that ran before the restarts: every node of the fleet rediscovers, because each server announces
-    its Service's address and waits out its lease before it serves (docs/connectivity.md). The connection tracking of
-    the servers' port on the talker's node is printed before and after."""
+    says goodbye); or both stopped at once (``stopped-together``: nobody left to copy from). A listener started
+    afterwards in robot-1's onboard container, with the fleet's servers only, hears the talker that ran before the
+    restarts: every node of the fleet rediscovers, because each server announces its Service's address and waits out
+    its lease before it serves (docs/connectivity.md). The connection tracking of the servers' port on the talker's
+    node is printed before and after."""
     namespace = fleet_namespace(deployed)
     nodes, edge, edge_container, robot_container = talker_and_listener_homes(real, namespace)
     port = real.core.read_namespaced_service(deployed["discovery"][0]["servers"][0]["name"], namespace).spec.ports[0].port
@@ -381,13 +382,17 @@ def test_the_fleets_discovery_servers_restarted_in_turn_a_module_started_after_m
         time.sleep(5)
         flows["before"] = udp_flows(talker_netns, port)
         restarted = []
-        for server in deployed["discovery"][0]["servers"]:
-            (old,) = real.core.list_namespaced_pod(namespace, label_selector=f"kuberos.io/instance={server['name']}").items
-            started = time.monotonic()
-            real.core.delete_namespaced_pod(old.metadata.name, namespace, grace_period_seconds=0 if how == "killed" else None)
-            replaced = functools.partial(replacements, real, namespace, server["name"], old)
-            (new,) = wait_for(replaced, 90, f"{server['name']} replaced", 0.5)
-            restarted.append((server["name"], round(time.monotonic() - started, 1), old.status.pod_ip, new.status.pod_ip))
+        servers = deployed["discovery"][0]["servers"]
+        for group in [servers] if how == "stopped-together" else [[server] for server in servers]:
+            started, olds = time.monotonic(), {}
+            for server in group:
+                (old,) = real.core.list_namespaced_pod(namespace, label_selector=f"kuberos.io/instance={server['name']}").items
+                grace = 0 if how == "killed" else None
+                real.core.delete_namespaced_pod(old.metadata.name, namespace, grace_period_seconds=grace)
+                olds[server["name"]] = old
+            for name, old in olds.items():
+                (new,) = wait_for(functools.partial(replacements, real, namespace, name, old), 90, f"{name} replaced", 0.5)
+                restarted.append((name, round(time.monotonic() - started, 1), old.status.pod_ip, new.status.pod_ip))
         flows["after the restarts"] = udp_flows(talker_netns, port)
         listener = ros_in_container(nodes.socket("robot-1"), robot_container, "listener", "/kuberos_restart", 90, True)
         got = heard(listener, 90)
@@ -395,7 +400,7 @@ def test_the_fleets_discovery_servers_restarted_in_turn_a_module_started_after_m
     finally:
         talker.kill()
     seen = "\n".join(f"  {when}:\n" + "\n".join(f"    {line}" for line in lines) for when, lines in flows.items())
-    print(f"discovery servers {how} in turn {restarted}; a listener started after on robot-1 heard the edge talker "
+    print(f"discovery servers {how} {restarted}; a listener started after on robot-1 heard the edge talker "
           f"that ran before after {got['first_s']} s ({got['messages']} messages); UDP flows to port {port} in "
           f"{talker_netns}:\n{seen}")  # fmt: skip
     assert all(old_ip != new_ip for _name, _s, old_ip, new_ip in restarted), restarted
