@@ -50,6 +50,11 @@ def _server(server_id: int) -> DiscoveryServer:
     return DiscoveryServer(FLEET, naming.fleet_namespace(FLEET), server_id, name, "edge", "edge", PORT, "")
 
 
+def _service_links(addresses: dict[int, str]) -> dict[str, str]:
+    """The Services' links as the kubelet sets them: server id -> the address standing for its Service's."""
+    return {naming.service_host_variable(_server(i).name): address for i, address in addresses.items()}
+
+
 def server_container(server_id: int) -> dict:
     """The rendered discovery server's container (its args and environment)."""
     objects = manifests._discovery_objects(_server(server_id), manifests.RenderOptions())
@@ -68,7 +73,7 @@ def server_env(server_id: int, address: str = "") -> dict[str, str]:
     """The rendered discovery server's environment (its Fast DDS profile, no links), its Service's link expanded to
     ``address``, the address it announces (empty: announcing every address of its namespace, as rendered before)."""
     env = {e["name"]: e["value"] for e in server_container(server_id)["env"]}
-    links = {naming.service_host_variable(_server(server_id).name): address}
+    links = _service_links({server_id: address})
     return {name: manifests.expand_references(value, links) for name, value in env.items()}
 
 
@@ -79,7 +84,7 @@ def discovery_servers(addresses: list[str], dns: bool = False) -> str:
     if dns:
         return ";".join(f"{server_name(i)}:{PORT}" for i in range(len(addresses)))
     servers = [_server(i) for i in range(len(addresses))]
-    links = {naming.service_host_variable(s.name): address for s, address in zip(servers, addresses, strict=True)}
+    links = _service_links(dict(enumerate(addresses)))
     return manifests.expand_references(manifests.discovery_server_list(servers), links)
 
 
@@ -161,7 +166,7 @@ def linked_peers(addresses: list[str], server_id: int) -> str:
     """What server ``server_id`` of servers at ``addresses`` connects to, as rendered (``manifests.linked_server_list``,
     the Services' links expanded to these addresses): every other one, its own position empty."""
     servers = [_server(i) for i in range(len(addresses))]
-    links = {naming.service_host_variable(s.name): address for s, address in zip(servers, addresses, strict=True)}
+    links = _service_links(dict(enumerate(addresses)))
     return manifests.expand_references(manifests.linked_server_list(servers, servers[server_id]), links)
 
 
