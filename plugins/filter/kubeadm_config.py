@@ -87,6 +87,13 @@ options:
       - kube-proxy's C(conntrack.maxPerCore) (a KubeProxyConfiguration document); unset for kube-proxy's default.
       - C(0) leaves the host's connection-tracking limit alone, for nodes that cannot set it (nested in a container).
     type: int
+  eviction_hard:
+    description:
+      - "The kubelets' C(evictionHard) thresholds (eviction signal to threshold, such as C(nodefs.available) C(5%)),
+        empty for the kubelet's defaults."
+      - It replaces the defaults as a whole, so name every signal the nodes should watch.
+    type: dict
+    default: {}
   control_plane_schedulable:
     description: Control planes run modules too (no C(node-role.kubernetes.io/control-plane) taint).
     type: bool
@@ -167,7 +174,7 @@ from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import
 
 _SETTINGS = (
     "kubernetes_version", "pod_cidr", "service_cidr", "control_plane_endpoint", "cri_socket", "bind_port", "cgroup_driver",
-    "image_repository", "etcd_image_tag", "coredns_image_tag", "conntrack_max_per_core",
+    "image_repository", "etcd_image_tag", "coredns_image_tag", "conntrack_max_per_core", "eviction_hard",
 )  # fmt: skip
 
 
@@ -192,7 +199,7 @@ def kubeadm_config(raw, hostvars, host, control_planes, extra_labels=None, join_
         node_names,
         addresses,
         [str(h) for h in control_planes or []],
-        settings={k: v for k, v in settings.items() if v not in (None, "")},
+        settings={k: v for k, v in settings.items() if v not in (None, "", {})},
         extra_labels=plain(extra_labels or {}),
         join_command=None if join_command in (None, "") else str(join_command),
         certificate_key=None if certificate_key in (None, "") else str(certificate_key),

@@ -14,7 +14,11 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
     MANAGED_BY,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import IMAGE_PULL_REASONS, image_pull_problem
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import (
+    IMAGE_PULL_REASONS,
+    image_pull_problem,
+    pod_note,
+)
 
 # The argument every module that talks to a cluster takes (documented by the kuberos.platform.cluster fragment).
 KUBECONFIG_ARG = {"kubeconfig": {"type": "path", "required": True}}
@@ -179,7 +183,8 @@ def _image_problem(clients, pod: dict) -> tuple[str, bool]:
 
 def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[dict]:
     """Pods of the deployments' modules and of the fleets' discovery servers as the cluster reports
-    them: instance, node, phase, ready, and the problem of a container stuck on its image ("" if none)."""
+    them: instance, node, phase, ready, the problem of a container stuck on its image ("" if none), and why a pod
+    that is not ready is not (``status.pod_note``)."""
     rows = []
     for fleet in sorted(set(fleets)):
         response = clients["core"].list_namespaced_pod(
@@ -204,6 +209,7 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
                     "ready": _ready(pod),
                     "problem": problem,
                     "problem_final": final,
+                    "note": "" if _ready(pod) else pod_note(pod),
                 }
             )
     return rows

@@ -154,8 +154,9 @@ removed:
   elements: str
 rows:
   description:
-    - One entry per robot and module with C(placed_node), C(node), C(phase), C(ready), and C(problem) (why its pod
-      cannot start because of its image, empty if not).
+    - One entry per robot and module with C(placed_node), C(node), C(phase), C(ready), C(problem) (why its pod
+      cannot start because of its image, empty if not), and C(note) (why a pod that is not ready is not, in the
+      cluster's words - the scheduler's reason, an eviction, a container in CrashLoopBackOff; empty if nothing says).
   returned: when applying, not in check mode
   type: list
   elements: dict
@@ -282,7 +283,9 @@ def run(module: AnsibleModule) -> dict:
             result.update(waited)
             if not waited["ready"]:
                 waiting = [
-                    f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" for r in waited["rows"] if not r["ready"]
+                    f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" + (f" ({r['note']})" * bool(r["note"]))
+                    for r in waited["rows"]
+                    if not r["ready"]
                 ]
                 msg = f"not every module is Ready on its placed node after {module.params['wait_timeout']} s: "
                 if waited["problems"]:

@@ -135,3 +135,46 @@ def test_an_image_the_kubelet_never_tries_again_is_final_at_once():
     text, final = _image_problem({"core": _Events([])}, never)
     assert "imagePullPolicy is Never" in text and final
     assert _image_problem({"core": _Events([])}, {"metadata": {}, "status": {}}) == ("", False)
+
+
+def _pod(phase, **status):
+    return {"status": {"phase": phase, **status}}
+
+
+@pytest.mark.parametrize(
+    "pod, note",
+    [
+        (_pod("Failed", reason="Evicted", message="The node was low on resource: ephemeral-storage. "),
+         "Evicted: The node was low on resource: ephemeral-storage."),
+        (_pod("Failed", reason="Terminated", message="Pod was terminated in response to imminent node shutdown."),
+         "Terminated: Pod was terminated in response to imminent node shutdown."),
+        (_pod("Succeeded"), "ended (Succeeded)"),
+        (_pod("Pending", conditions=[{"type": "PodScheduled", "status": "False", "reason": "Unschedulable", "message":
+              "0/8 nodes are available: 8 node(s) had untolerated taint {node.kubernetes.io/disk-pressure: }."}]),
+         "not scheduled: 0/8 nodes are available: 8 node(s) had untolerated taint {node.kubernetes.io/disk-pressure: }."),
+        (_pod("Running", containerStatuses=[{"name": "main", "state": {"waiting": {"reason": "CrashLoopBackOff"}},
+                                             "lastState": {"terminated": {"exitCode": 1}}}]),
+         "container main: CrashLoopBackOff, last exit code 1"),
+        (_pod("Pending", containerStatuses=[{"name": "main", "state": {"waiting": {"reason": "ContainerCreating"}}}]), ""),
+        (_pod("Running"), ""),
+    ],
+)  # fmt: skip
+def test_a_pod_that_is_not_ready_says_why_in_the_clusters_words(pod, note):
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import pod_note
+
+    assert pod_note(pod) == note
+
+
+def test_an_ended_pod_its_deployment_replaced_is_history_the_new_one_is_compared():
+    """An evicted pod stays listed (Failed) beside its replacement: the row is the replacement's, with its note."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import compare
+
+    row = {"deployment": "app", "fleet": "f", "robot": "r1", "module": "m", "tier": "edge", "node": "edge-1",
+           "instance": "app-m-r1"}  # fmt: skip
+    ended = {"fleet": "f", "instance": "app-m-r1", "node": "edge-1", "phase": "Failed", "ready": False, "pod": "old",
+             "note": "Evicted: The node was low on resource: memory."}  # fmt: skip
+    waiting = {**ended, "node": None, "phase": "Pending", "pod": "new", "note": "not scheduled: 0/1 nodes are available"}
+    [compared] = compare({"placements": [row]}, [ended, waiting])
+    assert (compared["pod"], compared["phase"], compared["note"]) == ("new", "Pending", waiting["note"])
+    [alone] = compare({"placements": [row]}, [ended])
+    assert (alone["pod"], alone["note"]) == ("old", ended["note"]), "with nothing newer, the ended pod says why"

@@ -214,6 +214,10 @@ BAD_SETTINGS = [
     ({"etcd_image_tag": "3.5 35"}, "kuberos_etcd_image_tag: '3.5 35' is not valid; expected an image tag"),
     ({"coredns_image_tag": ":v1"}, "kuberos_coredns_image_tag: ':v1' is not valid"),
     ({"conntrack_max_per_core": -1}, "kuberos_kube_proxy_conntrack_max_per_core: -1 (int) is not valid; expected a whole number"),
+    ({"eviction_hard": {"disk.free": "5%"}}, "kuberos_kubelet_eviction_hard.disk.free: '5%' is not valid; unknown signal"),
+    ({"eviction_hard": {"nodefs.available": "plenty"}}, "kuberos_kubelet_eviction_hard.nodefs.available: 'plenty' is not valid"),
+    ({"eviction_hard": {"memory.available": 100}}, "expected a quantity such as 500Mi or a share such as 5%"),
+    ({"eviction_hard": ["nodefs.available<5%"]}, "kuberos_kubelet_eviction_hard: ['nodefs.available<5%'] (list) is not valid"),
 ]
 
 
@@ -284,6 +288,16 @@ def test_a_site_with_a_mirror_other_versions_and_the_cgroupfs_driver():
     assert render("edge-2", HA, cgroup_driver="cgroupfs", image_repository="mirror.site.example:5000/k8s") == render("edge-2", HA)
     # unset, kubeadm's defaults hold: no key at all
     assert "imageRepository" not in render("edge-1", HA)["documents"][1] and "dns" not in render("edge-1", HA)["documents"][1]
+
+
+def test_the_kubelets_eviction_thresholds_are_the_sites_when_it_sets_them():
+    thresholds = {"memory.available": "100Mi", "nodefs.available": "1%", "imagefs.available": "2.5Gi"}
+    for host in ("edge-1", "edge-2"):  # kubeadm uploads the first control plane's; the others join with it
+        documents = render(host, HA, eviction_hard=thresholds)["documents"]
+        kubelet = [d for d in documents if d["kind"] == "KubeletConfiguration"]
+        assert kubelet == ([{**kubelet[0], "evictionHard": thresholds}] if host == "edge-1" else [])
+    unset = [d for d in render("edge-1", HA, eviction_hard={})["documents"] if d["kind"] == "KubeletConfiguration"]
+    assert "evictionHard" not in unset[0]  # empty: the kubelet's own defaults
 
 
 def test_kube_proxy_can_leave_the_hosts_conntrack_limit_alone():

@@ -66,6 +66,38 @@ def image_pull_problem(image: str, reason: str, message: str) -> str:
     return f"image {image} from registry {image_registry(image)}: {why} ({reason}{': ' + detail if detail else ''})"
 
 
+# Phases a pod never leaves; a Deployment replaces such a pod (evicted, shut down with its node) with a new one.
+TERMINAL_PHASES = ("Succeeded", "Failed")
+# Container waiting reasons that are the normal way to start, not a problem to report.
+_STARTING = ("ContainerCreating", "PodInitializing")
+
+
+def _short(text: str, limit: int = 240) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def pod_note(pod: dict) -> str:
+    """Why a pod is not (yet) serving, in the cluster's own words ("" when nothing says): the scheduler's reason
+    for a pod it cannot place (untolerated taints, resources), the reason a pod ended (Evicted and the resource the
+    node ran low on, a node shutdown), a container waiting on something other than its start (CrashLoopBackOff)."""
+    status = pod.get("status") or {}
+    phase = status.get("phase")
+    if phase in TERMINAL_PHASES:
+        reason = status.get("reason") or phase
+        return _short(f"{reason}: {status['message']}" if status.get("message") else f"ended ({reason})")
+    for condition in status.get("conditions") or []:
+        if condition.get("type") == "PodScheduled" and condition.get("status") == "False":
+            return _short(f"not scheduled: {condition.get('message') or condition.get('reason') or 'no node fits'}")
+    for container in (status.get("initContainerStatuses") or []) + (status.get("containerStatuses") or []):
+        waiting = (container.get("state") or {}).get("waiting") or {}
+        if waiting.get("reason") and waiting["reason"] not in _STARTING:
+            last = ((container.get("lastState") or {}).get("terminated") or {}).get("exitCode")
+            exited = f", last exit code {last}" if last is not None else ""
+            return _short(f"container {container.get('name', '?')}: {waiting['reason']}{exited}")
+    return ""
+
+
 def _server_row(fleet: str, name: str, tier: str, node: str) -> dict:
     """A fleet's discovery or bridge server as a placed row."""
     return {"deployment": f"(fleet {fleet})", "fleet": fleet, "robot": "-", "module": name, "tier": tier, "node": node,
@@ -99,11 +131,13 @@ def compare(placement: dict, pods: list[dict]) -> list[dict]:
             rows.append(
                 {"deployment": row["deployment"], "robot": row["robot"], "module": row["module"], "tier": row["tier"],
                  "placed_node": row["node"], "node": row["node"], "phase": "Remote", "ready": True, "pod": None,
-                 "problem": "", "problem_final": False}
+                 "problem": "", "problem_final": False, "note": ""}
             )  # fmt: skip
             continue
         live = by_instance.get((row["fleet"], row["instance"]), [])
-        pod = next((p for p in live if p["ready"]), live[0] if live else None)
+        # the ready pod, else one still on its way (an ended pod is history its Deployment has replaced)
+        pod = next((p for p in live if p["ready"]), None) or next((p for p in live if p["phase"] not in TERMINAL_PHASES), None)
+        pod = pod or (live[0] if live else None)
         rows.append(
             {
                 "deployment": row["deployment"],
@@ -117,6 +151,7 @@ def compare(placement: dict, pods: list[dict]) -> list[dict]:
                 "pod": pod["pod"] if pod else None,
                 "problem": (pod or {}).get("problem", ""),
                 "problem_final": bool((pod or {}).get("problem_final")),
+                "note": (pod or {}).get("note", ""),
             }
         )
     return rows

@@ -49,6 +49,12 @@ _DNS_NAME = re.compile(rf"^{_DNS_LABEL}(\.{_DNS_LABEL})*$")
 _IMAGE_REPOSITORY = re.compile(r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?(:[0-9]{1,5})?(/[a-z0-9]+([._-][a-z0-9]+)*)*$")
 _IMAGE_TAG = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")
 CGROUP_DRIVERS = ("systemd", "cgroupfs")
+# The kubelet's eviction signals (evictionHard keys) and a threshold: a quantity such as 500Mi, or a share such as 5%.
+EVICTION_SIGNALS = (
+    "memory.available", "nodefs.available", "nodefs.inodesFree", "imagefs.available", "imagefs.inodesFree",
+    "containerfs.available", "containerfs.inodesFree", "pid.available",
+)  # fmt: skip
+_EVICTION_THRESHOLD = re.compile(r"^(\d+(\.\d+)?%|\d+(\.\d+)?([KMGTPE]i?|[kmMGTPE])?)$")
 _TOKEN = re.compile(r"--token[= ]+([a-z0-9]{6}\.[a-z0-9]{16})(?=\s|$)")
 _CA_HASH = re.compile(r"--discovery-token-ca-cert-hash[= ]+(sha256:[a-f0-9]{64})(?=\s|$)")
 _CERT_KEY = re.compile(r"^\s*([a-f0-9]{64})\s*$", re.M)
@@ -96,6 +102,7 @@ class ClusterSettings:
     etcd_image_tag: str = ""
     coredns_image_tag: str = ""
     conntrack_max_per_core: int | None = None
+    eviction_hard: tuple[tuple[str, str], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -201,6 +208,7 @@ def cluster_settings(
     etcd_image_tag="",
     coredns_image_tag="",
     conntrack_max_per_core=None,
+    eviction_hard=None,
 ) -> ClusterSettings:
     """Validated site settings; the endpoint defaults to the first control plane's address and port 6443."""
     problems: list[Problem] = []
@@ -242,6 +250,7 @@ def cluster_settings(
                 "expected a whole number of connections per CPU, or 0 to leave the host's limit alone",
             )
         )
+    problems += _eviction_problems(eviction_hard)
     for variable, tag in (("kuberos_etcd_image_tag", etcd_image_tag), ("kuberos_coredns_image_tag", coredns_image_tag)):
         if tag and (not isinstance(tag, str) or not _IMAGE_TAG.match(tag)):
             problems.append(_problem(variable, tag, "expected an image tag such as 3.5.35-0 or v1.12.1"))
@@ -266,7 +275,24 @@ def cluster_settings(
         etcd_image_tag=etcd_image_tag or "",
         coredns_image_tag=coredns_image_tag or "",
         conntrack_max_per_core=conntrack_max_per_core,
+        eviction_hard=tuple(sorted((str(k), str(v)) for k, v in (eviction_hard or {}).items())),
     )
+
+
+def _eviction_problems(eviction_hard) -> list[Problem]:
+    """What is wrong with kuberos_kubelet_eviction_hard: a mapping of eviction signal to threshold, or empty."""
+    if eviction_hard in (None, {}):
+        return []
+    if not isinstance(eviction_hard, dict):
+        return [_problem("kuberos_kubelet_eviction_hard", eviction_hard, "expected a mapping of eviction signal to threshold")]
+    problems = []
+    for signal, threshold in eviction_hard.items():
+        path = f"kuberos_kubelet_eviction_hard.{signal}"
+        if signal not in EVICTION_SIGNALS:
+            problems.append(_problem(path, threshold, f"unknown signal; expected one of {', '.join(EVICTION_SIGNALS)}"))
+        elif not isinstance(threshold, str) or not _EVICTION_THRESHOLD.match(threshold):
+            problems.append(_problem(path, threshold, "expected a quantity such as 500Mi or a share such as 5%"))
+    return problems
 
 
 def kubelet_labels(wanted: dict[str, str]) -> tuple[dict[str, str], dict[str, str]]:
@@ -343,10 +369,14 @@ def node_registration(machine: Machine, settings: ClusterSettings, control_plane
     return registration
 
 
-def kubelet_configuration(cgroup_driver: str = "systemd") -> dict:
+def kubelet_configuration(cgroup_driver: str = "systemd", eviction_hard: tuple[tuple[str, str], ...] = ()) -> dict:
     """The kubelet settings kubeadm uploads for every node (kubelet-config ConfigMap); the cgroup driver must be
-    containerd's (node_prereqs_cgroup_driver)."""
-    return {"apiVersion": KUBELET_API_VERSION, "kind": "KubeletConfiguration", "cgroupDriver": cgroup_driver}
+    containerd's (node_prereqs_cgroup_driver). ``eviction_hard`` replaces the kubelet's thresholds as a whole (a signal
+    left out is not watched), so a site that sets it names every signal it wants."""
+    document = {"apiVersion": KUBELET_API_VERSION, "kind": "KubeletConfiguration", "cgroupDriver": cgroup_driver}
+    if eviction_hard:
+        document["evictionHard"] = dict(eviction_hard)
+    return document
 
 
 def init_documents(machine: Machine, settings: ClusterSettings, self_labels: dict[str, str]) -> list[dict]:
@@ -373,7 +403,7 @@ def init_documents(machine: Machine, settings: ClusterSettings, self_labels: dic
         cluster["etcd"]["local"]["imageTag"] = settings.etcd_image_tag
     if settings.coredns_image_tag:
         cluster["dns"] = {"imageTag": settings.coredns_image_tag}
-    documents = [init, cluster, kubelet_configuration(settings.cgroup_driver)]
+    documents = [init, cluster, kubelet_configuration(settings.cgroup_driver, settings.eviction_hard)]
     if settings.conntrack_max_per_core is not None:
         # kube-proxy raises the host-wide nf_conntrack_max at start; a node whose network namespace cannot write it
         # (nested in a container) needs 0: leave the host's limit as it is.

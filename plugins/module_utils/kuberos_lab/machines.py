@@ -79,6 +79,15 @@ USER = "kuberos"
 NETWORKS = ("site", "wan", "site+wan")
 MIRROR_PORT = 5445  # the lab registry's port on the bridge (--mirror)
 CGROUP_ROOT = "/sys/fs/cgroup"
+# The kubelets' evictionHard in the lab (kuberos_kubelet_eviction_hard): every signal the kubelet watches by default,
+# with the disk ones at 1%, because all machines share the host's one disk and its free share is not theirs.
+LAB_EVICTION_HARD = {
+    "memory.available": "100Mi",
+    "nodefs.available": "1%",
+    "nodefs.inodesFree": "1%",
+    "imagefs.available": "1%",
+    "imagefs.inodesFree": "1%",
+}
 # Kernel settings outside a network namespace that a kubelet or kube-proxy in a machine writes.
 HOST_SYSCTLS = (
     "kernel/panic", "kernel/panic_on_oops", "vm/overcommit_memory", "vm/panic_on_oom", "kernel/keys/root_maxkeys",
@@ -721,6 +730,9 @@ def site_vars(cache_dir: str, log=print) -> dict:
         "kuberos_coredns_image_tag": versions["coredns"],
         # nf_conntrack_max is the host's, read-only in a machine's network namespace: kube-proxy must leave it alone
         "kuberos_kube_proxy_conntrack_max_per_core": 0,
+        # the machines share this host's disk with everything else on it: the kubelet's default shares (10% and 15%
+        # free) would evict every machine's pods at once when the host fills, which says nothing about a machine
+        "kuberos_kubelet_eviction_hard": LAB_EVICTION_HARD,
         "calico_version": calico_images.DEFAULT_VERSION,  # Calico built here from its Go module (build-calico.sh)
         "kuberos_lab_toolbox_image": toolbox,  # the lab's network checks (a busybox image)
         "node_prereqs_kubernetes_binaries": binaries,
