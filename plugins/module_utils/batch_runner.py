@@ -17,7 +17,7 @@ import os
 import shutil
 import time
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import batch, naming
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import batch, naming, pod_security
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import (
     KuberosError,
     PlacementError,
@@ -25,7 +25,11 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
     SpecError,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, device_options
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
+    RenderOptions,
+    device_options,
+    namespace_levels,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import file_reader
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
@@ -129,6 +133,18 @@ class Cluster:
 
     def pods(self, namespace: str, name: str) -> list[dict]:
         return self._list(self.core.list_namespaced_pod, namespace, f"{batch.BATCH}={name}")
+
+    def enforced_level(self, namespace: str) -> str | None:
+        """The Pod Security level ``namespace`` enforces; None when it enforces none or does not exist."""
+        from kubernetes.client.exceptions import ApiException
+
+        try:
+            found = json.loads(self.core.read_namespace(namespace, _preload_content=False).data)
+        except ApiException as exc:
+            if exc.status == 404:
+                return None
+            raise
+        return ((found.get("metadata") or {}).get("labels") or {}).get(pod_security.ENFORCE)
 
     def configmaps(self, namespace: str, name: str) -> list[dict]:
         return self._list(self.core.list_namespaced_config_map, namespace, f"{batch.BATCH}={name}")
@@ -313,6 +329,22 @@ def load(params: dict):
     return batch.with_fleet(jobs[0], list(inventory.fleets)), inventory
 
 
+def _batch_namespace(namespace: str, enforced: str | None, needed: str | None) -> dict:
+    """The fleet namespace a batch run applies: it keeps the Pod Security level the namespace enforces (its
+    deployments set it), or enforces what the runs need in a namespace that enforces none (a new one). A namespace
+    stricter than the runs need is an error before anything runs, naming both levels."""
+    needed = needed or "restricted"
+    labels = {"app.kubernetes.io/managed-by": "kuberos"}
+    if enforced is None:
+        labels.update(pod_security.namespace_labels(needed))
+    elif pod_security.LEVELS.index(needed) > pod_security.LEVELS.index(enforced):
+        raise KuberosError(
+            f"namespace {namespace} enforces the {enforced} Pod Security level, and this batch job's runs need {needed} "
+            "(a module with user: 0 needs baseline, privileged: true needs privileged); nothing was run"
+        )
+    return {"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": namespace, "labels": labels}}
+
+
 def run_batch(clients_factory, params: dict, check_mode: bool, progress) -> dict:
     """The whole batch run; ``clients_factory()`` gives the API clients (only called when applying)."""
     job, inventory = load(params)
@@ -348,13 +380,7 @@ def run_batch(clients_factory, params: dict, check_mode: bool, progress) -> dict
         return result
     namespace = naming.fleet_namespace(job.fleet)
     _wait_gone(cluster, namespace, job.name)
-    cluster.apply(
-        {
-            "apiVersion": "v1",
-            "kind": "Namespace",
-            "metadata": {"name": namespace, "labels": {"app.kubernetes.io/managed-by": "kuberos"}},
-        }
-    )
+    cluster.apply(_batch_namespace(namespace, cluster.enforced_level(namespace), namespace_levels(objects).get(namespace)))
     wanted = {o["metadata"]["name"] for o in objects if o["kind"] == "ConfigMap"}
     for old in cluster.configmaps(namespace, job.name):
         if old["metadata"]["name"] not in wanted:

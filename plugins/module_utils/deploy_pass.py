@@ -23,7 +23,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     stale_objects,
     unavailable_nodes,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
     change_summary,
@@ -132,6 +132,24 @@ class Api:
         except ApiException as exc:
             if exc.status != 404:
                 raise
+
+
+def keep_pod_security_levels(namespaces: list[dict], objects: list[dict], live: dict, stale: list[dict]) -> None:
+    """Loosen each rendered Namespace's enforced Pod Security level to admit the pods of the Deployments already
+    there that this pass neither renders nor removes (another RosDeployment of the fleet, deployed from another
+    file): labelling the namespace for this file's pods alone would refuse theirs the next time one is replaced."""
+    ours = {object_key(o) for o in objects} | {object_key(o) for o in stale}
+    for namespace in namespaces:
+        name = namespace["metadata"]["name"]
+        labels = namespace["metadata"]["labels"]
+        others = [
+            pod_security.level(spec)[0]
+            for key, obj in live.items()
+            if key[0] == "Deployment" and key[1] == name and key not in ours
+            if (spec := pod_security.pod_spec_of(obj)) is not None
+        ]
+        if labels.get(pod_security.ENFORCE) and others:
+            labels[pod_security.ENFORCE] = pod_security.loosest([labels[pod_security.ENFORCE], *others])
 
 
 def remote_clients(name: str, connection: dict | None):
@@ -382,6 +400,9 @@ class DeployPass:
             for target in targets:
                 target.read(pool)
             self._lap("read the objects")
+            stale = self._stale(targets[0])
+            for target in targets:
+                keep_pod_security_levels(target.namespaces, target.objects, target.live, stale if target is targets[0] else [])
             refused = {}
             try:
                 for target in targets:
@@ -393,7 +414,6 @@ class DeployPass:
                     self._undo_namespaces(targets)
                 raise
             self._lap("dry run")
-            stale = self._stale(targets[0])
             summary, diffs, counts = self._summary(targets, stale, refused)
             if refused:
                 if not self.check_mode:

@@ -169,6 +169,8 @@ CREATED = ("--history.created", SOURCE_DATE)
 
 PAUSE_SOURCE = "roles/local_cluster/files/pause.c"
 
+# The application image runs as a user, not as root (the rendered pods name the same user: pod_security.DEFAULT_USER).
+APP_IMAGE_CONFIG = ("--config.user", "1000:1000")
 # The names the specs, the render options and the roles' defaults use for the ROS image.
 ALIASES = (
     "ghcr.io/kuberos/pnp-perception:0.1",
@@ -892,8 +894,8 @@ def _build(repo_root: str, cache_dir: str, log=print) -> list[dict]:
             return build
 
         files = _app_files(repo_root)
-        key = _sha256(base_key, _app_key(files))[:12]
-        build_ros = on_base(key, lambda _base: files, f"{ROS_IMAGE}:{key}", f"application {key}")
+        key = _sha256(base_key, _app_key(files), *APP_IMAGE_CONFIG)[:12]
+        build_ros = on_base(key, lambda _base: files, f"{ROS_IMAGE}:{key}", f"application {key}", APP_IMAGE_CONFIG)
         results.append(_archive(images, "ros", key, f"{ROS_IMAGE}:{key}", build_ros, started, log))
 
         started = time.monotonic()

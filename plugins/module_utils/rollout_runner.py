@@ -15,6 +15,7 @@ import os
 import subprocess
 import time
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pod_security
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import HOSTNAME
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import INSTANCE, MANAGED_BY
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import (
@@ -80,6 +81,12 @@ class Cluster:
         elif obj["kind"] == "Secret":
             self.core.patch_namespaced_secret(meta["name"], meta["namespace"], body, **kwargs)
         elif obj["kind"] == "Namespace":
+            # never stricter than the namespace is: other deployments of the fleet may need its level
+            live = json.loads(self.core.read_namespace(meta["name"], _preload_content=False).data)
+            enforced = ((live.get("metadata") or {}).get("labels") or {}).get(pod_security.ENFORCE)
+            labels = body["metadata"].setdefault("labels", {})
+            if enforced in pod_security.LEVELS and labels.get(pod_security.ENFORCE):
+                labels[pod_security.ENFORCE] = pod_security.loosest([enforced, labels[pod_security.ENFORCE]])
             self.core.patch_namespace(meta["name"], body, **kwargs)
         else:
             raise ValueError(f"a rollout does not apply {obj['kind']}")
@@ -209,24 +216,27 @@ def prestage_pod(namespace: str, node: str, entry: dict) -> dict:
             "namespace": namespace,
             "labels": {MANAGED_BY: ROLLOUT_MANAGER, COMPONENT: PRESTAGE},
         },
-        "spec": {
-            "nodeSelector": {HOSTNAME: node},
-            "tolerations": [{"key": ROBOT_TAINT, "operator": "Exists", "effect": "NoSchedule"}],
-            "restartPolicy": "Never",
-            "terminationGracePeriodSeconds": 0,
-            "automountServiceAccountToken": False,
-            "imagePullSecrets": [{"name": name} for name in entry["pull_secrets"]],
-            "containers": [
-                {
-                    "name": f"image-{index}",
-                    "image": image,
-                    "imagePullPolicy": policy,
-                    "command": ["true"],
-                    "resources": {"requests": {"cpu": "1m", "memory": "4Mi"}, "limits": {"memory": "16Mi"}},
-                }
-                for index, (image, policy) in enumerate(entry["images"])
-            ],
-        },
+        # restricted as every pod of the fleet's namespace: it only runs `true` to get the images onto the robot
+        "spec": pod_security.harden(
+            {
+                "nodeSelector": {HOSTNAME: node},
+                "tolerations": [{"key": ROBOT_TAINT, "operator": "Exists", "effect": "NoSchedule"}],
+                "restartPolicy": "Never",
+                "terminationGracePeriodSeconds": 0,
+                "automountServiceAccountToken": False,
+                "imagePullSecrets": [{"name": name} for name in entry["pull_secrets"]],
+                "containers": [
+                    {
+                        "name": f"image-{index}",
+                        "image": image,
+                        "imagePullPolicy": policy,
+                        "command": ["true"],
+                        "resources": {"requests": {"cpu": "1m", "memory": "4Mi"}, "limits": {"memory": "16Mi"}},
+                    }
+                    for index, (image, policy) in enumerate(entry["images"])
+                ],
+            }
+        ),
     }
 
 

@@ -18,6 +18,8 @@ import time
 
 from kuberos_pnp import common
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pod_security
+
 HARDWARE_IMAGE = "ghcr.io/kuberos/pnp-robot-sim:0.1"
 HARDWARE_LABEL = "kuberos-sim/robot-hardware"
 FLEET_ENV = ("ROS_DISCOVERY_SERVER", "ROS_DOMAIN_ID", "RMW_IMPLEMENTATION", "KUBEROS_FLEET")
@@ -29,27 +31,30 @@ def hardware_pod(
     robot: str, namespace: str, env: dict[str, str], seed: int, objects: int, image: str = HARDWARE_IMAGE, node: str = ""
 ) -> dict:
     """The robot's simulated hardware: a pod on the robot's own node, found by its robot label (the node's name may
-    be a host name), tolerating only that robot's taint."""
-    variables = {**env, "KUBEROS_ROBOT_NAME": robot, "KUBEROS_NODE_NAME": node or robot}
+    be a host name), tolerating only that robot's taint. It runs as the fleet's modules do: not as root, nothing
+    more than the restricted Pod Security level allows (its namespace enforces it)."""
+    variables = {**env, "KUBEROS_ROBOT_NAME": robot, "KUBEROS_NODE_NAME": node or robot, "ROS_HOME": pod_security.ROS_HOME}
     parameters = ["-p", f"seed:={seed}", "-p", f"objects:={objects}"]
     return {
         "apiVersion": "v1",
         "kind": "Pod",
         "metadata": {"name": f"hardware-{robot}", "namespace": namespace, "labels": {HARDWARE_LABEL: robot}},
-        "spec": {
-            "nodeSelector": {ROBOT_LABEL: robot},
-            "tolerations": [{"key": ROBOT_TAINT, "operator": "Equal", "value": robot, "effect": "NoSchedule"}],
-            "restartPolicy": "Never",
-            "containers": [
-                {
-                    "name": "physics",
-                    "image": image,
-                    "imagePullPolicy": "IfNotPresent",
-                    "args": ["python3", "-m", "kuberos_pnp.robot", "--ros-args", *parameters],
-                    "env": [{"name": k, "value": v} for k, v in sorted(variables.items())],
-                }
-            ],
-        },
+        "spec": pod_security.harden(
+            {
+                "nodeSelector": {ROBOT_LABEL: robot},
+                "tolerations": [{"key": ROBOT_TAINT, "operator": "Equal", "value": robot, "effect": "NoSchedule"}],
+                "restartPolicy": "Never",
+                "containers": [
+                    {
+                        "name": "physics",
+                        "image": image,
+                        "imagePullPolicy": "IfNotPresent",
+                        "args": ["python3", "-m", "kuberos_pnp.robot", "--ros-args", *parameters],
+                        "env": [{"name": k, "value": v} for k, v in sorted(variables.items())],
+                    }
+                ],
+            }
+        ),
     }
 
 

@@ -212,3 +212,24 @@ def test_a_run_that_does_not_start_in_time_is_stopped_and_failed(tmp_path, local
     assert watch.runs[(0, 0)]["state"] == "failed" and "startup timeout" in watch.runs[(0, 0)]["why"]
     assert cluster.deleted == ["sweep-0-0-abc"]
     assert os.path.exists(tmp_path / "runs" / "0-0" / "result.json")
+
+
+@pytest.mark.parametrize(
+    "enforced, needed, labels",
+    [
+        (None, "baseline", {"pod-security.kubernetes.io/enforce": "baseline"}),  # a new namespace: what the runs need
+        (None, None, {"pod-security.kubernetes.io/enforce": "restricted"}),
+        ("baseline", "restricted", {}),  # enforced by its deployments: left to them
+        ("privileged", "baseline", {}),
+    ],
+)
+def test_a_batch_runs_namespace_keeps_the_level_its_deployments_enforce(enforced, needed, labels):
+    namespace = batch_runner._batch_namespace("kuberos-lab", enforced, needed)
+    got = {k: v for k, v in namespace["metadata"]["labels"].items() if k == "pod-security.kubernetes.io/enforce"}
+    assert got == labels
+
+
+def test_a_batch_run_that_needs_more_than_its_namespace_enforces_is_refused_before_anything_runs():
+    with pytest.raises(batch_runner.KuberosError) as error:
+        batch_runner._batch_namespace("kuberos-lab", "restricted", "baseline")
+    assert str(error.value).startswith("namespace kuberos-lab enforces the restricted Pod Security level, and this batch")

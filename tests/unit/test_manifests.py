@@ -296,3 +296,18 @@ def test_references_expand_as_the_kubelet_expands_them():
     assert manifests.expand_references("$(NOPE):1;$$(KUBEROS_DISCOVERY_0_SERVICE_HOST)", links) == (
         "$(NOPE):1;$(KUBEROS_DISCOVERY_0_SERVICE_HOST)"
     )
+
+
+def test_a_discovery_server_is_ready_once_its_udp_port_is_bound():
+    """The readiness probe runs as written: it finds a bound UDP port in the kernel's socket table, and not a free one."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as bound:
+        bound.bind(("127.0.0.1", 0))
+        port = bound.getsockname()[1]
+        probe = manifests.discovery_readiness_probe(port)["exec"]["command"]
+        assert subprocess.run(probe, check=False).returncode == 0
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe_free:
+        probe_free.bind(("127.0.0.1", 0))
+        free = probe_free.getsockname()[1]
+    assert subprocess.run(manifests.discovery_readiness_probe(free)["exec"]["command"], check=False).returncode != 0

@@ -153,7 +153,7 @@ def test_the_example_becomes_what_the_reference_means(local_inventory):
         "/workspace/install",
         "ros2 launch demo_nodes talker.launch.py gripper_port:=/dev/ttyUSB0 topic:=/chatter",
     ]
-    assert container["securityContext"] == {"privileged": True}
+    assert container["securityContext"] == {"privileged": True, "runAsUser": 0}  # privileged: root, unless it names a user
     assert container["envFrom"] == [{"configMapRef": {"name": naming.parameter_map_name("talker-listener", "talker-launch")}}]
     assert container["volumeMounts"] == [{"name": "parameter-file-0", "mountPath": "/workspace/config", "readOnly": True}]
     maps = by_name(objects, "ConfigMap")

@@ -14,7 +14,7 @@ import hashlib
 import re
 from dataclasses import dataclass
 
-from . import cyclonedds, naming, scaling
+from . import cyclonedds, naming, pod_security, scaling
 from . import labels as node_labels
 from .fastdds import TRANSPORT_ENV
 from .launch import container_name, launch_argv, split_amount
@@ -178,6 +178,26 @@ def _namespace(fleet: str, namespace: str) -> dict:
     }
 
 
+def namespace_levels(objects: list[dict]) -> dict[str, str]:
+    """The Pod Security level each namespace of ``objects`` can enforce: the loosest its rendered pods need."""
+    levels: dict[str, list[str]] = {}
+    for obj in objects:
+        spec = pod_security.pod_spec_of(obj)
+        if spec is not None:
+            levels.setdefault(obj["metadata"].get("namespace", ""), []).append(pod_security.level(spec)[0])
+    return {namespace: pod_security.loosest(found) for namespace, found in levels.items()}
+
+
+def label_namespaces(objects: list[dict]) -> list[dict]:
+    """``objects`` with each Namespace labelled to enforce the level its pods allow (restricted when it has none)."""
+    levels = namespace_levels(objects)
+    for obj in objects:
+        if obj["kind"] == "Namespace":
+            enforced = levels.get(obj["metadata"]["name"], "restricted")
+            obj["metadata"]["labels"].update(pod_security.namespace_labels(enforced))
+    return objects
+
+
 # How long a discovery server's clients keep it without hearing from it (the lease it announces, with an announcement
 # every DISCOVERY_ANNOUNCE_S), and how long a server waits before it serves. Fast DDS clients that hear a server again
 # within its lease take it for the one they knew and never send it their endpoints again (eProsima/Fast-DDS#2534):
@@ -228,6 +248,17 @@ def discovery_server_args(server_id: int, port: int, delay_s: int = DISCOVERY_ST
     return ["sh", "-c", DISCOVERY_START, str(delay_s), "-i", str(server_id), "-p", str(port)]
 
 
+def discovery_readiness_probe(port: int) -> dict:
+    """Ready once the server listens: its UDP port is bound (the kernel's socket table, read by ``grep``; a UDP server
+    answers no HTTP, TCP or gRPC probe). Until then, and while it waits out its predecessor's lease, it is not Ready,
+    so a deploy's wait and a rollout's gate wait for the server itself, not only for its container."""
+    return {
+        "exec": {"command": ["grep", "-qsi", f":{port:04X} ", "/proc/net/udp", "/proc/net/udp6"]},
+        "periodSeconds": 2,
+        "failureThreshold": 1,
+    }
+
+
 def discovery_server_env(service: str, peers: str = "") -> list[dict]:
     """A discovery server container's environment: its profile, the address it announces (its Service's ``service``),
     and the servers it is linked to (``peers``: a ROS_DISCOVERY_SERVER value, its own position empty)."""
@@ -257,6 +288,7 @@ def _discovery_deployment(
                 "args": discovery_server_args(server_id, port),
                 "env": discovery_server_env(service, peers),
                 "ports": [{"name": "discovery", "containerPort": port, "protocol": "UDP"}],
+                "readinessProbe": discovery_readiness_probe(port),
                 "resources": {
                     "requests": {"cpu": format_cpu(DISCOVERY_CPU_MILLIS), "memory": format_memory(DISCOVERY_MEMORY_BYTES)},
                     "limits": {"memory": format_memory(DISCOVERY_MEMORY_BYTES)},
@@ -264,6 +296,7 @@ def _discovery_deployment(
             }
         ],
     }
+    pod_security.harden(pod_spec)
     return {
         "apiVersion": "apps/v1",
         "kind": "Deployment",
@@ -544,8 +577,7 @@ def _module_containers(
             container["envFrom"] = [
                 {"configMapRef": {"name": naming.parameter_map_name(dep_name, name)}} for name in module.env_from
             ]
-        if module.privileged:
-            container["securityContext"] = {"privileged": True}
+        container["securityContext"] = pod_security.container_security_context(module.user, module.privileged)
         mounts = []
         if module.ros_parameters:
             mounts.append({"name": "ros-parameters", "mountPath": PARAMS_DIR, "readOnly": True})
@@ -627,9 +659,13 @@ def module_pod(
     if module.ros_parameters:
         env.append({"name": "KUBEROS_PARAMS_FILE", "value": f"{PARAMS_DIR}/{PARAMS_FILE}"})
     env.extend({"name": name, "value": value} for name, value in sorted(module.env))
+    if module.user and not {"ROS_HOME", "ROS_LOG_DIR"} & {name for name, _value in module.env}:
+        # ROS logs under ~/.ros; a user the image does not know has the home "/", where it may not write
+        env.append({"name": "ROS_HOME", "value": pod_security.ROS_HOME})
     peer_list = dep.rmw == "cyclonedds" and discovery is not None  # a batch run's pod finds its peers on localhost
     pod_spec = {
         **_selector_and_tolerations(inst.node, inst.tier, inst.robots[0] if inst.robots else None),
+        "securityContext": pod_security.pod_security_context(),
         "containers": _module_containers(module, inst, env, options, dep.name, peer_list),
     }
     volumes = []
@@ -720,7 +756,7 @@ def _bridge_deployment(
         "image": options.bridge_image,
         "imagePullPolicy": options.image_pull_policy,
         "args": ["python", "-m", BRIDGE_ENTRY, *args],
-        "env": env,
+        "env": [*env, {"name": "ROS_HOME", "value": pod_security.ROS_HOME}],
         "ports": [{"name": "metrics", "containerPort": BRIDGE_METRICS_PORT, "protocol": "TCP"}],
         "resources": {
             "requests": {"cpu": format_cpu(BRIDGE_CPU_MILLIS), "memory": format_memory(BRIDGE_MEMORY_BYTES)},
@@ -742,14 +778,16 @@ def _bridge_deployment(
             "selector": {"matchLabels": {INSTANCE: labels[INSTANCE]}},
             "template": {
                 "metadata": {"labels": dict(labels)},
-                "spec": {
-                    **pod_placement,
-                    "containers": [container],
-                    "volumes": [
-                        {"name": "tls", "secret": {"secretName": bridge_secret_name(name)}},
-                        {"name": "topics", "configMap": {"name": f"{name}-topics"}},
-                    ],
-                },
+                "spec": pod_security.harden(
+                    {
+                        **pod_placement,
+                        "containers": [container],
+                        "volumes": [
+                            {"name": "tls", "secret": {"secretName": bridge_secret_name(name)}},
+                            {"name": "topics", "configMap": {"name": f"{name}-topics"}},
+                        ],
+                    }
+                ),
             },
         },
     }
@@ -868,7 +906,7 @@ def render_remote(
             for obj in objects:
                 obj["metadata"].setdefault("annotations", {})[CLUSTER_ANNOTATION] = bridge.cluster
             out[bridge.cluster] = sorted(out.get(bridge.cluster, []) + objects, key=object_order)
-    return out
+    return {cluster: label_namespaces(objects) for cluster, objects in out.items()}
 
 
 _KIND_ORDER = {"Namespace": 0, "ConfigMap": 1, "Service": 2, "Deployment": 3}
@@ -930,4 +968,4 @@ def render_deployment(
             discovery = f"{discovery};{robot_discovery_address(dep)}"  # the robot's own server, after the fleet's
         objects.append(_module_deployment(dep, module, inst, discovery, base_labels, options))
     objects.sort(key=object_order)
-    return objects
+    return label_namespaces(objects)

@@ -22,6 +22,7 @@ import copy
 from dataclasses import dataclass, field
 
 from . import labels as node_labels
+from . import pod_security
 from .manifests import COMPONENT, MODULE, ROBOT_DISCOVERY, ROBOTS_ANNOTATION, TIER_ANNOTATION, VERSION
 
 ROLLOUT_KEYS = ("apiVersion", "kind", "metadata", "spec", "data", "binaryData", "type")
@@ -143,6 +144,24 @@ def _container(obj: dict) -> dict:
     return containers[0]
 
 
+def _loosened_namespaces(before: list[dict], after: list[dict]) -> list[Change]:
+    """Namespaces whose pods need a looser Pod Security level after the change (a module that now runs as root):
+    relabelled before the first wave, or the new pods would be refused. A level that could be stricter is left as it
+    is until the next deploy (other deployments of the fleet may need it)."""
+    old = {o["metadata"]["name"]: o for o in before if o["kind"] == "Namespace"}
+    changes = []
+    for obj in after:
+        if obj["kind"] != "Namespace" or obj["metadata"]["name"] not in old:
+            continue
+        was = (old[obj["metadata"]["name"]]["metadata"].get("labels") or {}).get(pod_security.ENFORCE, "restricted")
+        now = (obj["metadata"].get("labels") or {}).get(pod_security.ENFORCE, "restricted")
+        if pod_security.LEVELS.index(now) > pod_security.LEVELS.index(was):
+            name = obj["metadata"]["name"]
+            summary = f"enforces the {now} Pod Security level (was {was})"
+            changes.append(Change("update", "Namespace", "", name, "", "", summary, old[name], obj))
+    return changes
+
+
 def summarize(before: dict | None, after: dict | None) -> str:
     """What differs between two renderings of one object, in a few words."""
     if before is None:
@@ -204,6 +223,7 @@ def plan_rollout(
     old = {object_key(o): o for o in before if not skip(o) and o["kind"] != "Namespace"}
     new = {object_key(o): o for o in after if not skip(o) and o["kind"] != "Namespace"}
     plan = RolloutPlan()
+    plan.prepare.extend(_loosened_namespaces(before, after))
     by_robot: dict[str, list[Change]] = {}
     for key in sorted(set(old) | set(new)):
         a, b = old.get(key), new.get(key)

@@ -570,8 +570,21 @@ SCHEMA = {
                     },
                     "privileged": {
                         "type": "boolean",
-                        "description": "Run the containers privileged (host devices, real-time scheduling).",
+                        "description": (
+                            "Run the containers privileged (host devices, real-time scheduling); the module's fleet "
+                            "namespace then enforces only the privileged Pod Security level."
+                        ),
                         "x-expected": "true or false",
+                    },
+                    "user": {
+                        "type": "integer",
+                        "minimum": 0,
+                        "maximum": 2147483647,
+                        "description": (
+                            "The user ID the containers run as (default 1000, not root: the restricted Pod Security "
+                            "level; 0 when privileged). 0 runs them as root, which only the baseline level admits."
+                        ),
+                        "x-expected": "a user ID such as 1000, or 0 for root",
                     },
                     "workspace": {
                         "type": "string",

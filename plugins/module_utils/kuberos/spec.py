@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 from . import naming, quantities
 from .catalog import Catalog, CatalogEntry
 from .errors import Problem, SpecError, describe
+from .pod_security import DEFAULT_USER
 from .schema import API_VERSION, KIND, MAX_MODULES, MAX_MODULES_PER_FILE, SCHEMA, TIERS
 from .semver import parse_range
 from .third_party import yaml
@@ -162,6 +163,7 @@ class RosModule:
     parameter_files: tuple[tuple[str, str], ...] = ()  # (yaml parameter map, mount directory)
     registry: ImageRegistry | None = None
     privileged: bool = False
+    user: int = DEFAULT_USER  # the user ID its containers run as; 0 is root (pod_security)
     workspace: str = ""  # a ROS workspace's install directory, sourced before each launch line
     shell: bool = False  # each launch line runs with /bin/bash -c as written
 
@@ -349,7 +351,7 @@ def _map_of(name: str, kind: str, ctx: _Context, problem, parts: tuple) -> Param
 
 def _module_extras(module: dict, ctx: _Context, problem) -> dict:
     """The fields of a module that refer to the deployment: environment and files from parameter maps, launch
-    arguments, the image registry; and privileged, workspace and shell."""
+    arguments, the image registry; and privileged, user, workspace and shell."""
     shared = module.get("strategy") == "shared"
     env_from = []
     for position, name in enumerate(module.get("envFrom") or ()):
@@ -389,6 +391,8 @@ def _module_extras(module: dict, ctx: _Context, problem) -> dict:
         parameter_files=tuple(files),
         registry=registry,
         privileged=bool(module.get("privileged", False)),
+        # a privileged container's powers are root's: privileged without a user named runs as root
+        user=int(module.get("user", 0 if module.get("privileged") else DEFAULT_USER)),
         workspace=(module.get("workspace") or "").rstrip("/"),
         shell=bool(module.get("shell", False)),
     )
@@ -812,9 +816,27 @@ def _parse_document(doc: Document, catalog: Catalog | None = None, read_file=Non
         rmw=data.get("rmw", "fastdds"),
         parameter_maps=tuple(ctx.maps.values()),
         resource_groups=ctx.resource_groups,
-        notes=tuple(ctx.notes),
+        notes=tuple(ctx.notes) + _security_notes(modules, metadata["targetFleet"]),
         files=tuple(files),
     )
+
+
+def _security_notes(modules, fleet: str) -> tuple[str, ...]:
+    """What deploy says of modules whose pods the restricted Pod Security level does not admit, and why."""
+    namespace = naming.fleet_namespace(fleet)
+    notes = []
+    for module in modules:
+        if module.privileged:
+            notes.append(
+                f"module {module.name}: privileged: true; its pods pass only the privileged Pod Security level, "
+                f"which namespace {namespace} then enforces"
+            )
+        elif module.user == 0:
+            notes.append(
+                f"module {module.name}: user: 0 runs it as root; its pods pass the baseline Pod Security level, not "
+                f"restricted, which namespace {namespace} then enforces"
+            )
+    return tuple(notes)
 
 
 def parse_rosdeployment(data, source: str = "<spec>", lines: dict | None = None, catalog: Catalog | None = None) -> RosDeployment:

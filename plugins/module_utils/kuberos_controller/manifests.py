@@ -26,7 +26,7 @@ from __future__ import annotations
 import copy
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
 
 NAME = "kuberos-controller"
@@ -74,7 +74,11 @@ def controller_objects(
     ports = [{"name": "http", "port": DASHBOARD_PORT, "targetPort": "http", "protocol": "TCP"}]  # both Services
     subject = {"kind": "ServiceAccount", "name": NAME, "namespace": namespace}
     objects = [
-        {"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": namespace, "labels": labels}},
+        {
+            "apiVersion": "v1",
+            "kind": "Namespace",
+            "metadata": {"name": namespace, "labels": {**labels, **pod_security.namespace_labels("restricted")}},
+        },
         {"apiVersion": "v1", "kind": "ServiceAccount", "metadata": {"name": NAME, "namespace": namespace, "labels": labels}},
         {
             "apiVersion": "rbac.authorization.k8s.io/v1",
@@ -179,6 +183,7 @@ def controller_objects(
                     "metadata": {"labels": labels},
                     "spec": {
                         "serviceAccountName": NAME,
+                        "securityContext": pod_security.pod_security_context(),
                         **({"volumes": [{"name": "dashboard-tls", "secret": {"secretName": tls_secret}}]} if tls_secret else {}),
                         "affinity": {
                             "nodeAffinity": {
