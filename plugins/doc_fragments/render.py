@@ -20,4 +20,11 @@ options:
     description: Container image of the KubeROS-Bridge (for modules in third-party clusters).
     type: str
     default: ghcr.io/kuberos/bridge:0.2.0
+  metrics_namespaces:
+    description:
+      - The namespaces whose pods may read the fleet's metrics ports (the bridges', the gauges of scaled modules).
+      - Every other ingress to a fleet's pods comes from the fleet's own namespace (NetworkPolicy, docs/security.md).
+    type: list
+    elements: str
+    default: [kuberos-system]
 """

@@ -107,6 +107,7 @@ class Cluster:
 
     def __init__(self, clients, field_manager: str):
         self.core, self.batch, self.field_manager = clients["core"], clients["batch"], field_manager
+        self.networking = clients.get("networking")
 
     def apply(self, obj: dict) -> None:
         meta = obj["metadata"]
@@ -115,6 +116,10 @@ class Cluster:
             self.core.patch_namespace(meta["name"], obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE)
         elif kind == "ConfigMap":
             self.core.patch_namespaced_config_map(
+                meta["name"], meta["namespace"], obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE
+            )
+        elif kind == "NetworkPolicy":
+            self.networking.patch_namespaced_network_policy(
                 meta["name"], meta["namespace"], obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE
             )
         elif kind == "Job":
@@ -386,7 +391,7 @@ def run_batch(clients_factory, params: dict, check_mode: bool, progress) -> dict
         if old["metadata"]["name"] not in wanted:
             cluster.delete_configmap(namespace, old["metadata"]["name"])
     for obj in objects:
-        if obj["kind"] == "ConfigMap":
+        if obj["kind"] in ("NetworkPolicy", "ConfigMap"):
             cluster.apply(obj)
     watch = Watch(job, rows, cluster, params["dest"], progress, float(params.get("poll", 2.0)))
     shutil.rmtree(os.path.join(params["dest"], "runs"), ignore_errors=True)

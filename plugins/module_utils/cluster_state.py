@@ -29,9 +29,10 @@ MANAGED_KINDS = (
     ("v1", "Service", "list_namespaced_service", "delete_namespaced_service", "core"),
     ("v1", "ConfigMap", "list_namespaced_config_map", "delete_namespaced_config_map", "core"),
     ("v1", "Secret", "list_namespaced_secret", "delete_namespaced_secret", "core"),
+    ("networking.k8s.io/v1", "NetworkPolicy", "list_namespaced_network_policy", "delete_namespaced_network_policy", "networking"),
 )
 # What a fleet shares between its deployments: removed with the fleet's last deployment, like its discovery servers.
-FLEET_COMPONENTS = ("discovery-server", "bridge-server", "catalog")
+FLEET_COMPONENTS = ("discovery-server", "bridge-server", "catalog", "network-policy")
 
 
 START_HINT = "start the local cluster with `make cluster`, or set kuberos_kubeconfig to your cluster's kubeconfig"
@@ -49,7 +50,12 @@ def api_clients(kubeconfig: str):
     if not os.path.exists(kubeconfig):
         raise ClusterUnreachable(f"no kubeconfig at {kubeconfig}; {START_HINT}")
     api = config.new_client_from_config(config_file=kubeconfig)
-    return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api), "batch": client.BatchV1Api(api)}
+    return {
+        "core": client.CoreV1Api(api),
+        "apps": client.AppsV1Api(api),
+        "batch": client.BatchV1Api(api),
+        "networking": client.NetworkingV1Api(api),
+    }
 
 
 def explain(exc: Exception, kubeconfig: str) -> str:

@@ -66,8 +66,14 @@ KINDS = {
     "Service": ("core", "list_namespaced_service", "patch_namespaced_service", "delete_namespaced_service"),
     "Secret": ("core", "list_namespaced_secret", "patch_namespaced_secret", "delete_namespaced_secret"),
     "Deployment": ("apps", "list_namespaced_deployment", "patch_namespaced_deployment", "delete_namespaced_deployment"),
+    "NetworkPolicy": (
+        "networking",
+        "list_namespaced_network_policy",
+        "patch_namespaced_network_policy",
+        "delete_namespaced_network_policy",
+    ),
 }
-API_VERSIONS = {"Deployment": "apps/v1"}
+API_VERSIONS = {"Deployment": "apps/v1", "NetworkPolicy": "networking.k8s.io/v1"}
 CLUSTER_HINT = 'in the inventory (docs/inventory.md, "Third-party clusters")'
 
 
@@ -169,7 +175,7 @@ def remote_clients(name: str, connection: dict | None):
     if connection.get("ca_cert"):
         configuration.ssl_ca_cert = connection["ca_cert"]
     api = client.ApiClient(configuration)
-    return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api)}
+    return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api), "networking": client.NetworkingV1Api(api)}
 
 
 @dataclass

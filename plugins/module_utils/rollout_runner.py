@@ -41,6 +41,7 @@ class Cluster:
     def __init__(self, clients, field_manager: str):
         self.core = clients["core"]
         self.apps = clients["apps"]
+        self.networking = clients.get("networking")
         self.field_manager = field_manager
         self._names: dict[str, str] | None = None
         self._ready: dict[str, bool] = {}
@@ -80,6 +81,8 @@ class Cluster:
             self.core.patch_namespaced_service(meta["name"], meta["namespace"], body, **kwargs)
         elif obj["kind"] == "Secret":
             self.core.patch_namespaced_secret(meta["name"], meta["namespace"], body, **kwargs)
+        elif obj["kind"] == "NetworkPolicy":
+            self.networking.patch_namespaced_network_policy(meta["name"], meta["namespace"], body, **kwargs)
         elif obj["kind"] == "Namespace":
             # never stricter than the namespace is: other deployments of the fleet may need its level
             live = json.loads(self.core.read_namespace(meta["name"], _preload_content=False).data)
@@ -100,6 +103,8 @@ class Cluster:
             "Service": self.core.delete_namespaced_service,
             "Secret": self.core.delete_namespaced_secret,
         }
+        if self.networking is not None:
+            calls["NetworkPolicy"] = self.networking.delete_namespaced_network_policy
         try:
             calls[kind](name, namespace, propagation_policy="Background")
         except ApiException as exc:

@@ -139,6 +139,7 @@ CALLS = {
     "Service": ("core", "read_namespaced_service", "patch_namespaced_service"),
     "Secret": ("core", "read_namespaced_secret", "patch_namespaced_secret"),
     "Deployment": ("apps", "read_namespaced_deployment", "patch_namespaced_deployment"),
+    "NetworkPolicy": ("networking", "read_namespaced_network_policy", "patch_namespaced_network_policy"),
 }
 
 

@@ -8,7 +8,8 @@ manifests of each target cluster on their own: a third-party cluster's objects s
 kube-score keys what it scores by kind, namespace and name.
 
 kube-score runs with its default checks (no optional ones), for the Kubernetes version of the local control plane.
-A check in ``IGNORED`` does not apply to these objects; one in ``PENDING`` fires today and goes away with issue 30.
+A check in ``IGNORED`` does not apply to these objects; one in ``PENDING`` fires today and goes away with the issue
+it names.
 Both are left out with ``--ignore-test``; an entry that no longer fires on any example fails
 ``test_ignored_checks_still_fire``, so the lists never hide more than they say.
 """
@@ -73,11 +74,8 @@ OPTIONS = {
     "throttle ROS control loops in their bursts; memory is limited at its request.",
 }
 
-# Being fixed by issue 30 (pod securityContext and NetworkPolicies in the rendered manifests): these fire today and
-# go away with it; remove each entry as its check stops firing (test_ignored_checks_still_fire says when).
-PENDING = {
-    "pod-networkpolicy": "No NetworkPolicy is rendered yet: issue 30 adds them.",
-}
+# Checks that fire today and are being fixed: none now. An entry names the issue that removes it.
+PENDING: dict[str, str] = {}
 
 # Findings an example asks for in its spec, by (example, check, object): kube-score is right, and the example means it.
 ASKED = {

@@ -143,6 +143,15 @@ def test_the_controller_and_the_example_run_where_placed_and_complete_a_pick_cyc
     assert cycles["returncode"] == 0 and chain.figures["pick_cycles_completed"] >= 1, cycles["output"]
 
 
+def test_the_fleets_policies_admit_its_own_pods_and_refuse_another_fleets(chain):
+    """Calico enforces the NetworkPolicies deploy rendered in the app's fleet namespace (the pick cycle above ran under
+    them): a pod of the fleet reaches a server of the fleet; a pod of another fleet, and one of the namespace that may
+    read metrics ports (on another port), do not."""
+    results = chain.fleet_isolation(chain.site_vars["kuberos_lab_toolbox_image"], EDGE_WORKER)
+    assert chain.figures["fleet_isolation"] == {"same-fleet": True, "other-fleet": False, "metrics-ns": False}, results
+    assert results["other-fleet"]["bytes"] == 0 and results["metrics-ns"]["bytes"] == 0, results
+
+
 def test_a_registered_robot_joins_and_gets_its_onboard_module(chain):
     result = chain.register_robot()
     assert result.returncode == 0, _tail(result)

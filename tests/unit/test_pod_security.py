@@ -5,52 +5,19 @@ privilege in. The cluster tests hold the API server's own admission to the same 
 
 from __future__ import annotations
 
-import copy
-import glob
-import os
-
 import pytest
-from helpers import inventory_raw as local_raw_inventory
-from test_third_party_cluster import PARTNER
+from admission import BATCH_EXAMPLES, EXAMPLES, render_batch_example, render_example
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import batch, pod_security
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pod_security
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
-    RenderOptions,
-    render_deployment,
-    render_remote,
-)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, render_deployment
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file, parse_rosdeployment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import parse_rosdeployment
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import controller_objects
-
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-EXAMPLES = sorted(
-    os.path.relpath(p, ROOT)
-    for p in glob.glob(os.path.join(ROOT, "examples", "*.yml"))
-    if not p.endswith("-catalog.yml")  # a software catalog, not a deployment (rendered through pick-and-place)
-)
 
 
 def test_every_example_is_checked():
-    assert len(EXAMPLES) >= 5, EXAMPLES
-
-
-def rendered(path: str, inventory) -> list[dict]:
-    if path == "examples/partner-cloud.yml":  # places a module in a third-party cluster the inventory must name
-        raw = copy.deepcopy(local_raw_inventory())
-        raw["hosts"]["partner-cloud"] = dict(PARTNER)
-        raw["groups"]["clusters"] = ["partner-cloud"]
-        inventory = load_inventory(raw)
-    catalog = load_catalog(os.path.join(ROOT, "inventories", "local", "catalog"))
-    deployments = load_rosdeployment_file(os.path.join(ROOT, path), path, catalog=catalog)
-    placement = place_modules(deployments, inventory)
-    objects = render_deployment(deployments, placement, RenderOptions())
-    for remote in render_remote(deployments, placement, inventory.clusters, RenderOptions()).values():
-        objects += remote
-    return objects
+    assert len(EXAMPLES) >= 5 and BATCH_EXAMPLES, EXAMPLES
 
 
 def pods(objects: list[dict]) -> list[tuple[dict, dict]]:
@@ -58,8 +25,8 @@ def pods(objects: list[dict]) -> list[tuple[dict, dict]]:
 
 
 @pytest.mark.parametrize("path", EXAMPLES)
-def test_every_pod_of_every_example_passes_restricted_and_its_namespace_enforces_it(path, local_inventory):
-    objects = rendered(path, local_inventory)
+def test_every_pod_of_every_example_passes_restricted_and_its_namespace_enforces_it(path):
+    objects = render_example(path)
     found = pods(objects)
     assert found, f"{path} rendered no pod"
     for obj, spec in found:
@@ -71,13 +38,9 @@ def test_every_pod_of_every_example_passes_restricted_and_its_namespace_enforces
         assert namespace["metadata"]["labels"][pod_security.WARN] == "restricted"
 
 
-def test_the_batch_example_runs_restricted(local_inventory):
-    text = open(os.path.join(ROOT, "examples", "batch", "nav-grid.yml"), encoding="utf-8").read()
-    job = batch.with_fleet(batch.load_batch_jobs(text, "examples/batch/nav-grid.yml")[0], list(local_inventory.fleets))
-    from ansible_collections.kuberos.platform.plugins.module_utils import batch_runner
-
-    objects = batch.render_batch(job, batch_runner.place(job, local_inventory), RenderOptions())
-    found = pods(objects)
+@pytest.mark.parametrize("path", BATCH_EXAMPLES)
+def test_the_batch_examples_run_restricted(path):
+    found = pods(render_batch_example(path))
     assert found
     for obj, spec in found:
         assert pod_security.level(spec) == ("restricted", []), obj["metadata"]["name"]

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field, replace
 
 from . import naming, quantities, reference_format
 from .errors import Problem, SpecError, describe
-from .manifests import COMPONENT, MANAGED_BY, RenderOptions, module_pod
+from .manifests import COMPONENT, MANAGED_BY, RenderOptions, fleet_policies, module_pod
 from .placement import Instance
 from .schema import DNS_LABEL, MAP_NAME
 from .spec import BATCH_KINDS, LaunchArgument, Resources, RosDeployment, RosModule, _env_value, _parse_any, _parse_document
@@ -558,7 +558,8 @@ def render_batch(job: BatchJob, slots: list[Instance], options: RenderOptions | 
                 },
             }
         )
-    return objects
+    # the fleet's isolation, as its deployments render it: a run's pod talks to itself only (localhost discovery)
+    return fleet_policies(job.fleet) + objects
 
 
 def waves(job: BatchJob) -> list[list[int]]:

@@ -14,7 +14,7 @@ import hashlib
 import re
 from dataclasses import dataclass
 
-from . import cyclonedds, naming, pod_security, scaling
+from . import cyclonedds, naming, network_policy, pod_security, scaling
 from . import labels as node_labels
 from .fastdds import TRANSPORT_ENV
 from .launch import container_name, launch_argv, split_amount
@@ -76,6 +76,8 @@ class RenderOptions:
     # ...)), ...)), ...); launch arguments '{device:<device>.<parameter>}' take their value from the instance's node.
     device_parameters: tuple = ()
     robot_nodes: tuple = ()  # ((robot, its onboard computer's node), ...)
+    # The namespaces whose pods may read the fleet's metrics ports (NetworkPolicy): the controller's, by default.
+    metrics_namespaces: tuple = network_policy.DEFAULT_METRICS_NAMESPACES
 
     def device_parameter(self, node: str, device: str, parameter: str, robot: str | None = None) -> str | None:
         """The parameter of ``device`` of ``node`` when the node carries it, else of ``robot``'s computer."""
@@ -176,6 +178,25 @@ def _namespace(fleet: str, namespace: str) -> dict:
         "kind": "Namespace",
         "metadata": {"name": namespace, "labels": {MANAGED_BY: "kuberos", node_labels.FLEET: fleet}},
     }
+
+
+def fleet_policies(fleet: str, namespace: str = "") -> list[dict]:
+    """The fleet namespace's default deny and its pods open to one another (network_policy)."""
+    namespace = namespace or naming.fleet_namespace(fleet)
+    labels = {MANAGED_BY: "kuberos", COMPONENT: network_policy.COMPONENT_VALUE, node_labels.FLEET: fleet}
+    return network_policy.fleet_policies(namespace, labels)
+
+
+def _metrics_policy(dep: RosDeployment, module: RosModule, base_labels: dict, options: RenderOptions) -> dict:
+    """A scaled module's gauge port, open to the namespaces that read it (the controller's)."""
+    return network_policy.metrics_policy(
+        naming.metrics_policy_name(dep.name, module.name),
+        naming.fleet_namespace(dep.fleet),
+        {**base_labels, MODULE: module.name},
+        {"matchLabels": {DEPLOYMENT: dep.name, MODULE: module.name}},
+        [module.scaling.metrics_port],
+        options.metrics_namespaces,
+    )
 
 
 def namespace_levels(objects: list[dict]) -> dict[str, str]:
@@ -838,7 +859,11 @@ def _bridge_server_objects(
             ],
         },
     }
-    return [_bridge_topics_configmap(bridge.name, bridge.namespace, labels, topics), deployment, service]
+    policy = network_policy.bridge_policy(
+        bridge.name, bridge.namespace, labels, {"matchLabels": {INSTANCE: bridge.name}}, naming.BRIDGE_PORT,
+        BRIDGE_METRICS_PORT, options.metrics_namespaces,
+    )  # fmt: skip
+    return [_bridge_topics_configmap(bridge.name, bridge.namespace, labels, topics), deployment, service, policy]
 
 
 def _unpinned(obj: dict) -> dict:
@@ -871,7 +896,7 @@ def render_remote(
             server = DiscoveryServer(fleet, namespace, 0, naming.discovery_server_name(0), "", "cloud", first.discovery_port,
                                      f"the fleet's discovery server in cluster {bridge.cluster}")  # fmt: skip
             discovery = discovery_server_list([server])
-            objects = [_namespace(fleet, namespace)]
+            objects = [_namespace(fleet, namespace), *fleet_policies(fleet, namespace)]
             objects.extend(_unpinned(o) if o["kind"] == "Deployment" else o for o in _discovery_objects(server, remote_options))
             labels = {MANAGED_BY: "kuberos", COMPONENT: "bridge-client", node_labels.FLEET: fleet, INSTANCE: naming.BRIDGE_CLIENT}
             topics = bridge_topics(deployments, placement, fleet, bridge.cluster)
@@ -909,11 +934,12 @@ def render_remote(
     return {cluster: label_namespaces(objects) for cluster, objects in out.items()}
 
 
-_KIND_ORDER = {"Namespace": 0, "ConfigMap": 1, "Service": 2, "Deployment": 3}
+_KIND_ORDER = {"Namespace": 0, "NetworkPolicy": 1, "ConfigMap": 2, "Service": 3, "Deployment": 4}
 
 
 def object_order(obj: dict) -> tuple:
-    """Apply order: namespaces, then ConfigMaps, Services and Deployments, each by namespace and name."""
+    """Apply order: namespaces, then NetworkPolicies (pods start isolated), ConfigMaps, Services and Deployments, each
+    by namespace and name."""
     return (_KIND_ORDER[obj["kind"]], obj["metadata"].get("namespace", ""), obj["metadata"]["name"])
 
 
@@ -930,6 +956,7 @@ def render_deployment(
         servers = placement.discovery[fleet]
         namespace = naming.fleet_namespace(fleet)
         objects.append(_namespace(fleet, namespace))
+        objects.extend(fleet_policies(fleet, namespace))
         for server in servers:
             objects.extend(_discovery_objects(server, options, servers))
     addresses = {f: discovery_server_list(placement.discovery[f]) for f in fleets}
@@ -963,6 +990,8 @@ def render_deployment(
             seen_params.add((dep.name, module.name, "robots"))
             handover = (scaling_state or {}).get((dep.name, module.name))
             objects.append(robots_configmap(dep, module, placement, base_labels, handover))
+            if not module.scaling.uses_cpu:
+                objects.append(_metrics_policy(dep, module, base_labels, options))
         discovery = addresses[dep.fleet]
         if inst.tier == "onboard" and inst.robots and (dep.name, inst.robots[0]) in robot_servers:
             discovery = f"{discovery};{robot_discovery_address(dep)}"  # the robot's own server, after the fleet's

@@ -63,6 +63,11 @@ def cyclonedds_configmap_name(deployment: str) -> str:
     return dns_label(deployment, "cyclonedds")
 
 
+def metrics_policy_name(deployment: str, module: str) -> str:
+    """The NetworkPolicy that opens a scaled module's gauge port to the namespaces that read it."""
+    return dns_label(deployment, module, "metrics")
+
+
 def robots_configmap_name(deployment: str, module: str) -> str:
     """The ConfigMap that tells a scaled shared module's instances which robots each serves (one per module)."""
     return dns_label(deployment, module, "robots")

@@ -356,6 +356,77 @@ def pod_network_check(core, toolbox: str, servers: dict[str, str], clients: list
     return results
 
 
+def fleet_isolation_check(core, toolbox: str, fleet_namespace: str, node: str, clients: list[tuple[str, str]]) -> dict:
+    """A web server in ``fleet_namespace`` (under the policies deploy rendered there) and clients (name, namespace)
+    that each fetch from its pod IP; a client's namespace that does not exist is made a fleet of its own, with the
+    policies deploy renders for any fleet. Every pod runs as the restricted level asks (the fleet namespaces enforce
+    it). Returns client -> {"phase", "bytes"}."""
+    from kubernetes import client as k8s
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import network_policy, pod_security
+
+    networking = k8s.NetworkingV1Api(core.api_client)
+    made = []
+    for namespace in sorted({ns for _name, ns in clients} - _namespaces(core)):
+        core.create_namespace({"metadata": {"name": namespace, "labels": pod_security.namespace_labels("restricted")}})
+        for policy in network_policy.fleet_policies(namespace, {"app.kubernetes.io/managed-by": "kuberos-site-check"}):
+            networking.create_namespaced_network_policy(namespace, policy)
+        made.append(namespace)
+    toleration = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}]
+    serve = (
+        f"mkdir -p /tmp/www && busybox dd if=/dev/zero of=/tmp/www/big bs=1024 count={BIG_FILE_KIB} 2>/dev/null "
+        "&& exec busybox httpd -f -p 8080 -h /tmp/www"
+    )
+    server = "isolation-server"
+    # the toolbox image has no /tmp, and its root is not the user's to write: a scratch volume
+    scratch, mount = [{"name": "tmp", "emptyDir": {}}], [{"name": "tmp", "mountPath": "/tmp"}]
+    core.create_namespaced_pod(fleet_namespace, {
+        "metadata": {"name": server, "labels": {"app": "isolation-check"}},
+        "spec": pod_security.harden({"nodeName": node, "tolerations": toleration, "volumes": scratch, "containers": [{
+            "name": "httpd", "image": toolbox, "command": ["/bin/sh", "-c", serve], "volumeMounts": mount,
+            "readinessProbe": {"tcpSocket": {"port": 8080}, "periodSeconds": 1}}]}),
+    })  # fmt: skip
+    try:
+
+        def server_ip():
+            pod = core.read_namespaced_pod(server, fleet_namespace)
+            ready = any(c.type == "Ready" and c.status == "True" for c in pod.status.conditions or [])
+            return pod.status.pod_ip if ready else None
+
+        address = wait_for("the isolation check's web server is Ready", server_ip, 180)
+        fetch = (
+            f"printf 'GET /big HTTP/1.0\\r\\n\\r\\n' | busybox nc -w 10 {address} 8080 > /tmp/reply; "
+            "busybox wc -c < /tmp/reply; busybox head -n 1 /tmp/reply | busybox grep -q ' 200 '"
+        )
+        for name, namespace in clients:
+            core.create_namespaced_pod(namespace, {
+                "metadata": {"name": name, "labels": {"app": "isolation-check"}},
+                "spec": pod_security.harden({"nodeName": node, "tolerations": toleration, "restartPolicy": "Never",
+                                             "volumes": scratch, "containers": [{"name": "fetch", "image": toolbox,
+                                             "command": ["/bin/sh", "-c", fetch], "volumeMounts": mount}]}),
+            })  # fmt: skip
+
+        def ended():
+            phases = {name: core.read_namespaced_pod(name, ns).status.phase for name, ns in clients}
+            return phases if all(phase in ("Succeeded", "Failed") for phase in phases.values()) else None
+
+        phases = wait_for("the isolation check's clients ended", ended, 180)
+        results = {}
+        for name, namespace in clients:
+            log = core.read_namespaced_pod_log(name, namespace) or ""
+            numbers = [int(line) for line in log.split() if line.isdigit()]
+            results[name] = {"phase": phases[name], "bytes": numbers[-1] if numbers else 0}
+        return results
+    finally:
+        for name, namespace in [(server, fleet_namespace), *clients]:
+            if namespace not in made:
+                with contextlib.suppress(Exception):
+                    core.delete_namespaced_pod(name, namespace, grace_period_seconds=0)
+        for namespace in made:
+            with contextlib.suppress(Exception):
+                core.delete_namespace(namespace)
+
+
 def etcd_members(machines, name: str) -> list[str]:
     """etcd's member names as one control plane's etcd lists them (its v3 HTTP gateway, with the health-check
     client certificate kubeadm made on that machine)."""
@@ -468,6 +539,19 @@ class SiteChain:
         self.figures["policy_denied"] = results["edge-refused"]["phase"] == "Failed" and results["edge-refused"]["bytes"] == 0
         return results
 
+    def fleet_isolation(self, toolbox: str, node: str) -> dict:
+        """The app's fleet namespace under the policies deploy rendered: its own pods reach a server there, a pod of
+        another fleet and one of the metrics namespace (on a port that is not a metrics port) do not."""
+        results = fleet_isolation_check(
+            self.core, toolbox, f"kuberos-{FLEET}", node,
+            [("same-fleet", f"kuberos-{FLEET}"), ("other-fleet", "kuberos-other-fleet"), ("metrics-ns", "kuberos-system")],
+        )  # fmt: skip
+        whole = BIG_FILE_KIB * 1024
+        self.figures["fleet_isolation"] = {
+            name: result["phase"] == "Succeeded" and result["bytes"] >= whole for name, result in results.items()
+        }
+        return results
+
     def second_site(self) -> subprocess.CompletedProcess:
         result = self._play("site.yml")
         self.figures["second_run_s"] = round(result.seconds, 1)
@@ -494,7 +578,11 @@ class SiteChain:
 
     def pick_cycles(self, robot: str, fleet: str, cycles: int = 1, time_limit: float = 600) -> dict:
         """The robot's simulated hardware as a pod on its node, until the deployed modules complete ``cycles``."""
-        paths = [os.path.join(self.lab.root, "sim"), os.environ.get("PYTHONPATH", "")]
+        paths = [
+            os.path.join(self.lab.root, "sim"),
+            os.path.join(self.lab.root, ".collections"),
+            os.environ.get("PYTHONPATH", ""),
+        ]
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
         command = [
             sys.executable, "-m", "kuberos_sim.real_pods", "--kubeconfig", self.lab.kubeconfig, "--robots", robot,
