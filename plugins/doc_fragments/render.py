@@ -27,4 +27,18 @@ options:
     type: list
     elements: str
     default: [kuberos-system]
+  pin_images:
+    description:
+      - Deploy and rollouts resolve each image that names no digest to the digest its registry serves now and render
+        C(image:tag@digest), so a tag that moves changes nothing until the next deploy or rollout (docs/security.md).
+      - An image that cannot be resolved stops the deploy before anything is applied.
+      - False renders images by tag as written (a lab whose nodes hold their images and no registry serves them).
+    type: bool
+    default: true
+  registry_mirrors:
+    description:
+      - The site's registry mirrors, asked before a registry itself, in the form of C(node_prereqs_registry_mirrors)
+        (registry host to a list of C(url) and C(ca)).
+    type: dict
+    default: {}
 """

@@ -23,7 +23,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     stale_objects,
     unavailable_nodes,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import image_pins, naming, pod_security
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
     change_summary,
@@ -285,6 +285,24 @@ class DeployPass:
         self.allocated = allocated
         self._check_names(self.local)
         self._lap("read the cluster")
+
+    def pin_images(self) -> None:
+        """Each image that names no digest resolved to the one its registry serves now (``pin_images``), asked with
+        the credentials of the pull secrets the modules name (read with the fleets' objects); render then writes
+        ``image@digest``. Nothing is applied when an image cannot be resolved."""
+        if not self.params.get("pin_images"):
+            return
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import image_digests
+
+        images = image_pins.deployment_images(
+            self.deployments, self.params["discovery_image"], self.params["bridge_image"], bool(self.placement.bridges)
+        )
+        wanted = {(naming.fleet_namespace(d.fleet), m.registry.pull_secret) for d in self.deployments for m in d.modules
+                  if m.registry and m.registry.pull_secret}  # fmt: skip
+        secrets = [obj for (kind, ns, name), obj in self.local.live.items() if kind == "Secret" and (ns, name) in wanted]
+        digests = image_digests.resolve(images, self.params.get("registry_mirrors") or {}, image_digests.credentials(secrets))
+        self.params = {**self.params, "image_digests": digests}
+        self._lap("pin images")
 
     def place(self) -> None:
         previous = self.previous if (self.previous.get("instances") or self.previous.get("discovery")) else None

@@ -15,6 +15,8 @@ RENDER_ARGS = {
     "discovery_image": {"type": "str", "default": RenderOptions.discovery_image},
     "bridge_image": {"type": "str", "default": RenderOptions.bridge_image},
     "metrics_namespaces": {"type": "list", "elements": "str", "default": list(RenderOptions.metrics_namespaces)},
+    "pin_images": {"type": "bool", "default": True},
+    "registry_mirrors": {"type": "dict", "default": {}},
 }
 
 
@@ -44,4 +46,5 @@ def render_options(params: dict) -> RenderOptions:
         discovery_image=params["discovery_image"],
         bridge_image=params["bridge_image"],
         metrics_namespaces=tuple(namespaces),
+        image_digests=tuple(sorted((params.get("image_digests") or {}).items())),
     )

@@ -205,6 +205,28 @@ PRESTAGE_POLL_S = 0.5
 PRESTAGE_WAITING = ("ContainerCreating", "PodInitializing")  # still pulling (or about to)
 
 
+def pinned_options(clients, params: dict, dep, namespace: str, bridges: bool):
+    """The render options of a rollout, each image pinned to the digest its registry serves now (``pin_images``): a
+    tag that moved since the deploy is an image change of this rollout, rolled out in its waves."""
+    from dataclasses import replace
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import image_pins
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import image_digests
+    from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
+
+    options = render_options(params)
+    if not params.get("pin_images"):
+        return options
+    names = {m.registry.pull_secret for m in dep.modules if m.registry and m.registry.pull_secret}
+    secrets = [
+        s for s in json.loads(clients["core"].list_namespaced_secret(namespace, _preload_content=False).data).get("items") or []
+        if s["metadata"]["name"] in names
+    ]  # fmt: skip
+    images = image_pins.deployment_images([dep], params["discovery_image"], params["bridge_image"], bridges)
+    digests = image_digests.resolve(images, params.get("registry_mirrors") or {}, image_digests.credentials(secrets))
+    return replace(options, image_digests=tuple(sorted(digests.items())))
+
+
 def prestage_pod(namespace: str, node: str, entry: dict) -> dict:
     """A pod on ``node`` with one container per image of ``entry`` (``RolloutPlan.prestage``): the kubelet pulls
     each as for the module's own pod; the container itself only runs ``true`` (or fails to start where the image
@@ -595,7 +617,6 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     )
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import behind_live, plan_rollout
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
-    from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
 
     started = time.monotonic()
     dep, text, source, catalog, cause = _target(clients, params, fleet_namespace)
@@ -610,7 +631,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     allocated = cluster_state.node_allocations(clients, [dep.name], [dep.fleet])
     unavailable = cluster_state.unavailable_nodes(clients, list(inventory.nodes))
     placement = place_modules([dep], inventory, allocated, unavailable, record.placement)
-    options = render_options(params)
+    options = pinned_options(clients, params, dep, namespace, bool(placement.bridges))
     # What runs: the record's state, except the modules of robots an earlier rollout left pending while they were
     # offline (they still run the older image); robots offline now are left pending in turn.
     live = cluster_state._items(

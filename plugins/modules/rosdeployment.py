@@ -269,6 +269,7 @@ def run(module: AnsibleModule) -> dict:
             work.place()
             raise
         work.place()
+        work.pin_images()
         work.render()
         rendered = work.rendered
         result = work.deploy()

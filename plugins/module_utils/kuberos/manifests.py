@@ -14,7 +14,7 @@ import hashlib
 import re
 from dataclasses import dataclass
 
-from . import cyclonedds, naming, network_policy, pod_security, scaling
+from . import cyclonedds, image_pins, naming, network_policy, pod_security, scaling
 from . import labels as node_labels
 from .fastdds import TRANSPORT_ENV
 from .launch import container_name, launch_argv, split_amount
@@ -78,6 +78,12 @@ class RenderOptions:
     robot_nodes: tuple = ()  # ((robot, its onboard computer's node), ...)
     # The namespaces whose pods may read the fleet's metrics ports (NetworkPolicy): the controller's, by default.
     metrics_namespaces: tuple = network_policy.DEFAULT_METRICS_NAMESPACES
+    # ((image, digest), ...): what deploy resolved each image's tag to (image_pins); rendered as image@digest.
+    image_digests: tuple = ()
+
+    def pin(self, image: str) -> str:
+        """``image`` as rendered: ``image@digest`` once its tag is resolved, as given when it has a digest already."""
+        return image_pins.pinned(image, dict(self.image_digests))
 
     def device_parameter(self, node: str, device: str, parameter: str, robot: str | None = None) -> str | None:
         """The parameter of ``device`` of ``node`` when the node carries it, else of ``robot``'s computer."""
@@ -302,7 +308,7 @@ def _discovery_deployment(
         "containers": [
             {
                 "name": "discovery-server",
-                "image": options.discovery_image,
+                "image": options.pin(options.discovery_image),
                 "imagePullPolicy": options.image_pull_policy,
                 # args, not command: the image's entrypoint runs first (the published ROS images source their
                 # setup there; nothing of ROS is on their PATH before it)
@@ -588,7 +594,7 @@ def _module_containers(
             resources["limits"]["nvidia.com/gpu"] = str(inst.gpu)
         container = {
             "name": container_name(module.name, number),
-            "image": module.image,
+            "image": options.pin(module.image),
             "imagePullPolicy": (registry.pull_policy if registry else "") or options.image_pull_policy,
             **_command(module, number, line, inst, options),
             "env": copy.deepcopy(env),
@@ -774,7 +780,7 @@ def _bridge_deployment(
 ) -> dict:
     container = {
         "name": "bridge",
-        "image": options.bridge_image,
+        "image": options.pin(options.bridge_image),
         "imagePullPolicy": options.image_pull_policy,
         "args": ["python", "-m", BRIDGE_ENTRY, *args],
         "env": [*env, {"name": "ROS_HOME", "value": pod_security.ROS_HOME}],

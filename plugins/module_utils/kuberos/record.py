@@ -324,6 +324,8 @@ def _record_pair(dep, number, cause, source, line, spec_packed, options, field_m
                     "discovery_image": options.discovery_image,
                     "image_pull_policy": options.image_pull_policy,
                     "field_manager": field_manager,
+                    # the digest each image was pinned to (image_pins): the controller and rollback render the same
+                    **({"image_digests": dict(options.image_digests)} if options.image_digests else {}),
                 },
                 sort_keys=True,
             ),
@@ -521,6 +523,7 @@ def parse_record(configmap: dict) -> Record:
             cluster_domain=options.get("cluster_domain", "cluster.local"),
             discovery_image=options.get("discovery_image", "ros:jazzy-ros-base"),
             image_pull_policy=options.get("image_pull_policy", "IfNotPresent"),
+            image_digests=tuple(sorted((options.get("image_digests") or {}).items())),
             **device_options(inventory),
         ),
         field_manager=options.get("field_manager", "kuberos"),

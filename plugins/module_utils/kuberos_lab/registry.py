@@ -19,39 +19,30 @@ and ``bcrypt``.
 from __future__ import annotations
 
 import base64
-import contextlib
 import hashlib
 import json
 import os
 import secrets
 import shutil
-import ssl
 import tarfile
 import time
 import urllib.error
 import urllib.parse
 from dataclasses import dataclass
 
-from ansible.module_utils.urls import open_url
-
 from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
 from ansible_collections.kuberos.platform.plugins.module_utils import pki
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.registry_api import (  # noqa: F401 (the lab's names)
+    MANIFEST_TYPES,
+    REQUEST_TIMEOUT,
+    RegistryApi,
+    RegistryError,
+)
 
 PROGRAM = "docker-registry"
-MANIFEST_TYPES = (
-    "application/vnd.oci.image.manifest.v1+json",
-    "application/vnd.oci.image.index.v1+json",
-    "application/vnd.docker.distribution.manifest.v2+json",
-    "application/vnd.docker.distribution.manifest.list.v2+json",
-)
 CERT_DAYS = 365
 START_TIMEOUT = 30.0
-REQUEST_TIMEOUT = 60.0
 CHUNK = 1 << 20
-
-
-class RegistryError(RuntimeError):
-    """A registry refused or failed a request; the message names the registry, the image and why."""
 
 
 def image_reference(address: str, repository: str, digest: str) -> str:
@@ -90,84 +81,8 @@ def _random_layer(size: int) -> tuple[bytes, str]:
     return gzip.compress(tar, compresslevel=1, mtime=0), "sha256:" + hashlib.sha256(tar).hexdigest()
 
 
-class RegistryClient:
-    """The registry API v2 at ``https://<address>``, trusting ``ca_file`` (None: the system's CAs)."""
-
-    def __init__(self, address: str, username: str = "", password: str = "", ca_file: str | None = None):
-        self.address = address
-        self._authorization = (
-            "Basic " + base64.b64encode(f"{username}:{password}".encode()).decode() if username or password else None
-        )
-        self._username = username
-        self._ca_file = ca_file
-
-    def _request(self, method: str, url: str, image: str, *, body=None, headers: dict | None = None, ok=(200,)):
-        """One request; (status, headers, body bytes). Raises RegistryError naming the registry and the image."""
-        if not url.startswith("https://"):
-            url = f"https://{self.address}{url}"
-        headers = dict(headers or {})
-        if self._authorization:
-            headers["Authorization"] = self._authorization
-        try:
-            response = open_url(
-                url, data=body, headers=headers, method=method, timeout=REQUEST_TIMEOUT, ca_path=self._ca_file,
-                use_proxy=False, use_netrc=False, decompress=False, follow_redirects="none", http_agent="kuberos-lab",
-            )  # fmt: skip
-            with response:
-                return response.status, response.headers, response.read()
-        except urllib.error.HTTPError as error:
-            if error.code in ok:
-                return error.code, error.headers, error.read()
-            raise RegistryError(self._explain(error.code, error.read(), image, method)) from None
-        except urllib.error.URLError as error:
-            reason = error.reason
-            if isinstance(reason, ssl.SSLCertVerificationError) or "CERTIFICATE_VERIFY_FAILED" in str(reason):
-                why = getattr(reason, "verify_message", "") or "certificate verify failed"
-                raise RegistryError(
-                    f"registry {self.address}: its certificate is not trusted ({why}); "
-                    f"give the registry's CA certificate (image {image})"
-                ) from None
-            raise RegistryError(f"registry {self.address}: cannot connect ({reason}) (image {image})") from None
-        except (OSError, TimeoutError, ValueError) as error:  # ansible's SSLValidationError is a ConnectionError
-            if "certificate" in str(error).lower():
-                raise RegistryError(
-                    f"registry {self.address}: its certificate is not trusted ({error}); "
-                    f"give the registry's CA certificate (image {image})"
-                ) from None
-            raise RegistryError(f"registry {self.address}: {error} (image {image})") from None
-
-    def _explain(self, status: int, body: bytes, image: str, method: str) -> str:
-        codes = []
-        with contextlib.suppress(ValueError, AttributeError, TypeError):
-            codes = [e.get("code", "") for e in json.loads(body or b"{}").get("errors", [])]
-        if status == 401:
-            who = f"user '{self._username}'" if self._username else "anonymous access"
-            return f"registry {self.address}: refused the credentials ({who}: HTTP 401 Unauthorized) for image {image}"
-        if status == 403:
-            return f"registry {self.address}: access denied (HTTP 403) to image {image}"
-        if status == 404 or "MANIFEST_UNKNOWN" in codes or "NAME_UNKNOWN" in codes:
-            return f"registry {self.address}: image {image} not found ({', '.join(codes) or 'HTTP 404'})"
-        text = body[:300].decode(errors="replace").strip()
-        return f"registry {self.address}: {method} for image {image} failed: HTTP {status} {text}"
-
-    def check(self) -> None:
-        """The API answers and accepts the credentials (GET /v2/)."""
-        self._request("GET", "/v2/", f"{self.address}/v2/")
-
-    def manifest_digest(self, repository: str, reference: str) -> str:
-        """The digest the registry serves for ``repository`` at a tag or digest (HEAD of the manifest)."""
-        image = f"{self.address}/{repository}{'@' if ':' in reference else ':'}{reference}"
-        _status, headers, _body = self._request(
-            "HEAD", f"/v2/{repository}/manifests/{reference}", image, headers={"Accept": ", ".join(MANIFEST_TYPES)}
-        )
-        digest = headers.get("Docker-Content-Digest", "")
-        if not digest:
-            raise RegistryError(f"registry {self.address}: no digest for image {image}")
-        return digest
-
-    def _get(self, path: str, image: str, accept: str = "") -> bytes:
-        _status, _headers, body = self._request("GET", path, image, headers={"Accept": accept} if accept else None)
-        return body
+class RegistryClient(RegistryApi):
+    """The lab's registry client: the API's reads (``RegistryApi``), and pushes of the lab's images."""
 
     def derive_image(self, repository: str, digest: str, tag: str, extra_bytes: int = 0, **config) -> str:
         """A new image in ``repository`` from the one at ``digest``: the same layers, its configuration's
