@@ -78,21 +78,26 @@ def playbook(name, *extra, inventory="inventories/local", timeout=1800):
     return result
 
 
-def built_kubeadm() -> str:
-    """The kubeadm program of the cache; CI builds it (make test), so there a missing one fails the test."""
+def built_program(build: str, name: str, env: dict | None = None) -> str:
+    """The program ``name`` of the cache, as ``build --print-paths`` names it; CI builds it (make test), so there a
+    missing one fails the test, elsewhere it skips, naming the script that builds it."""
     import pytest
 
-    build = os.path.join(ROOT, "roles", "local_cluster", "files", "build-binaries.sh")
-    env = {**os.environ, "SKIP_KUBECTL": "1"}
     result = subprocess.run([build, "--print-paths"], env=env, capture_output=True, text=True, timeout=60)
     paths = dict(line.split("=", 1) for line in result.stdout.splitlines() if "=" in line)
-    path = paths.get("kubeadm", "")
+    path = paths.get(name, "")
     if not path or not os.access(path, os.X_OK):
-        message = f"kubeadm is not built ({path or 'no path printed'}): run {build} (make test does)"
+        message = f"{name} is not built ({path or result.stderr.strip() or 'no path printed'}): run {build} (make test does)"
         if os.environ.get("CI"):
             pytest.fail(message)
         pytest.skip(message)
     return path
+
+
+def built_kubeadm() -> str:
+    """The kubeadm program of the cache (build-binaries.sh)."""
+    build = os.path.join(ROOT, "roles", "local_cluster", "files", "build-binaries.sh")
+    return built_program(build, "kubeadm", {**os.environ, "SKIP_KUBECTL": "1"})
 
 
 # KUBEROS_TEST_PORT_SHIFT moves every test port by one number, so that a second cluster test session

@@ -24,7 +24,7 @@ import subprocess
 
 import pytest
 import yaml
-from helpers import ROOT
+from helpers import ROOT, built_program
 
 from ansible_collections.kuberos.platform.plugins.module_utils import batch_runner
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import batch
@@ -108,16 +108,8 @@ def example_id(path: str) -> str:
 
 @pytest.fixture(scope="module")
 def kube_score() -> str:
-    """The kube-score program of the cache; CI builds it (make test), so there a missing one fails the test."""
-    result = subprocess.run([BUILD, "--print-paths"], capture_output=True, text=True, timeout=60)
-    paths = dict(line.split("=", 1) for line in result.stdout.splitlines() if "=" in line)
-    path = paths.get("kube-score", "")
-    if not path or not os.access(path, os.X_OK):
-        message = f"kube-score is not built ({path or result.stderr.strip() or 'no path printed'}): run {BUILD} (make test does)"
-        if os.environ.get("CI"):
-            pytest.fail(message)
-        pytest.skip(message)
-    return path
+    """The kube-score program of the cache (build-kube-score.sh)."""
+    return built_program(BUILD, "kube-score")
 
 
 @pytest.fixture(scope="module")

@@ -75,7 +75,20 @@ def chain(tmp_path_factory):
 
 
 def _tail(result) -> str:
-    return result.stdout[-6000:] + result.stderr[-2000:]
+    """The failed tasks (each ``fatal:`` or ``failed:`` block, with the task it belongs to), then the end of the output."""
+    lines, failures, task = result.stdout.splitlines(), [], ""
+    for number, line in enumerate(lines):
+        if line.startswith("TASK ["):
+            task = line
+        elif line.startswith(("fatal:", "failed:")):
+            block = [line]
+            for more in lines[number + 1 : number + 40]:
+                if not more.strip() or more.startswith(("TASK [", "PLAY ", "fatal:", "failed:", "ok:", "changed:")):
+                    break
+                block.append(more)
+            failures.append("\n".join([task, *block]))
+    head = "\n\n".join(failures)[-8000:]
+    return (f"failed tasks:\n{head}\n\n--- the end ---\n" if head else "") + result.stdout[-6000:] + result.stderr[-2000:]
 
 
 def test_site_yml_builds_an_ha_cluster_with_the_cloud_vm_over_the_vpn(chain):
@@ -139,6 +152,10 @@ def test_the_controller_and_the_example_run_where_placed_and_complete_a_pick_cyc
     }
     assert {k: running.get(k) for k in wanted} == wanted, (wanted, running)
     assert set(onboard.values()) == {ROBOT, OTHER_ROBOT}, onboard
+    # every image pinned by digest through the lab's mirror (rosdeployment_pin_images), and pulled so by the nodes
+    pods = chain.core.list_namespaced_pod(f"kuberos-{site_lab.FLEET}", label_selector="app.kubernetes.io/managed-by=kuberos")
+    images = {c.image for p in pods.items for c in p.spec.containers}
+    assert images and all("@sha256:" in image for image in images), images
     cycles = chain.pick_cycles("fetch-01", site_lab.FLEET, cycles=1)
     assert cycles["returncode"] == 0 and chain.figures["pick_cycles_completed"] >= 1, cycles["output"]
 

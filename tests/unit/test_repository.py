@@ -61,9 +61,17 @@ CLUSTER = "kuberos_cluster"  # the pure cluster-setup models
 CONTROLLER = "kuberos_controller"  # the controller program
 BRIDGE = "kuberos_bridge"  # the bridge program
 LAB = "kuberos_lab"  # the local lab (the registry); nothing outside the lab's own I/O may import it
+DEPLOY = "kuberos_deploy"  # the deploy's I/O beyond Kubernetes (registries)
 # Which packages of module_utils each may import (besides itself); I/O helpers are module_utils' loose files.
 # The lab checks what deploy renders with the core's own models (site_lab: the fleets' NetworkPolicies, pod security).
-MAY_IMPORT = {CORE: set(), CLUSTER: {CORE}, CONTROLLER: {CORE, "io"}, BRIDGE: {"io"}, LAB: {CORE, "io"}}  # the bridge: pki.py
+MAY_IMPORT = {
+    CORE: set(),
+    CLUSTER: {CORE},
+    CONTROLLER: {CORE, "io"},
+    BRIDGE: {"io"},
+    LAB: {CORE, DEPLOY, "io"},  # the lab's registry client builds on the deploy's registry API
+    DEPLOY: {CORE},
+}  # the bridge: pki.py
 PURE = (CORE, CLUSTER)
 IMPORT = re.compile(r"^\s*(?:from\s+(\S+)\s+import\s+(\([^)]*\)|[^\n]+)|import\s+(\S+))", re.M)
 

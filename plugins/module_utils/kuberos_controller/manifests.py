@@ -251,6 +251,20 @@ def controller_objects(
             },
         }
     )
+    # Its pods take connections on the dashboard's port only (the dashboard and /metrics authenticate every request);
+    # other pods of the namespace are the site's and keep their own policies.
+    objects.append(
+        {
+            "apiVersion": "networking.k8s.io/v1",
+            "kind": "NetworkPolicy",
+            "metadata": {"name": NAME, "namespace": namespace, "labels": labels},
+            "spec": {
+                "podSelector": {"matchLabels": {"app.kubernetes.io/name": NAME}},
+                "policyTypes": ["Ingress"],
+                "ingress": [{"ports": [{"protocol": "TCP", "port": DASHBOARD_PORT}]}],
+            },
+        }
+    )
     if replicas > 1:
         objects.append(
             {
