@@ -119,6 +119,7 @@ def write_inventory(directory: Path, robots: int, edge: int = EDGE_NODES, cloud:
         "hosts.yml": hosts,
         "group_vars/all.yml": {
             "kuberos_default_latency_ms": {"onboard": 0, "edge": 5, "cloud": 40},
+            "kuberos_pin_images": False,  # synthetic images on kwok nodes: no registry serves them
             "ansible_connection": "local",
             "ansible_python_interpreter": "{{ ansible_playbook_python }}",
         },

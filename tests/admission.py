@@ -32,7 +32,15 @@ EXAMPLES = sorted(
     for p in glob.glob(os.path.join(ROOT, "examples", "*.yml"))
     if not p.endswith("-catalog.yml")  # a software catalog, not a deployment (rendered through pick-and-place)
 )
+# the reference format's ApplicationDeployment renders as a RosDeployment does
+EXAMPLES += ["examples/reference/talker-listener.kuberos.yml"]
 BATCH_EXAMPLES = sorted(os.path.relpath(p, ROOT) for p in glob.glob(os.path.join(ROOT, "examples", "batch", "*.yml")))
+BATCH_EXAMPLES += ["examples/reference/grid.batchjob.yml"]
+# The pods of the examples that ask for more than restricted, and the level each needs: the declared opt-outs.
+DECLARED = {
+    # its talker drives a gripper (a host device): the reference format's requirements.privilege
+    ("examples/reference/talker-listener.kuberos.yml", "Deployment/talker-listener-talker-fetch-1"): "privileged",
+}
 # examples/partner-cloud.yml places its planner in a third-party cluster the inventory must register
 PARTNER = {"kuberos_latency_ms": 30, "kuberos_fleets": ["test-fleet"], "kuberos_bridge_endpoint": "203.0.113.10"}
 

@@ -42,6 +42,7 @@ rosModules:
 # fleet's discovery server and one planner (1 CPU: 100m + 600m, and 600m more do not fit). No cloud VM at deploy.
 INVENTORY = {
     "all": {
+        "vars": {"kuberos_pin_images": False},  # kwok nodes: no registry serves the spec's images
         "children": {
             "robots": {
                 "vars": {"kuberos_cpu": 4, "kuberos_memory": "8Gi"},

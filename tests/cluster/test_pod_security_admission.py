@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 
 import pytest
-from admission import example_pods, level_namespaces, opt_out_pods, verdicts
+from admission import DECLARED, example_pods, level_namespaces, opt_out_pods, verdicts
 from helpers import ROOT
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pod_security
@@ -24,19 +24,25 @@ def namespaces(cluster):
     return core, level_namespaces(core)
 
 
-def test_every_rendered_pod_is_admitted_under_restricted_by_the_api_server(namespaces):
+def test_every_rendered_pod_is_admitted_under_restricted_by_the_api_server_but_the_declared_opt_outs(namespaces):
     core, by_level = namespaces
     found = example_pods()
-    pods = [pod for per_example in found.values() for pod in per_example]
-    assert len(found) >= 7 and len(pods) >= 30, {k: len(v) for k, v in found.items()}
-    said = verdicts(core, pods, {"restricted": by_level["restricted"]})
-    refused = {name: said[(name, "restricted")] for name, _spec in pods if said[(name, "restricted")]}
-    assert not refused, refused
+    pods = [(f"{path}: {name}", spec) for path, per_example in found.items() for name, spec in per_example]
+    assert len(found) >= 9 and len(pods) >= 30, {k: len(v) for k, v in found.items()}
+    said = verdicts(core, pods, by_level)
+    declared = {f"{path}: {name}": level for (path, name), level in DECLARED.items()}
+    for name, _spec in pods:
+        level = declared.get(name, "restricted")  # restricted, or the level the example declares (and no stricter)
+        assert said[(name, level)] == "", (name, level, said[(name, level)][:400])
+        stricter = pod_security.LEVELS[: pod_security.LEVELS.index(level)]
+        assert all(said[(name, other)] for other in stricter), (name, level)
 
 
 def test_the_collections_reading_of_the_standard_is_the_api_servers_at_every_level(namespaces):
     core, by_level = namespaces
-    pods = opt_out_pods() + [pod for per_example in example_pods().values() for pod in per_example[:2]]
+    pods = opt_out_pods() + [
+        (f"{path}: {name}", spec) for path, per_example in example_pods().items() for name, spec in per_example[:2]
+    ]
     said = verdicts(core, pods, by_level)
     for name, spec in pods:
         needed, why = pod_security.level(spec)
