@@ -19,6 +19,8 @@ from pathlib import Path
 import yaml
 from helpers import ROOT, Cluster, playbook
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pod_security
+
 INVENTORY = "inventories/real-pods"
 ROS_IMAGE = "ghcr.io/kuberos/pnp-planner:0.1"  # any name of the collection's ROS image
 PROGRAMS = os.path.join(ROOT, "tests", "integration", "ros")
@@ -109,6 +111,7 @@ def programs_configmap(core, namespace):
 
 def program_pod(name, node, namespace, args, env, robot=None):
     tolerations = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}] if robot else []
+    env = {"ROS_HOME": pod_security.ROS_HOME, **env}  # not root, as every pod of a fleet's namespace (restricted)
     return {
         "apiVersion": "v1",
         "kind": "Pod",
@@ -125,9 +128,11 @@ def program_pod(name, node, namespace, args, env, robot=None):
                     "args": ["python3", *args],
                     "env": [{"name": k, "value": v} for k, v in env.items()],
                     "volumeMounts": [{"name": "programs", "mountPath": "/programs"}],
+                    "securityContext": pod_security.container_security_context(),
                 }
             ],
             "volumes": [{"name": "programs", "configMap": {"name": "programs"}}],
+            "securityContext": pod_security.pod_security_context(),
         },
     }
 
@@ -386,13 +391,17 @@ def prometheus_objects(namespace: str, tls_secret: str) -> list[dict]:
             "apiVersion": "v1",
             "kind": "Pod",
             "metadata": {"name": PROMETHEUS, "namespace": namespace, "labels": {"app.kubernetes.io/name": PROMETHEUS}},
-            "spec": {
-                "serviceAccountName": PROMETHEUS,
-                "securityContext": {"runAsUser": 65534, "runAsGroup": 65534, "runAsNonRoot": True, "fsGroup": 65534},
-                "terminationGracePeriodSeconds": 2,
-                "containers": [container],
-                "volumes": volumes,
-            },
+            # as restricted as the collection's pods: the namespace may enforce it (the controller's does)
+            "spec": pod_security.harden(
+                {
+                    "serviceAccountName": PROMETHEUS,
+                    "securityContext": {"runAsUser": 65534, "runAsGroup": 65534, "runAsNonRoot": True, "fsGroup": 65534},
+                    "terminationGracePeriodSeconds": 2,
+                    "containers": [container],
+                    "volumes": volumes,
+                },
+                user=65534,
+            ),
         },
     ]
 

@@ -53,7 +53,7 @@ INVENTORY = {
                     "edge-3": {"kuberos_fleets": [FLEET], "kuberos_cpu": 1, "kuberos_memory": "4Gi", "kuberos_latency_ms": 3}
                 }
             },
-        }
+        },
     }
 }
 REPORT_ENV = "KUBEROS_BURST_REPORT"

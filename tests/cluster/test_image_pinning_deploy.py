@@ -4,7 +4,8 @@ Docker Hub, as a site's nodes use one.
 
 Proves: the rendered Deployments name image:tag@digest (the module's and the discovery servers'), the deployment
 record keeps tag and digest; a tag that moves changes nothing in the cluster, and the next deploy's --check --diff
-shows the image change before the deploy that applies it.
+shows the image change before the deploy that applies it; a rollout resolves the tag again and rolls the new digest
+out.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import os
 import shutil
 
 import pytest
+from helpers import playbook
 from oci import free_port, write_archive
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import registry as lab_registry
@@ -77,7 +79,8 @@ def test_a_deploy_pins_each_image_and_a_moved_tag_waits_for_the_next_deploy(clus
         found = images(apps, "kuberos-test-fleet")
         talkers = {name: image for name, image in found.items() if name.startswith("pinned-talker-")}
         assert talkers and set(talkers.values()) == {f"ghcr.io/kuberos/pinned:1.0@{first}"}, found
-        servers = {image for name, image in found.items() if "discovery" in name}
+        # the fleet's servers (others of the fleet's deployments, deployed by other tests unpinned, keep their own)
+        servers = {image for name, image in found.items() if name.startswith("kuberos-discovery-")}
         assert servers == {f"ros:jazzy-ros-base@{ros}"}, found
         record = core.read_namespaced_config_map("kuberos-record-pinned", "kuberos-test-fleet")
         assert json.loads(record.data["options.json"])["image_digests"] == {
@@ -101,6 +104,18 @@ def test_a_deploy_pins_each_image_and_a_moved_tag_waits_for_the_next_deploy(clus
         assert again.returncode == 0, again.stdout[-6000:]
         moved = images(apps, "kuberos-test-fleet")
         assert {moved[name] for name in talkers} == {f"ghcr.io/kuberos/pinned:1.0@{second}"}
-        assert {image for name, image in moved.items() if "discovery" in name} == servers, "the servers' tag did not move"
+        assert {image for name, image in moved.items() if name.startswith("kuberos-discovery-")} == servers, "not moved"
+
+        # a rollout resolves too: the tag moved again, and the rollout takes the module to the new digest in its waves
+        third = write_archive(str(tmp_path / "three.tar"), b"talker, third build\n")
+        client.push_archive(str(tmp_path / "three.tar"), "kuberos/pinned", "1.0")
+        rolled = playbook(
+            "rollout.yml", "-e", f"rosdeployment_file={spec}", "-e", f"kuberos_kubeconfig={cluster.kubeconfig}",
+            "-e", "rosdeployment_rollout_soak=1", "-e", "rosdeployment_rollout_prestage=false", "-e", extra,
+        )  # fmt: skip
+        assert rolled.returncode == 0, rolled.stdout[-6000:]
+        assert {images(apps, "kuberos-test-fleet")[name] for name in talkers} == {f"ghcr.io/kuberos/pinned:1.0@{third}"}
+        record = core.read_namespaced_config_map("kuberos-record-pinned", "kuberos-test-fleet")
+        assert json.loads(record.data["options.json"])["image_digests"]["ghcr.io/kuberos/pinned:1.0"] == third
     finally:
         cluster.undeploy(spec)

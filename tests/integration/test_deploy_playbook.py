@@ -65,7 +65,7 @@ def test_listing_1_renders_then_changes_nothing(tmp_path):
     # Namespace, 2 discovery Services and Deployments, 4 module Deployments, the robots' own discovery servers (a
     # Deployment on each robot and their Service), the deployment record ConfigMap, its revision 1 and the site's
     # software catalog (inventories/local/catalog).
-    assert len(manifests(out)) == 15
+    assert len(manifests(out)) == 17  # with the fleet's two NetworkPolicies
     second = deploy("examples/listing1.yml", out)
     assert second.returncode == 0 and second.changed == 0, second.stdout
 

@@ -431,11 +431,10 @@ def test_published_layout_runs_the_discovery_server_only_through_its_entrypoint(
 
 
 def test_ros_image_runs_the_controller_and_bridge_as_their_pods_do(containerd, imported):
-    """`python -m <entry>` as uid 65532 on a read-only root filesystem (the controller's securityContext)."""
-    as_nobody = ("setpriv", "--reuid", "65532", "--regid", "65532", "--clear-groups")
-    _, command = containerd.container(
-        "ghcr.io/kuberos/controller:0.2.0", *as_nobody, "python", "-c", ENTRY_IMPORTS, options=("--read-only",)
-    )
+    """`python -m <entry>` not as root, on a read-only root filesystem (the controller's securityContext): as the
+    image's own user (1000; this ctr cannot name another, and a non-root process cannot switch), as the pods run."""
+    as_nobody = ("--read-only",)
+    _, command = containerd.container("ghcr.io/kuberos/controller:0.2.0", "python", "-c", ENTRY_IMPORTS, options=as_nobody)
     done = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     assert "prefix /opt/ros/jazzy" in done.stdout
@@ -444,7 +443,7 @@ def test_ros_image_runs_the_controller_and_bridge_as_their_pods_do(containerd, i
         ("ghcr.io/kuberos/bridge:0.2.0", "kuberos_bridge"),
     ):
         module = f"ansible_collections.kuberos.platform.plugins.module_utils.{entry}"
-        _, command = containerd.container(image, *as_nobody, "python", "-m", module, "--help", options=("--read-only",))
+        _, command = containerd.container(image, "python", "-m", module, "--help", options=as_nobody)
         done = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT)
         assert done.returncode == 0 and "usage:" in done.stdout, done.stdout[-3000:] + done.stderr[-3000:]
 

@@ -32,9 +32,8 @@ from dataclasses import dataclass
 
 from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
 from ansible_collections.kuberos.platform.plugins.module_utils import pki
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.registry_api import (  # noqa: F401 (the lab's names)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.registry_api import (
     MANIFEST_TYPES,
-    REQUEST_TIMEOUT,
     RegistryApi,
     RegistryError,
 )

@@ -399,11 +399,11 @@ def fleet_isolation_check(core, toolbox: str, fleet_namespace: str, node: str, c
             "busybox wc -c < /tmp/reply; busybox head -n 1 /tmp/reply | busybox grep -q ' 200 '"
         )
         for name, namespace in clients:
+            fetcher = {"name": "fetch", "image": toolbox, "command": ["/bin/sh", "-c", fetch], "volumeMounts": mount}
+            spec = {"nodeName": node, "tolerations": toleration, "restartPolicy": "Never", "volumes": scratch}
             core.create_namespaced_pod(namespace, {
                 "metadata": {"name": name, "labels": {"app": "isolation-check"}},
-                "spec": pod_security.harden({"nodeName": node, "tolerations": toleration, "restartPolicy": "Never",
-                                             "volumes": scratch, "containers": [{"name": "fetch", "image": toolbox,
-                                             "command": ["/bin/sh", "-c", fetch], "volumeMounts": mount}]}),
+                "spec": pod_security.harden({**spec, "containers": [fetcher]}),
             })  # fmt: skip
 
         def ended():
