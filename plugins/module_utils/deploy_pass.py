@@ -23,7 +23,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state imp
     stale_objects,
     unavailable_nodes,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import image_pins, naming, pod_security
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
     change_summary,
@@ -294,13 +294,9 @@ class DeployPass:
             return
         from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import image_digests
 
-        images = image_pins.deployment_images(
-            self.deployments, self.params["discovery_image"], self.params["bridge_image"], bool(self.placement.bridges)
-        )
-        wanted = {(naming.fleet_namespace(d.fleet), m.registry.pull_secret) for d in self.deployments for m in d.modules
-                  if m.registry and m.registry.pull_secret}  # fmt: skip
+        wanted = image_digests.pull_secrets(self.deployments)
         secrets = [obj for (kind, ns, name), obj in self.local.live.items() if kind == "Secret" and (ns, name) in wanted]
-        digests = image_digests.resolve(images, self.params.get("registry_mirrors") or {}, image_digests.credentials(secrets))
+        digests = image_digests.for_render(self.deployments, self.params, secrets, bool(self.placement.bridges))
         self.params = {**self.params, "image_digests": digests}
         self._lap("pin images")
 

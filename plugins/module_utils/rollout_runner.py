@@ -210,20 +210,16 @@ def pinned_options(clients, params: dict, dep, namespace: str, bridges: bool):
     tag that moved since the deploy is an image change of this rollout, rolled out in its waves."""
     from dataclasses import replace
 
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import image_pins
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import image_digests
     from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
 
     options = render_options(params)
     if not params.get("pin_images"):
         return options
-    names = {m.registry.pull_secret for m in dep.modules if m.registry and m.registry.pull_secret}
-    secrets = [
-        s for s in json.loads(clients["core"].list_namespaced_secret(namespace, _preload_content=False).data).get("items") or []
-        if s["metadata"]["name"] in names
-    ]  # fmt: skip
-    images = image_pins.deployment_images([dep], params["discovery_image"], params["bridge_image"], bridges)
-    digests = image_digests.resolve(images, params.get("registry_mirrors") or {}, image_digests.credentials(secrets))
+    wanted = image_digests.pull_secrets([dep])
+    listed = json.loads(clients["core"].list_namespaced_secret(namespace, _preload_content=False).data).get("items") or []
+    secrets = [s for s in listed if (namespace, s["metadata"]["name"]) in wanted]
+    digests = image_digests.for_render([dep], params, secrets, bridges)
     return replace(options, image_digests=tuple(sorted(digests.items())))
 
 

@@ -99,3 +99,18 @@ def _resolve(images, mirrors: dict, logins: dict) -> dict[str, str]:
             "mirror names it in rosdeployment_registry_mirrors):\n" + "\n".join(f"  - {p}" for p in problems)
         )
     return digests
+
+
+def pull_secrets(deployments) -> set[tuple[str, str]]:
+    """(namespace, name) of every pull secret the deployments' modules name: where their registries' credentials are."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+
+    return {(fleet_namespace(d.fleet), m.registry.pull_secret) for d in deployments for m in d.modules
+            if m.registry and m.registry.pull_secret}  # fmt: skip
+
+
+def for_render(deployments, params: dict, secrets: list[dict], bridges: bool) -> dict[str, str]:
+    """image -> digest of every image a render of ``deployments`` names (the render options ``params``), asked with
+    the credentials of ``secrets`` (the pull secrets of ``pull_secrets``): what deploy and rollouts pin."""
+    images = image_pins.deployment_images(deployments, params["discovery_image"], params["bridge_image"], bridges)
+    return resolve(images, params.get("registry_mirrors") or {}, credentials(secrets))
