@@ -41,7 +41,7 @@ demo: cluster
 ## Ansible starts, where their builds print progress lines.
 demo-real: setup
 	$(MAKE) binaries WITH_NODES=1
-	PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.local_images build
+	PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_images build
 	$(VENV)/ansible-playbook playbooks/local_cluster.yml -i $(REAL)
 	$(VENV)/ansible-playbook playbooks/deploy.yml -i $(REAL) -e rosdeployment_file=$(SPEC)
 	$(VENV)/ansible-playbook playbooks/controller.yml -i $(REAL)
@@ -74,7 +74,7 @@ status: setup
 PREBUILD_LOG := $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/prebuild.log
 test: setup
 	@mkdir -p "$${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}"; \
-	{ PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.local_images build \
+	{ PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_images build \
 	  && PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.machines root; \
 	} >"$(PREBUILD_LOG)" 2>&1 & prebuild=$$!; \
 	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1 \

@@ -162,7 +162,7 @@ def subscriber_main(args) -> None:
 class Runner:
     def __init__(self, lab, directory: str):
         sys.path[:0] = [os.path.join(ROOT, ".collections")]
-        from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import PRIVATE_SHM, ros_environment
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.ros_wheels import PRIVATE_SHM, ros_environment
 
         self.lab, self.directory, self.shm = lab, directory, PRIVATE_SHM
         self.env = ros_environment(log_dir=os.path.join(directory, "ros-log"))

@@ -48,7 +48,7 @@ from real_tier import (  # noqa: E402  (the tests' driver of the real-node tier)
     wait_for,
 )
 
-from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes, snapshot_host  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import RealNodes, snapshot_host  # noqa: E402
 
 PORTS = {"apiserver": 37443, "etcd_client": 37379, "etcd_peer": 37380, "controller_manager": 37257, "scheduler": 37259}
 PORTS["kwok"] = 37247

@@ -35,7 +35,7 @@ import time
 from bench_deploy import REPO, log, machine
 
 sys.path[:0] = [str(REPO / ".collections")]
-from ansible_collections.kuberos.platform.plugins.module_utils import local_images  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import LocalRegistry, lab_repository  # noqa: E402
 
 CONTAINERD = """version = 2

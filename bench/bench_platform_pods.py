@@ -73,7 +73,7 @@ def fleet_pods(core, namespace: str) -> dict[str, list[str]]:
 def kill_process(real: RealCluster, pod_name: str) -> int:
     """SIGKILL to the controller's process through its node's containerd (a crash: no Lease released). Returns the
     container's restart count before."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import RealNodes
 
     pod = real.core.read_namespaced_pod(pod_name, CONTROLLER_NAMESPACE)
     (status,) = pod.status.container_statuses

@@ -38,8 +38,8 @@ from bench_deploy import REPO, check, log, machine, playbook
 sys.path[:0] = [str(REPO / ".collections"), str(REPO / "sim")]
 from kuberos_sim import scenario  # noqa: E402
 
-from ansible_collections.kuberos.platform.plugins.module_utils import local_images  # noqa: E402
-from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import snapshot_host  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import snapshot_host  # noqa: E402
 
 INVENTORY = REPO / "inventories" / "real-pods"
 PORTS = {"apiserver": 38443, "etcd_client": 38379, "etcd_peer": 38380}

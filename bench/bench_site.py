@@ -33,7 +33,7 @@ from bench_deploy import REPO, log, machine
 
 sys.path[:0] = [str(REPO / ".collections")]
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import site_lab  # noqa: E402
-from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import snapshot_host  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import snapshot_host  # noqa: E402
 
 
 def step(what: str, result) -> None:

@@ -66,7 +66,7 @@ def render_example(path: str) -> list[dict]:
 
 
 def render_batch_example(path: str) -> list[dict]:
-    from ansible_collections.kuberos.platform.plugins.module_utils import batch_runner
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import batch_runner
 
     inventory = site_inventory(path)
     with open(os.path.join(ROOT, path), encoding="utf-8") as handle:

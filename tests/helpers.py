@@ -60,8 +60,8 @@ def venv_tool(name: str) -> str:
 @functools.cache
 def inventory_raw(path: str = "inventories/local") -> dict:
     """Read an inventory with Ansible's own inventory command, then the core (as the simulator does)."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.ansible_inventory import read_inventory
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.ansible_inventory import read_inventory
 
     raw = read_inventory(os.path.join(ROOT, path))
     load_inventory(raw, source=path)

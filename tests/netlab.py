@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import pytest
 from sshlab import run
 
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import PRIVATE_SHM, ros_environment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.ros_wheels import PRIVATE_SHM, ros_environment
 
 ROS_PROGRAMS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "integration", "ros")
 TALKER, LISTENER = os.path.join(ROS_PROGRAMS, "talker.py"), os.path.join(ROS_PROGRAMS, "listener.py")

@@ -59,13 +59,16 @@ class RealCluster(Cluster):
         return self
 
     def plane(self):
-        from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane, Ports
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_control_plane import (
+            LocalControlPlane,
+            Ports,
+        )
 
         return LocalControlPlane(self.state_dir, {}, Ports(**self.ports))
 
     def nets(self) -> dict:
         """Node name -> its NodeNet (network namespace, addresses), as the running tier's state says."""
-        from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import RealNodes
 
         return RealNodes.from_state(self.plane(), {}).nets
 
@@ -597,7 +600,7 @@ def cut_off_robot(real, namespace: str, placed: dict, robot: str, control_namesp
     ``during_result``)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import RealNodes
 
     core = real.core
     nodes = RealNodes.from_state(real.plane(), {})

@@ -169,9 +169,9 @@ import time
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils import background_process
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import background_process
 
 ENTRY = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller"
 STARTED_LINE = "controller started"

@@ -139,8 +139,12 @@ import shutil
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane, Ports
-from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodeError, RealNodes, host_address
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_control_plane import LocalControlPlane, Ports
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import (
+    RealNodeError,
+    RealNodes,
+    host_address,
+)
 
 
 def main():

@@ -98,47 +98,39 @@ unavailable:
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
-    KUBECONFIG_ARG,
-    api_clients,
-    explain,
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import DEPLOYMENT, MODULE
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file, name_clash_problems
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import (
     namespace_names,
     node_allocations,
     previous_placement,
     unavailable_nodes,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, SpecError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import DEPLOYMENT, MODULE
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file, name_clash_problems
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG, Kube, api_clients
 
-# The kinds of object a module's names are given to (naming.module_object_names), and how to list them.
-NAMED_KINDS = (("Deployment", "apps", "list_namespaced_deployment"), ("ConfigMap", "core", "list_namespaced_config_map"))
+# The kinds of object a module's names are given to (naming.module_object_names).
+NAMED_KINDS = ("Deployment", "ConfigMap")
 
 
 def live_names(clients, namespaces) -> list[dict]:
     """Every Deployment and ConfigMap of ``namespaces`` with the deployment and module that own it ('' when none)."""
-    from kubernetes.client.exceptions import ApiException
-
+    kube = Kube(clients)
     found = []
     for namespace in sorted(set(namespaces)):
-        for kind, api, method in NAMED_KINDS:
-            try:
-                items = getattr(clients[api], method)(namespace).items
-            except ApiException as exc:
-                if exc.status == 404:
-                    continue
-                raise
-            for item in items:
-                labels = item.metadata.labels or {}
+        for kind in NAMED_KINDS:
+            for item in kube.list(kind, namespace):
+                labels = item["metadata"].get("labels") or {}
                 found.append(
                     {
                         "kind": kind,
                         "namespace": namespace,
-                        "name": item.metadata.name,
+                        "name": item["metadata"]["name"],
                         "deployment": labels.get(DEPLOYMENT, ""),
                         "module": labels.get(MODULE, ""),
                     }
@@ -184,10 +176,8 @@ def main():
         wanted = list(inventory.nodes) if inventory is not None else []
         unavailable = unavailable_nodes(clients, wanted)
         previous = previous_placement(clients, module.params["previous_of"])
-    except KuberosError as exc:
-        module.fail_json(msg=str(exc))
-    except Exception as exc:  # connection and configuration problems: one clear line, no traceback
-        module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
+    except Exception as exc:  # a KubeROS error, or the cluster's: one clear line, no traceback
+        fail(module, exc, module.params["kubeconfig"])
     module.exit_json(changed=False, allocated=allocated, namespaces=namespaces, unavailable=unavailable, previous=previous)
 
 

@@ -130,7 +130,8 @@ from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reference_inventory import HEADER, import_files
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
 
 ARGUMENT_SPEC = dict(
     cluster_inventory=dict(type="path", required=True),
@@ -144,7 +145,7 @@ ARGUMENT_SPEC = dict(
 )
 
 
-class DestError(Exception):
+class DestError(KuberosError):
     """O(dest) cannot be read or may not be replaced."""
 
 
@@ -215,8 +216,8 @@ def main():
     require_packages(module, ["PyYAML"])
     try:
         module.exit_json(**run(module))
-    except (KuberosError, DestError) as exc:
-        module.fail_json(msg=str(exc))
+    except KuberosError as exc:  # the reference files', or O(dest) that may not be replaced
+        fail(module, exc)
     except OSError as exc:
         module.fail_json(msg=f"cannot write {module.params['dest']}: {exc.strerror or exc}")
 

@@ -170,9 +170,10 @@ written:
 
 from ansible.module_utils.basic import AnsibleModule, missing_required_lib
 
-from ansible_collections.kuberos.platform.plugins.module_utils import robot_registration
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
-from ansible_collections.kuberos.platform.plugins.module_utils.robot_registration import (
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site import robot_registration
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.robot_registration import (
     DEFAULT_DEVICE_GLOBS,
     Registration,
     RegistrationError,
@@ -231,7 +232,7 @@ def main():
     try:
         result = robot_registration.register(registration(module.params), check_mode=module.check_mode)
     except RegistrationError as error:
-        module.fail_json(msg=str(error))
+        fail(module, error)
     diff = result.pop("diff")
     if module._diff:
         result["diff"] = diff

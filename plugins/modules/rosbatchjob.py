@@ -120,16 +120,15 @@ removed:
 """
 
 import os
-import textwrap
 import time
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.batch_runner import remove_batch, run_batch
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import api_clients, explain
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
-from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.batch_runner import remove_batch, run_batch
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import api_clients
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),
@@ -167,17 +166,12 @@ def main():
             result = {"changed": False} if module.check_mode else remove_batch(api_clients(params["kubeconfig"]), params)
         else:
             result = run_batch(lambda: api_clients(params["kubeconfig"]), params, module.check_mode, report)
-    except KuberosError as exc:
-        headline, _sep, rest = str(exc).partition("\n")
-        module.fail_json(
-            msg=headline.rstrip(":"), progress=progress, **({"problems": textwrap.dedent(rest) + "\n"} if rest else {})
-        )
-    except RenderDirError as exc:
-        module.fail_json(msg=str(exc), progress=progress)
+    except KuberosError as exc:  # the job's, the inventory's, the results directory's
+        fail(module, exc, progress=progress)
     except OSError as exc:
         module.fail_json(msg=f"cannot write {params['dest']}: {exc}", progress=progress)
-    except Exception as exc:  # connection and API problems: one clear line, no traceback
-        module.fail_json(msg=explain(exc, params["kubeconfig"] or "(no kubeconfig)"), progress=progress)
+    except Exception as exc:  # the cluster's: one clear line, no traceback
+        fail(module, exc, params["kubeconfig"], progress=progress)
     result["progress"] = progress
     module.exit_json(**result)
 

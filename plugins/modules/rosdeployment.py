@@ -186,16 +186,15 @@ timings:
   type: dict
 """
 
-import textwrap
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import api_clients, explain
-from ansible_collections.kuberos.platform.plugins.module_utils.deploy_pass import DeployPass
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
-from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
-from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.deploy_pass import DeployPass
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import api_clients
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),
@@ -228,7 +227,7 @@ def _batch_file(path: str) -> bool:
 
 def run_batch_job(module: AnsibleModule) -> dict:
     """A batch job given to the deploy: run it (or, with apply false, render it) as playbooks/batch.yml does."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.batch_runner import remove_batch, run_batch
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.batch_runner import remove_batch, run_batch
 
     params = {**module.params, "poll": 2.0}
     if params["state"] == "absent":
@@ -312,14 +311,8 @@ def main():
     require_packages(module)
     try:
         module.exit_json(**run(module))
-    except KuberosError as exc:
-        # The headline as msg (Ansible repeats msg in its error line), the problems once, one line each, below it.
-        headline, _sep, rest = str(exc).partition("\n")
-        module.fail_json(msg=headline.rstrip(":"), **({"problems": textwrap.dedent(rest) + "\n"} if rest else {}))
-    except RenderDirError as exc:
-        module.fail_json(msg=str(exc))
-    except Exception as exc:  # connection and API problems: one clear line, no traceback
-        module.fail_json(msg=explain(exc, module.params["kubeconfig"] or "(no kubeconfig)"))
+    except Exception as exc:  # a KubeROS error (its headline, its problems below), or the cluster's: no traceback
+        fail(module, exc, module.params["kubeconfig"])
 
 
 if __name__ == "__main__":

@@ -104,88 +104,54 @@ objects:
   type: dict
 """
 
-import json
 from concurrent.futures import ThreadPoolExecutor
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
-    KUBECONFIG_ARG,
-    api_clients,
-    explain,
-    managed_objects,
-    stale_objects,
-)
-from ansible_collections.kuberos.platform.plugins.module_utils.deploy_pass import APPLY_TYPE, REFUSALS, refusal
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
     change_summary,
     object_diff,
-    object_key,
-    object_label,
     record_changes,
     summary_text,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace, object_key, object_label
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name, record_placement
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import managed_objects, stale_objects
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import (
+    KUBECONFIG_ARG,
+    REFUSALS,
+    Kube,
+    api_clients,
+    refusal,
+    status_of,
+)
 
 WORKERS = 4  # reads and dry runs side by side; the API server does the work
-# kind -> (api, read, server-side apply) of the typed clients; namespaced unless the kind is Namespace.
-CALLS = {
-    "Namespace": ("core", "read_namespace", "patch_namespace"),
-    "ConfigMap": ("core", "read_namespaced_config_map", "patch_namespaced_config_map"),
-    "Service": ("core", "read_namespaced_service", "patch_namespaced_service"),
-    "Secret": ("core", "read_namespaced_secret", "patch_namespaced_secret"),
-    "Deployment": ("apps", "read_namespaced_deployment", "patch_namespaced_deployment"),
-    "NetworkPolicy": ("networking", "read_namespaced_network_policy", "patch_namespaced_network_policy"),
-}
 
 
 class Live:
-    """Reads and server-side dry runs through the typed clients, answers as plain JSON (what the server sent)."""
+    """Reads and server-side dry runs (the access layer's), and what the API server refused."""
 
     def __init__(self, clients, field_manager: str):
-        self.clients = clients
-        self.field_manager = field_manager
+        self.kube = Kube(clients, field_manager)
         self.refused: dict[str, str] = {}  # object -> what the API server said, when its dry run was refused
 
-    def _call(self, obj: dict, which: int, *args, **kwargs):
-        kind = obj["kind"]
-        if kind not in CALLS:
-            raise KuberosError(f"the diff does not know how to read a {kind} ({object_label(obj)})")
-        api, *methods = CALLS[kind]
-        meta = obj["metadata"]
-        where = (meta["name"],) if kind == "Namespace" else (meta["name"], meta["namespace"])
-        response = getattr(self.clients[api], methods[which])(*where, *args, _preload_content=False, **kwargs)
-        return json.loads(response.data)
-
     def read(self, obj: dict) -> dict | None:
-        from kubernetes.client.exceptions import ApiException
-
-        try:
-            return self._call(obj, 0)
-        except ApiException as exc:
-            if exc.status == 404:
-                return None
-            raise
-
-    def dry_run_apply(self, obj: dict) -> dict:
-        body = json.loads(json.dumps(obj))
-        return self._call(obj, 1, body, field_manager=self.field_manager, force=True, dry_run="All", _content_type=APPLY_TYPE)
+        kind, namespace, name = object_key(obj)
+        return self.kube.get(kind, name, namespace)
 
     def pair(self, obj: dict) -> tuple[dict | None, dict]:
         """(live, what the cluster would hold): the dry run's result when the object exists, else the object as rendered."""
-        from kubernetes.client.exceptions import ApiException
-
         live = self.read(obj)
         if live is None:
             return None, obj
         try:
-            return live, self.dry_run_apply(obj)
-        except ApiException as exc:
-            if exc.status not in REFUSALS:
+            return live, self.kube.apply(obj, dry_run=True)
+        except Exception as exc:
+            if status_of(exc) not in REFUSALS:
                 raise
             # Said in the summary; a deploy (the rosdeployment module) stops at its own dry run, nothing applied.
             self.refused[object_label(obj)] = refusal(exc)
@@ -278,10 +244,8 @@ def main():
     require_packages(module)
     try:
         module.exit_json(**run(module))
-    except KuberosError as exc:
-        module.fail_json(msg=str(exc))
-    except Exception as exc:  # connection and API problems: one clear line, no traceback
-        module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
+    except Exception as exc:  # a KubeROS error, or the cluster's: one clear line, no traceback
+        fail(module, exc, module.params["kubeconfig"])
 
 
 if __name__ == "__main__":

@@ -63,14 +63,11 @@ import time
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
-    KUBECONFIG_ARG,
-    api_clients,
-    explain,
-    running_modules,
-)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import compare, deploy_table
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import running_modules
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG, api_clients
 
 
 def main():
@@ -95,8 +92,8 @@ def main():
             if ready or time.monotonic() >= deadline:
                 break
             time.sleep(1)
-    except Exception as exc:  # connection and configuration problems: one clear line, no traceback
-        module.fail_json(msg=explain(exc, module.params["kubeconfig"]))
+    except Exception as exc:  # a KubeROS error, or the cluster's: one clear line, no traceback
+        fail(module, exc, module.params["kubeconfig"])
     result = {"changed": False, "rows": rows, "table": deploy_table(rows), "ready": ready}
     if module.params["wait_timeout"] and not ready:
         waiting = [f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" for r in rows if not r["ready"]]

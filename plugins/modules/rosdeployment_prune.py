@@ -62,17 +62,16 @@ removed:
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
-    KUBECONFIG_ARG,
-    api_clients,
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import COMPONENT
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import (
     delete_object,
-    explain,
     managed_objects,
     stale_objects,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG, api_clients
 
 
 def main():
@@ -105,8 +104,8 @@ def main():
                 removed.append(f"{obj['kind']}/{namespace}/{obj['metadata']['name']}")
                 if not module.check_mode:
                     delete_object(clients, obj)
-    except Exception as exc:  # connection and configuration problems: one clear line, no traceback
-        module.fail_json(msg=explain(exc, module.params["kubeconfig"]), removed=removed)
+    except Exception as exc:  # a KubeROS error, or the cluster's: one clear line, no traceback
+        fail(module, exc, module.params["kubeconfig"], removed=removed)
     result = {"changed": bool(removed), "removed": removed}
     if module._diff:
         result["diff"] = {"before": "\n".join(removed) + ("\n" if removed else ""), "after": ""}

@@ -57,8 +57,9 @@ deployments:
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, ClusterUnreachable, explain
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG, ClusterUnreachable
 
 ARGUMENT_SPEC = dict(
     **KUBECONFIG_ARG,
@@ -88,8 +89,8 @@ def main():
         controller.run_once()
     except ImportError as exc:
         module.fail_json(msg=f"the kubernetes Python client is required: {exc}")
-    except Exception as exc:  # unreachable cluster, refused request: one clear line
-        module.fail_json(msg=explain(exc, params["kubeconfig"]))
+    except Exception as exc:  # a KubeROS error, or the cluster's: one clear line, no traceback
+        fail(module, exc, params["kubeconfig"])
     changed = any(d["moves"] or d["applied"] for d in controller.last_pass)
     module.exit_json(changed=changed, deployments=controller.last_pass)
 

@@ -130,10 +130,10 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_specs
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
-from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
-from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
-from ansible_collections.kuberos.platform.plugins.module_utils.render_pass import render_to_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_pass import render_to_dir
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),
@@ -165,8 +165,8 @@ def main():
     require_packages(module)
     try:
         module.exit_json(**run(module))
-    except (KuberosError, RenderDirError) as exc:
-        module.fail_json(msg=str(exc))
+    except KuberosError as exc:  # the spec's, the inventory's, the render directory's
+        fail(module, exc)
     except OSError as exc:
         module.fail_json(msg=f"cannot write the render directory: {exc}")
 

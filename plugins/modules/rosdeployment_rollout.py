@@ -196,11 +196,12 @@ rolled_back_robots:
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import KUBECONFIG_ARG, api_clients, explain
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
-from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
-from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
-from ansible_collections.kuberos.platform.plugins.module_utils.rollout_runner import RolloutBusy, execute
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.rollout_runner import execute
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG, api_clients
 
 ARGUMENT_SPEC = dict(
     **KUBECONFIG_ARG,
@@ -288,10 +289,10 @@ def main():
     progress = []
     try:
         result = execute(api_clients(module.params["kubeconfig"]), module.params, module.check_mode, progress.append)
-    except (KuberosError, RolloutBusy) as exc:
-        module.fail_json(msg=str(exc))
-    except Exception as exc:  # connection and API problems: one clear line, no traceback
-        module.fail_json(msg=explain(exc, module.params["kubeconfig"]), progress=progress)
+    except KuberosError as exc:  # the spec's, a rollout in progress
+        fail(module, exc)
+    except Exception as exc:  # the cluster's: one clear line, no traceback
+        fail(module, exc, module.params["kubeconfig"], progress=progress)
     result["progress"] = progress
     result["summary"] = summary_of(result, module.check_mode)
     if module._diff:

@@ -33,8 +33,8 @@ import yaml
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import capacity, naming, scaling
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import render_deployment
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import parse_record
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scaling import gauge_value
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import Scheduler
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.signals import gauge_value
 
 from .runtime.runtime import metrics_file
 

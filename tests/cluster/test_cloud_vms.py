@@ -22,8 +22,8 @@ import pytest
 import yaml
 from helpers import ROOT, MotoServer, playbook
 
-from ansible_collections.kuberos.platform.plugins.module_utils.ansible_inventory import read_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.ansible_inventory import read_inventory
 
 ACCESS_KEY = "AKIAKUBEROSTEST4EXAMPLE"
 SECRET_KEY = f"secret-{uuid.uuid4().hex}"

@@ -40,7 +40,7 @@ def test_starting_twice_changes_nothing(cluster):
 
 
 def test_anonymous_access_is_refused(cluster):
-    from ansible_collections.kuberos.platform.plugins.module_utils.local_control_plane import LocalControlPlane
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_control_plane import LocalControlPlane
 
     plane = LocalControlPlane(cluster.state_dir, {})
     context = ssl.create_default_context(cafile=plane.path("pki", "ca.crt"))

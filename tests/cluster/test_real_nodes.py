@@ -60,7 +60,7 @@ from real_tier import (
 
 sys.path.insert(0, os.path.join(ROOT, ".collections"))
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
-from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import RealNodes, snapshot_host
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import RealNodes, snapshot_host
 
 pytestmark = [pytest.mark.cluster, pytest.mark.real_nodes]
 
@@ -847,7 +847,7 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
     server through the `kubernetes` Service), one holding the Lease; the dashboard's /metrics through the Service
     over TLS answers a token the API server vouches for and refuses none; the leader's pod killed, the other takes
     the Lease within the lease duration and a bit."""
-    from ansible_collections.kuberos.platform.plugins.module_utils import pki
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site import pki
 
     name = "kuberos-controller.kuberos-system.svc"
     ca_cert, ca_key = pki.new_ca("dashboard test CA", days=1)

@@ -321,7 +321,7 @@ def test_a_ros_probe_that_does_not_find_the_waves_nodes_fails_the_gate(life, tmp
     probe = [
         "env", f"ROS_DISCOVERY_SERVER=127.0.0.1:{_free_port()}", f"ROS_LOG_DIR={tmp_path}", "ROS_DOMAIN_ID=23",
         f"PYTHONPATH={os.path.join(ROOT, '.collections')}", os.path.join(sys.prefix, "bin", "python3"),
-        "-m", "ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe",
+        "-m", "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.ros_graph_probe",
         "--expect", "/{robot}/motion_planner", "--timeout", "2",
     ]  # fmt: skip
     images = life.images()

@@ -64,7 +64,7 @@ from netlab import Lab, Process, Processes, open_lab
 from sshlab import LabError, run
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import cyclonedds
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_environment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.ros_wheels import ros_environment
 
 pytestmark = pytest.mark.ros
 

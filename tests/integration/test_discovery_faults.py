@@ -15,7 +15,7 @@ import discovery_faults as faults
 import pytest
 from netlab import Processes, open_lab
 
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_problem
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.ros_wheels import ros_problem
 
 pytestmark = pytest.mark.ros
 

@@ -32,8 +32,8 @@ from helpers import ROOT
 # test_bridge.py and bench/bench_bridge.py import Lab, Process, Processes and open_lab from here
 from netlab import STARTUP_TIMEOUT, Lab, Process, Processes, open_lab
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, naming, scheduler, spec
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_problem
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels, manifests, naming, scheduler, spec
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.ros_wheels import ros_problem
 
 pytestmark = pytest.mark.ros
 
@@ -41,7 +41,7 @@ DISCOVERY_TIMEOUT = 30.0  # a listener receiving its first message
 NEGATIVE_WINDOW = 8.0  # simple discovery gets this long to fail; with multicast it succeeds in under a second
 
 
-# --- ROS 2 from PyPI wheels (plugins/module_utils/ros_wheels.py) ------------------------------------------
+# --- ROS 2 from PyPI wheels (plugins/module_utils/kuberos_lab/ros_wheels.py) ------------------------------------------
 
 
 def require_ros() -> None:
@@ -80,7 +80,7 @@ def rendered(local_inventory) -> Rendered:
     by_component: dict[str, list[dict]] = {}
     for obj in objects:
         if obj["kind"] == "Deployment":
-            by_component.setdefault(obj["metadata"]["labels"][manifests.COMPONENT], []).append(obj)
+            by_component.setdefault(obj["metadata"]["labels"][labels.COMPONENT], []).append(obj)
     servers = {
         d["metadata"]["name"]: d["spec"]["template"]["spec"]["containers"][0]["args"] for d in by_component["discovery-server"]
     }

@@ -20,10 +20,10 @@ import threading
 import pytest
 from oci import free_port, write_archive
 
-from ansible_collections.kuberos.platform.plugins.module_utils import pki
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import image_digests
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import registry as lab_registry
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site import pki
 
 pytestmark = pytest.mark.skipif(
     not shutil.which("docker-registry") and not os.environ.get("CI"),

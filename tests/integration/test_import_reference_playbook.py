@@ -12,8 +12,8 @@ import subprocess
 import pytest
 from helpers import ROOT, venv_tool
 
-from ansible_collections.kuberos.platform.plugins.module_utils.ansible_inventory import read_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.ansible_inventory import read_inventory
 
 pytestmark = pytest.mark.playbook
 

@@ -1,4 +1,4 @@
-"""The local container images (plugins/module_utils/local_images.py), built for real and run in a private containerd.
+"""The local container images (plugins/module_utils/kuberos_lab/local_images.py), built for real and run in a private containerd.
 
 The images are built into the real cache (``$KUBEROS_CACHE_DIR`` or ``~/.cache/kuberos``): the first run
 builds the ROS image's base (debootstrap and the wheels: a few minutes), later runs reuse it and take about a
@@ -33,7 +33,7 @@ import time
 import pytest
 from helpers import ROOT
 
-from ansible_collections.kuberos.platform.plugins.module_utils import local_images
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images
 
 # No `integration` marker exists; the images are the real-node tier's (pyproject.toml: "pods from locally built images").
 pytestmark = pytest.mark.real_nodes

@@ -1,4 +1,4 @@
-"""The rollout gate's ROS-level check (plugins/module_utils/ros_graph_probe.py) with real rclpy and Fast DDS.
+"""The rollout gate's ROS-level check (plugins/module_utils/kuberos_deploy/ros_graph_probe.py) with real rclpy and Fast DDS.
 
 A fast-discovery-server and a module's node (``/fetch_1/motion_planner``) run as processes on loopback with
 ``ROS_DISCOVERY_SERVER`` pointing at the server, as rendered modules have it; the probe, a third process, finds the
@@ -15,10 +15,14 @@ import sys
 import pytest
 from helpers import ROOT
 
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe import expected_nodes, graph_names, holders
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_environment, ros_problem
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.ros_graph_probe import (
+    expected_nodes,
+    graph_names,
+    holders,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.ros_wheels import ros_environment, ros_problem
 
-PROBE = "ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe"
+PROBE = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.ros_graph_probe"
 NODE = os.path.join(ROOT, "tests", "integration", "ros", "named_node.py")
 LOCK_EXAMPLE = os.path.join(ROOT, "examples", "ros", "update_lock.py")
 

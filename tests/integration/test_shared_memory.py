@@ -32,8 +32,12 @@ from helpers import ROOT
 from netlab import Process, spawn
 from sshlab import run
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, manifests, naming, scheduler, spec
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import PRIVATE_SHM, ros_environment, ros_problem
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import fastdds, labels, manifests, naming, scheduler, spec
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.ros_wheels import (
+    PRIVATE_SHM,
+    ros_environment,
+    ros_problem,
+)
 
 pytestmark = pytest.mark.ros
 
@@ -94,8 +98,8 @@ def rendered(local_inventory) -> Rendered:
     by_component: dict[str, list[dict]] = {}
     for obj in objects:
         if obj["kind"] == "Deployment":
-            by_component.setdefault(obj["metadata"]["labels"][manifests.COMPONENT], []).append(obj)
-    (server,) = [d for d in by_component["discovery-server"] if d["metadata"]["labels"][manifests.DISCOVERY_ID] == "0"]
+            by_component.setdefault(obj["metadata"]["labels"][labels.COMPONENT], []).append(obj)
+    (server,) = [d for d in by_component["discovery-server"] if d["metadata"]["labels"][labels.DISCOVERY_ID] == "0"]
     server_container = server["spec"]["template"]["spec"]["containers"][0]
     command = server_container["args"]  # the image's entrypoint runs it: here, PATH
     link = {naming.service_host_variable(server["metadata"]["name"]): SERVER}  # its Service's address: its own here

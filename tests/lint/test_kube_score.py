@@ -26,15 +26,15 @@ import pytest
 import yaml
 from helpers import ROOT, built_program
 
-from ansible_collections.kuberos.platform.plugins.module_utils import batch_runner
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import batch
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, device_options
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.service import load_and_place
-from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS
-from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import apply_plan
-from ansible_collections.kuberos.platform.plugins.module_utils.render_pass import render_to_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import batch_runner
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_dir import apply_plan
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_pass import render_to_dir
 
 pytestmark = pytest.mark.lint
 

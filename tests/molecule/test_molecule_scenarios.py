@@ -25,7 +25,7 @@ from helpers import ROOT, VENV_BIN
 from sshlab import missing_requirements
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines
-from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import snapshot_host
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import snapshot_host
 
 pytestmark = pytest.mark.molecule
 

@@ -308,7 +308,7 @@ def test_the_burst_site_holds_two_planners_on_its_edge_and_lets_the_planner_into
 def test_the_planners_queue_gauge_is_a_windowed_mean_the_scaler_can_read():
     from kuberos_pnp.planner import GAUGE, Load
 
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.signals import gauge_value
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scaling import gauge_value
 
     load = Load(window=10.0)
     for tenth in range(200):  # 20 s: busy with 2 requests for the first 9 s, then idle

@@ -40,11 +40,11 @@ from netlab import CHATTER as TOPIC  # noqa: E402
 from netlab import LISTENER, TALKER  # noqa: E402
 from test_discovery_netns import require_ros  # noqa: E402
 
-from ansible_collections.kuberos.platform.plugins.module_utils import render_dir  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests, service  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import Node, load_inventory  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import render_dir  # noqa: E402
 
 pytestmark = pytest.mark.sim
 

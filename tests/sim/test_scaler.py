@@ -29,10 +29,10 @@ from kuberos_sim.runtime import Runtime, environment_problem  # noqa: E402
 from kuberos_sim.scaler import SimScaler  # noqa: E402
 from test_runtime import render  # noqa: E402
 
-from ansible_collections.kuberos.platform.plugins.module_utils.ansible_inventory import read_inventory  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import service  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.ansible_inventory import read_inventory  # noqa: E402
 
 pytestmark = pytest.mark.sim
 

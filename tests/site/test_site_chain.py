@@ -34,7 +34,7 @@ from helpers import ROOT
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines as lab_machines
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import site_lab
-from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import snapshot_host
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import snapshot_host
 
 pytestmark = pytest.mark.site
 

@@ -11,10 +11,10 @@ import kubernetes_validate
 import pytest
 from helpers import ROOT
 
-from ansible_collections.kuberos.platform.plugins.module_utils import batch_runner
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import batch
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import file_reader
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import batch_runner
 
 NAV = os.path.join(ROOT, "examples", "batch", "nav-grid.yml")
 GRASP = os.path.join(ROOT, "examples", "reference", "grid.batchjob.yml")

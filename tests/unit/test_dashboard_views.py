@@ -17,7 +17,8 @@ from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import INSTANCE, MANAGED_BY, RenderOptions
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import INSTANCE, MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import (
     ClusterView,
     NodeView,
@@ -39,7 +40,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
     page,
     select,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, object_key
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, store_key
 
 SPEC = "examples/pick-and-place.yml"
 NAMESPACE = "kuberos-test-fleet"
@@ -340,14 +341,14 @@ class HandFed:
         self.put(self.nodes, *nodes)
         self.put(self.pods, *pods)
         self.put(self.records, configmap)
-        self.core = None
+        self.kube = None
         self.identity, self.leading, self.elector, self.passes, self.moves = "hand-fed", True, None, 0, 0
 
     @staticmethod
     def put(store: Store, *objects: dict) -> None:
         with store.lock:
             for obj in objects:
-                store.items[object_key(obj)] = obj
+                store.items[store_key(obj)] = obj
             store.generation += 1
 
 
@@ -418,7 +419,7 @@ def test_a_change_reaches_an_open_stream_within_the_update_window(served, deploy
                     gone = [p for p in pods if p["metadata"]["labels"][INSTANCE] == target.name]
                     with controller.pods.lock:
                         for pod in gone:
-                            controller.pods.items.pop(object_key(pod))
+                            controller.pods.items.pop(store_key(pod))
                         controller.pods.generation += 1
                 else:
                     writer.close()
@@ -453,8 +454,8 @@ def test_with_a_certificate_it_serves_https_only(deployed, tmp_path):
     HTTPS with the certificate, verified against its CA; a plain-HTTP request gets no page."""
     import ssl
 
-    from ansible_collections.kuberos.platform.plugins.module_utils import pki
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.cli import parse_args
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site import pki
 
     ca_cert, ca_key = pki.new_ca("kuberos-test-ca", days=1)
     cert, key = pki.issue(ca_cert, ca_key, "kuberos-controller", usage=pki.SERVER, days=1, alt_names=["127.0.0.1"])

@@ -634,7 +634,7 @@ def test_deploy_playbook_refuses_an_inventory_value_with_a_control_character(tmp
 
 @pytest.mark.parametrize("option", ["discovery_image", "bridge_image"])
 def test_the_images_given_as_render_options_are_image_references_too(option):
-    from ansible_collections.kuberos.platform.plugins.module_utils.render_args import RENDER_ARGS, render_options
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS, render_options
 
     params = {name: spec["default"] for name, spec in RENDER_ARGS.items()}
     assert render_options(params).discovery_image == params["discovery_image"]

@@ -98,7 +98,7 @@ def _stuck_pod(reason, message):
 def test_a_backing_off_container_takes_its_cause_from_the_event_that_names_it_not_the_generic_ones():
     """The kubelet records "Error: ErrImagePull" and "Error: ImagePullBackOff" as Failed events too, often later in
     the same second than the one that says why; the cause comes from "Failed to pull image ...", whatever the order."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import _image_problem
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import _image_problem
 
     events = [
         {"message": f'Failed to pull image "{IMAGE}": {PREFIX}401 Unauthorized', "lastTimestamp": "2026-11-27T09:00:01Z"},
@@ -117,7 +117,7 @@ def test_a_backing_off_container_takes_its_cause_from_the_event_that_names_it_no
 def test_a_failed_pull_is_final_once_the_kubelet_has_failed_it_twice(counts, final):
     """Two tries (one event seen twice, or two events with different words) make the problem final; one does not,
     even while the container still shows that first failure during the second pull."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import _image_problem
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import _image_problem
 
     events = [
         {"message": f'Failed to pull image "{IMAGE}": {PREFIX}attempt {n}: 401 Unauthorized', "count": count,
@@ -129,7 +129,7 @@ def test_a_failed_pull_is_final_once_the_kubelet_has_failed_it_twice(counts, fin
 
 
 def test_an_image_the_kubelet_never_tries_again_is_final_at_once():
-    from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import _image_problem
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import _image_problem
 
     never = _stuck_pod("ErrImageNeverPull", f'Container image "{IMAGE}" is not present with pull policy of Never')
     text, final = _image_problem({"core": _Events([])}, never)

@@ -64,7 +64,7 @@ def test_image_files_never_land_outside_the_image(tmp_path):
     """An absolute symlink in a base root (Debian's /etc/service -> runit's) resolves against this machine: refused."""
     import pytest
 
-    from ansible_collections.kuberos.platform.plugins.module_utils.local_images import ImageBuildError
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_images import ImageBuildError
 
     rootfs = tmp_path / "rootfs"
     (rootfs / "etc" / "runit").mkdir(parents=True)

@@ -22,7 +22,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file, parse_rosdeployment
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table
-from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import apply_plan, plan_render_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_dir import apply_plan, plan_render_dir
 
 KUBERNETES_VERSION = "1.34"
 GOLDEN = os.path.join(os.path.dirname(__file__), "golden")

@@ -35,7 +35,7 @@ PROBE = textwrap.dedent(
             failed[name] = repr(exc)
 
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import third_party, validation
-    from ansible_collections.kuberos.platform.plugins.module_utils.python_packages import require_packages
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
 
     try:
         validation.strict_validator({})

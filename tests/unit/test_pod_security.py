@@ -204,8 +204,8 @@ def _deployment(name: str, context: dict) -> dict:
 def test_a_deploy_keeps_the_level_the_other_deployments_of_its_fleet_need():
     """Another RosDeployment of the fleet (from another file) runs a privileged module: labelling the namespace for
     this file's pods alone would refuse that module's next pod. Objects this pass renders or removes do not count."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.deploy_pass import keep_pod_security_levels
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import object_key
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import object_key
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.deploy_pass import keep_pod_security_levels
 
     ours = _deployment("ours", pod_security.container_security_context())
     others = _deployment("theirs", {"privileged": True})

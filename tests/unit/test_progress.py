@@ -16,7 +16,7 @@ import pytest
 import yaml
 from helpers import ROOT
 
-from ansible_collections.kuberos.platform.plugins.module_utils import local_images
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images
 
 PROGRESS = os.path.join(ROOT, "roles", "local_cluster", "files", "progress.sh")
 BUILD = os.path.join(ROOT, "roles", "local_cluster", "files", "build-binaries.sh")

@@ -7,7 +7,6 @@ import os
 import pytest
 from helpers import inventory_raw
 
-from ansible_collections.kuberos.platform.plugins.module_utils import delay_fabric
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
@@ -17,6 +16,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.c
     real_nodes,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.link_delays import rtt_ms
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import delay_fabric
 
 
 def test_the_real_pods_site_is_four_real_nodes_with_labels_taints_and_delays():
@@ -80,7 +80,7 @@ def test_the_fabric_routes_a_network_behind_a_host_with_that_hosts_delay():
 
 
 def test_a_state_folder_too_deep_for_containerds_socket_is_named_before_anything_starts():
-    from ansible_collections.kuberos.platform.plugins.module_utils.real_nodes import SUN_PATH_MAX, RealNodes
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import SUN_PATH_MAX, RealNodes
 
     class Plane:
         def __init__(self, root):

@@ -58,20 +58,27 @@ MODULE_UTILS = os.path.join(ROOT, "plugins", "module_utils")
 PREFIX = "ansible_collections.kuberos.platform.plugins."
 CORE = "kuberos"  # the pure deploy core
 CLUSTER = "kuberos_cluster"  # the pure cluster-setup models
+SITE = "kuberos_site"  # site helpers: the PKI, robot registration, the Ansible inventory read back
+DEPLOY = "kuberos_deploy"  # the deploy's I/O: render directories, the cluster's state, deploy, rollout, batch
+KUBE = "kuberos_kube"  # the one Kubernetes access layer: clients, the kind table, get/list/apply/delete, errors
+ANSIBLE = "kuberos_ansible"  # what the collection's modules share: their Python packages checked, errors as results
 CONTROLLER = "kuberos_controller"  # the controller program
 BRIDGE = "kuberos_bridge"  # the bridge program
-LAB = "kuberos_lab"  # the local lab (the registry); nothing outside the lab's own I/O may import it
-DEPLOY = "kuberos_deploy"  # the deploy's I/O beyond Kubernetes (registries)
-# Which packages of module_utils each may import (besides itself); I/O helpers are module_utils' loose files.
-# The lab checks what deploy renders with the core's own models (site_lab: the fleets' NetworkPolicies, pod security).
+LAB = "kuberos_lab"  # the local lab: control plane, real nodes, images, delay fabric, registry, lab machines
+# Which packages of module_utils each may import (besides itself). Nothing but the lab's own modules, the lab's
+# two modules (local_cluster, controller_process), the simulator, the benchmarks and the tests import the lab.
 MAY_IMPORT = {
     CORE: set(),
     CLUSTER: {CORE},
-    CONTROLLER: {CORE, "io"},
-    BRIDGE: {"io"},
-    LAB: {CORE, DEPLOY, "io"},  # the lab's registry client builds on the deploy's registry API
-    DEPLOY: {CORE},
-}  # the bridge: pki.py
+    SITE: {CORE},
+    KUBE: {CORE},
+    ANSIBLE: {CORE, KUBE},
+    DEPLOY: {CORE, SITE, KUBE},  # bridge certificates come from the one PKI
+    CONTROLLER: {CORE, KUBE},
+    BRIDGE: {SITE},  # its certificates: the one PKI
+    LAB: {CORE, CLUSTER, DEPLOY, SITE, KUBE},  # the lab checks what deploy renders; its registry client builds on deploy's
+}
+LAB_ADAPTERS = ("plugins/modules/local_cluster.py", "plugins/modules/controller_process.py")
 PURE = (CORE, CLUSTER)
 IMPORT = re.compile(r"^\s*(?:from\s+(\S+)\s+import\s+(\([^)]*\)|[^\n]+)|import\s+(\S+))", re.M)
 
@@ -96,25 +103,71 @@ def _imports(text: str):
             yield match.group(1), [n for n in names if n and not n.startswith("#")]
 
 
-def _packages_of(module: str, names: list[str], importer_package: str) -> set:
-    """The module_utils packages an import reaches ("io" for the loose I/O helpers); empty outside module_utils."""
-    if module.startswith("."):
-        return {importer_package}
+def _packages_of(module: str, names: list[str]) -> set:
+    """The module_utils packages an absolute import reaches ("loose" for a file of module_utils' own)."""
     if not module.startswith(PREFIX + "module_utils"):
         return set()
     rest = module[len(PREFIX + "module_utils") :].lstrip(".").split(".")[0]
-    return {n if n in MAY_IMPORT else "io" for n in (names if not rest else [rest])}
+    return {n if n in MAY_IMPORT else "loose" for n in (names if not rest else [rest])}
+
+
+def _layout_problems(package: str, files) -> tuple[list[str], int]:
+    """What ``files`` ((path, text) of ``package``) import against the layout, and how many module_utils imports
+    the rule was applied to."""
+    found, seen = [], 0
+    for path, text in files:
+        for module, names in _imports(text):
+            if module.startswith("."):  # resolved against the importer's package, so that it cannot escape the rule
+                dots = len(module) - len(module.lstrip("."))
+                module = ".".join([PREFIX + "module_utils", *([package] if dots == 1 else []), module.lstrip(".")]).rstrip(".")
+            if module.startswith(PREFIX) and not module.startswith(PREFIX + "module_utils"):
+                found.append(f"{path}: imports {module} (plugins are adapters; module_utils never imports them)")
+            reached = _packages_of(module, names)
+            seen += bool(reached)
+            for other in reached - {package} - MAY_IMPORT[package]:
+                found.append(f"{path}: imports {module} ({other}; {package} may import {sorted(MAY_IMPORT[package])})")
+    return found, seen
+
+
+def test_module_utils_has_rooms_and_no_loose_files():
+    """Every file of module_utils lives in a named package that the layout rules on."""
+    entries = sorted(e for e in os.listdir(MODULE_UTILS) if e != "__pycache__")
+    loose = [e for e in entries if e.endswith(".py") and e != "__init__.py"]
+    unruled = [e for e in entries if os.path.isdir(os.path.join(MODULE_UTILS, e)) and e not in MAY_IMPORT]
+    assert (loose, unruled) == ([], [])
+    assert sorted(MAY_IMPORT) == sorted(e for e in entries if os.path.isdir(os.path.join(MODULE_UTILS, e)))
 
 
 @pytest.mark.parametrize("package", sorted(MAY_IMPORT))
 def test_packages_import_only_what_the_layout_allows(package):
+    found, seen = _layout_problems(package, _python_files("plugins", "module_utils", package))
+    assert found == []
+    assert seen > 0, f"no module_utils import seen in {package}: has the import prefix changed?"
+
+
+@pytest.mark.parametrize("package", sorted(MAY_IMPORT))
+def test_the_layout_check_refuses_a_planted_wrong_import(package):
+    """The rule can fail: an import of a package ``package`` may not reach is reported, also written relatively."""
+    forbidden = sorted(set(MAY_IMPORT) - MAY_IMPORT[package] - {package})[0]
+    planted = [
+        (f"plugins/module_utils/{package}/planted.py", f"from {PREFIX}module_utils.{forbidden}.x import y\n"),
+        (f"plugins/module_utils/{package}/planted2.py", f"from ..{forbidden} import y\n"),
+        (f"plugins/module_utils/{package}/allowed.py", "from . import y\n"),
+    ]
+    found, seen = _layout_problems(package, planted)
+    assert len(found) == 2 and all(forbidden in problem for problem in found), found
+    assert seen == 3
+
+
+def test_only_the_lab_and_its_adapters_import_the_lab():
     found = []
-    for path, text in _python_files("plugins", "module_utils", package):
+    sources = [*_python_files("plugins")]
+    for path, text in sources:
+        if path.startswith(f"plugins/module_utils/{LAB}/") or path in LAB_ADAPTERS:
+            continue
         for module, names in _imports(text):
-            if module.startswith(PREFIX) and not module.startswith(PREFIX + "module_utils"):
-                found.append(f"{path}: imports {module} (plugins are adapters; module_utils never imports them)")
-            for reached in _packages_of(module, names, package) - {package} - MAY_IMPORT[package]:
-                found.append(f"{path}: imports {module} ({reached}; {package} may import {sorted(MAY_IMPORT[package])})")
+            if LAB in _packages_of(module, names):
+                found.append(f"{path}: imports {module} (the lab is for the lab's own modules)")
     assert found == []
 
 
@@ -171,7 +224,7 @@ def test_the_core_imports_pyyaml_and_jsonschema_in_one_place():
 def test_one_x509_authority_builder():
     """Certificates are built in one place (pki.py): the bridge, the local control plane and the real nodes use it."""
     builders = [path for path, text in _python_files("plugins") if "x509.CertificateBuilder(" in text]
-    assert builders == ["plugins/module_utils/pki.py"]
+    assert builders == ["plugins/module_utils/kuberos_site/pki.py"]
 
 
 def test_test_files_have_unique_names():

@@ -8,9 +8,9 @@ import hashlib
 import pytest
 import yaml
 
-from ansible_collections.kuberos.platform.plugins.module_utils import robot_registration as rr
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site import robot_registration as rr
 
 
 @pytest.mark.parametrize(

@@ -221,9 +221,9 @@ def test_a_bad_policy_names_the_field(scaling_yaml, message):
 # -- signals ----------------------------------------------------------------------------------------------------
 def test_gauges_and_cpu_usages_are_read():
     text = '# TYPE q gauge\nq{robot="a"} 2\nq{robot="b"} 1.5\nother 9\n'
-    assert signals.gauge_value(text, "q") == 3.5
-    assert signals.gauge_value(text, "missing") is None
-    assert signals.gauge_value("not { a metric", "q") is None
+    assert scaling.gauge_value(text, "q") == 3.5
+    assert scaling.gauge_value(text, "missing") is None
+    assert scaling.gauge_value("not { a metric", "q") is None
     assert signals.cpu_millis("250000000n") == 250.0 and signals.cpu_millis("2") == 2000.0
     with pytest.raises(ValueError):
         signals.cpu_millis("lots")

@@ -29,7 +29,8 @@ from dataclasses import dataclass, field, replace
 
 from . import naming, quantities, reference_format
 from .errors import Problem, SpecError, describe
-from .manifests import COMPONENT, MANAGED_BY, RenderOptions, fleet_policies, module_pod
+from .labels import COMPONENT, MANAGED_BY
+from .manifests import RenderOptions, fleet_policies, module_pod
 from .placement import Instance
 from .schema import DNS_LABEL, MAP_NAME
 from .spec import BATCH_KINDS, LaunchArgument, Resources, RosDeployment, RosModule, _env_value, _parse_any, _parse_document

@@ -20,8 +20,10 @@ import binascii
 import hashlib
 
 from .errors import SpecError
+from .labels import VERSION
 from .manifest_yaml import dump_object
-from .manifests import VERSION, params_configmap_name
+from .manifests import params_configmap_name
+from .naming import object_label
 from .placement import Placement
 from .record import RECORD_LABEL, REVISION_LABEL, record_placement
 from .third_party import yaml
@@ -30,15 +32,6 @@ SERVER_FIELDS = ("managedFields", "resourceVersion", "generation", "uid", "creat
 LAST_APPLIED = "kubectl.kubernetes.io/last-applied-configuration"
 # Environment a module's container gets from KubeROS that says where and for whom it runs: a move shows as a move.
 PLACEMENT_ENV = ("KUBEROS_NODE_NAME",)
-
-
-def object_key(obj: dict) -> tuple[str, str, str]:
-    return obj["kind"], obj["metadata"].get("namespace", ""), obj["metadata"]["name"]
-
-
-def object_label(obj: dict) -> str:
-    kind, namespace, name = object_key(obj)
-    return f"{kind} {namespace}/{name}" if namespace else f"{kind} {name}"
 
 
 def _digest(raw: bytes) -> str:

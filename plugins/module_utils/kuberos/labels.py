@@ -22,6 +22,21 @@ LATENCY_ANNOTATION = "kuberos.io/latency-ms"  # a node that joined after deploy:
 UNREACHABLE_TAINT = "node.kubernetes.io/unreachable"
 NOT_READY_TAINT = "node.kubernetes.io/not-ready"
 
+# The labels and annotations of the objects KubeROS renders (the manifests, the record, what the controller reads).
+MANAGED_BY = "app.kubernetes.io/managed-by"
+COMPONENT = "kuberos.io/component"
+DEPLOYMENT = "kuberos.io/deployment"
+MODULE = "kuberos.io/module"
+INSTANCE = "kuberos.io/instance"
+DISCOVERY_ID = "kuberos.io/discovery-id"
+ROBOTS_ANNOTATION = "kuberos.io/robots"
+REASON_ANNOTATION = "kuberos.io/placement-reason"
+TIER_ANNOTATION = "kuberos.io/tier"
+CLUSTER_ANNOTATION = "kuberos.io/cluster"
+VERSION = "kuberos.io/version"  # a catalog module's resolved version
+CATALOG_MODULE = "kuberos.io/catalog-module"
+MAPS_ANNOTATION = "kuberos.io/parameter-maps"  # a hash of the maps a pod reads: a changed map restarts its readers
+
 
 def node_labels(node: Node) -> dict[str, str]:
     """Labels a cluster node carries, derived from the inventory only."""

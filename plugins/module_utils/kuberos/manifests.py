@@ -17,6 +17,21 @@ from dataclasses import dataclass
 from . import cyclonedds, image_pins, naming, network_policy, pod_security, scaling
 from . import labels as node_labels
 from .fastdds import TRANSPORT_ENV
+from .labels import (
+    CATALOG_MODULE,
+    CLUSTER_ANNOTATION,
+    COMPONENT,
+    DEPLOYMENT,
+    DISCOVERY_ID,
+    INSTANCE,
+    MANAGED_BY,
+    MAPS_ANNOTATION,
+    MODULE,
+    REASON_ANNOTATION,
+    ROBOTS_ANNOTATION,
+    TIER_ANNOTATION,
+    VERSION,
+)
 from .launch import container_name, launch_argv, split_amount
 from .placement import (
     BRIDGE_CPU_MILLIS,
@@ -33,19 +48,7 @@ from .quantities import format_cpu, format_memory
 from .spec import RosDeployment, RosModule
 from .third_party import yaml
 
-MANAGED_BY = "app.kubernetes.io/managed-by"
-COMPONENT = "kuberos.io/component"
-DEPLOYMENT = "kuberos.io/deployment"
-MODULE = "kuberos.io/module"
-INSTANCE = "kuberos.io/instance"
-DISCOVERY_ID = "kuberos.io/discovery-id"
 ROBOT_DISCOVERY = "robot-discovery-server"  # the component of a deployment's discovery server on a robot's computer
-ROBOTS_ANNOTATION = "kuberos.io/robots"
-REASON_ANNOTATION = "kuberos.io/placement-reason"
-TIER_ANNOTATION = "kuberos.io/tier"
-CLUSTER_ANNOTATION = "kuberos.io/cluster"
-VERSION = "kuberos.io/version"  # a catalog module's resolved version
-CATALOG_MODULE = "kuberos.io/catalog-module"
 # How a module's pod is replaced (an upgrade, a move): surge starts the new pod and stops the old one once the new
 # one is Ready; recreate stops the old pod first (a module that must never run twice, e.g. one holding hardware).
 UPGRADE_STRATEGIES = {
@@ -62,7 +65,6 @@ ROBOTS_DIR = "/etc/kuberos-robots"  # a scaled module's robots: one file per ins
 RMW = "rmw_fastrtps_cpp"
 
 
-MAPS_ANNOTATION = "kuberos.io/parameter-maps"  # a hash of the maps a pod reads: a changed map restarts its readers
 CYCLONEDDS_VOLUME = "cyclonedds"
 
 

@@ -166,3 +166,14 @@ def bridge_server_name(cluster: str) -> str:
 BRIDGE_CLIENT = "kuberos-bridge-client"
 BRIDGE_PORT = 50051
 BRIDGE_NODE_PORT = 30711
+
+
+def object_key(obj: dict) -> tuple[str, str, str]:
+    """(kind, namespace, name): one object of a cluster ('' for a cluster-scoped one's namespace)."""
+    meta = obj["metadata"]
+    return obj["kind"], meta.get("namespace") or "", meta["name"]
+
+
+def object_label(obj: dict) -> str:
+    kind, namespace, name = object_key(obj)
+    return f"{kind} {namespace}/{name}" if namespace else f"{kind} {name}"

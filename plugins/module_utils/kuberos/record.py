@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 from . import naming
 from .errors import Problem, SpecError
 from .inventory import Inventory, load_inventory
-from .manifests import COMPONENT, DEPLOYMENT, MANAGED_BY, RenderOptions, device_options
+from .labels import COMPONENT, DEPLOYMENT, MANAGED_BY
+from .manifests import RenderOptions, device_options
 from .placement import Placement
 from .spec import RosDeployment, file_reader, load_rosdeployments
 from .third_party import yaml

@@ -23,14 +23,12 @@ from dataclasses import dataclass, field
 
 from . import labels as node_labels
 from . import pod_security
-from .manifests import COMPONENT, MODULE, ROBOT_DISCOVERY, ROBOTS_ANNOTATION, TIER_ANNOTATION, VERSION
+from .labels import COMPONENT, MODULE, ROBOTS_ANNOTATION, TIER_ANNOTATION, VERSION
+from .manifests import ROBOT_DISCOVERY
+from .naming import object_key
 
 ROLLOUT_KEYS = ("apiVersion", "kind", "metadata", "spec", "data", "binaryData", "type")
 FAILING_REASONS = ("CrashLoopBackOff", "ErrImagePull", "ImagePullBackOff", "CreateContainerConfigError", "RunContainerError")
-
-
-def object_key(obj: dict) -> tuple[str, str, str]:
-    return obj["kind"], obj["metadata"].get("namespace", ""), obj["metadata"]["name"]
 
 
 @dataclass(frozen=True)

@@ -23,11 +23,35 @@ The controller (``kuberos_controller.controller``) measures the signal and acts;
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 
 from .spec import ScalingPolicy
 
 TOLERANCE = 0.1
+# One sample line of the Prometheus text format: a name, its labels (values quoted, with escapes), a value and an
+# optional timestamp.
+_SAMPLE = re.compile(r'^([a-zA-Z_:][a-zA-Z0-9_:]*)\s*(\{(?:[^"}]|"(?:[^"\\]|\\.)*")*\})?\s+(\S+)(?:\s+-?[0-9]+)?\s*$')
+
+
+def gauge_value(text: str, metric: str) -> float | None:
+    """The sum of a gauge's samples (all label sets) in a Prometheus text exposition; None when it is absent or
+    the text is not the format (a module's own load gauge, read by the controller and the simulator's scaler)."""
+    total, seen = 0.0, False
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        sample = _SAMPLE.match(line)
+        if sample is None:
+            return None
+        if sample.group(1) == metric:
+            try:
+                total += float(sample.group(3))
+            except ValueError:
+                return None
+            seen = True
+    return total if seen else None
 
 
 def bounds(policy: ScalingPolicy, robots: int, per_instance: int) -> tuple[int, int]:

@@ -3,7 +3,7 @@
 The core must import without them: ansible-test's import check loads every module_utils file where only the
 standard library and Ansible are installed, and a module may run under a Python that lacks them. A missing package
 leaves its name ``None`` and its import error in ``IMPORT_ERRORS``. The modules check the packages they need before
-any work (module_utils/python_packages.py: Ansible's missing_required_lib message); ``require`` raises
+any work (module_utils/kuberos_ansible/python_packages.py: Ansible's missing_required_lib message); ``require`` raises
 ``MissingPackage``, a KuberosError that the filters report like bad input, where the controller may lack one
 (jsonschema: Ansible itself needs PyYAML).
 """

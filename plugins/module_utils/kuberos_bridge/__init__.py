@@ -14,7 +14,7 @@ protobuf envelope (bridge.proto) with the topic, type name, sequence, timestamps
 
 from __future__ import annotations
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.topics import Topic, TopicsError, load_topics
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.bridge_certs import generate_certificates
 
 __all__ = ["Topic", "TopicsError", "generate_certificates", "load_topics"]

@@ -18,8 +18,8 @@ import signal
 import ssl
 import sys
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.topics import TopicsError, load_topics
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.bridge_certs import generate_certificates
 
 # The whole file is the bridge program's command line (in its image), not code a module runs: it prints and exits.
 # pylint: disable=ansible-bad-function

@@ -23,7 +23,7 @@ import re
 from dataclasses import dataclass
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe, did_you_mean
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import MANAGED_BY
 
 GROUP = "crd.projectcalico.org"
 CRD_API = "apiextensions.k8s.io/v1"

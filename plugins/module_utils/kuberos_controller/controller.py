@@ -43,10 +43,8 @@ import time
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import capacity, naming, quantities, scaling
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import DEPLOYMENT, INSTANCE, MANAGED_BY
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
-    DEPLOYMENT,
-    INSTANCE,
-    MANAGED_BY,
     discovery_from_deployments,
     render_deployment,
 )
@@ -78,7 +76,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.liveness import NodeProbe
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.signals import Signals
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import RTT_ANNOTATION, pod_view
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, object_key
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, store_key
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, clients_of, status_of
 
 WRITERS = 4  # parallel requests when a pass re-pins, deletes or reports several things
 CONTROLLER_MANAGER = "kuberos-controller"
@@ -130,25 +129,20 @@ class Controller:
     def __init__(self, api_client, settings: Settings | None = None, resync_s: float = 30.0, dry_run: bool = False,
                  elector: leader_election.LeaderElector | None = None, identity: str = "",
                  prometheus_url: str = "", node_probe_interval: float = 0.0):  # fmt: skip
-        from kubernetes import client
 
         self.api_client = api_client
-        self.core = client.CoreV1Api(api_client)
-        self.apps = client.AppsV1Api(api_client)
+        # every call through the access layer; each write fenced (``_write_timeout`` refuses one this replica may not make)
+        self.kube = Kube(clients_of(api_client), timeout=self._write_timeout)
         self.settings = settings or Settings()
         self.dry_run = dry_run  # decide and report, write nothing (check mode)
         self.resync_s = resync_s
         self.changed = threading.Event()
         self.stop_event = threading.Event()
         managed = f"{MANAGED_BY}=kuberos"
-        self.nodes = Store("nodes", self.core.list_node, self.changed)
-        self.pods = Store("pods", self.core.list_pod_for_all_namespaces, self.changed, label_selector=managed)
-        self.deployments = Store(
-            "deployments", self.apps.list_deployment_for_all_namespaces, self.changed, label_selector=managed
-        )
-        self.records = Store(
-            "records", self.core.list_config_map_for_all_namespaces, self.changed, label_selector=f"{RECORD_LABEL}=true"
-        )
+        self.nodes = Store("nodes", self.kube.list_call("Node"), self.changed)
+        self.pods = Store("pods", self.kube.list_call("Pod"), self.changed, label_selector=managed)
+        self.deployments = Store("deployments", self.kube.list_call("Deployment"), self.changed, label_selector=managed)
+        self.records = Store("records", self.kube.list_call("ConfigMap"), self.changed, label_selector=f"{RECORD_LABEL}=true")
         self.stores = (self.nodes, self.pods, self.deployments, self.records)
         # The controller's own probe of the server nodes' kubelets (liveness.py; 0: Kubernetes' node status alone).
         self.probe = NodeProbe(node_probe_interval) if node_probe_interval > 0 else None
@@ -179,11 +173,9 @@ class Controller:
         self._access: tuple[int, dict] = (-1, {})  # (node store generation, fleet -> the nodes labelled with its access)
 
     # -- fencing --------------------------------------------------------------------------------
-    def _may_write(self) -> dict:
+    def _write_timeout(self) -> float | None:
         """Before every write: NotLeader when this replica may not act; else the request's client-side timeout."""
-        if self.elector is None:
-            return {}
-        return {"_request_timeout": self.elector.check()}
+        return None if self.elector is None else self.elector.check()
 
     def _forget(self) -> None:
         """What a replica knew as leader is stale once another replica has acted: start again from the cluster."""
@@ -266,7 +258,7 @@ class Controller:
         return {n: {**e, "cpu": f"{e['cpu']}m"} for n, e in used.items()}
 
     def _record(self, configmap: dict) -> Record | None:
-        key = object_key(configmap)
+        key = store_key(configmap)
         version = configmap["metadata"].get("resourceVersion", "")
         cached = self.parsed.get(key)
         if cached and cached[0] == version:
@@ -282,16 +274,14 @@ class Controller:
 
     # -- acting -----------------------------------------------------------------------------
     def _write_placement(self, record: Record, placement, scaling_state: dict | None = None) -> bool:
-        from kubernetes.client.exceptions import ApiException
-
         if self.dry_run:
             return True
         patch = placement_patch(record.name, record.namespace, placement, scaling_state)
         patch["metadata"]["resourceVersion"] = record.resource_version  # refuse if deploy rewrote it meanwhile
         try:
-            self.core.patch_namespaced_config_map(record.name, record.namespace, patch, **self._may_write())
-        except ApiException as exc:
-            if exc.status in (404, 409):
+            self.kube.patch("ConfigMap", record.name, record.namespace, patch)
+        except Exception as exc:
+            if status_of(exc) in (404, 409):
                 log.info("record %s/%s changed while moving (%s); deciding again", record.namespace, record.name, exc.status)
                 return False
             raise
@@ -303,13 +293,7 @@ class Controller:
     def _apply(self, obj: dict, manager: str) -> None:
         if self.dry_run:
             return
-        meta = obj["metadata"]
-        body = json.dumps(obj)
-        patch = self.apps.patch_namespaced_deployment if obj["kind"] == "Deployment" else self.core.patch_namespaced_config_map
-        patch(
-            meta["name"], meta["namespace"], json.loads(body), field_manager=manager, force=True,
-            _content_type="application/apply-patch+yaml", **self._may_write(),
-        )  # fmt: skip
+        self.kube.apply(obj, manager=manager)
 
     def converge(self, record: Record, view: ClusterView) -> int:
         """Finish the controller's own moves: re-pin every Deployment whose node differs from the record, and
@@ -317,12 +301,12 @@ class Controller:
         if record.writer != WRITER_CONTROLLER:
             return 0
         wanted = render_deployment(record.deployments, record.placement, record.options)
-        live = {object_key(d): d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace}
+        live = {store_key(d): d for d in self.deployments.snapshot() if d["metadata"].get("namespace") == record.namespace}
         calls = []
         for obj in wanted:
             if obj["kind"] != "Deployment":
                 continue
-            current = live.get(object_key(obj))
+            current = live.get(store_key(obj))
             if current is None:
                 continue  # not created yet (deploy is applying) or removed (undeploy): not the controller's to create
             want = obj["spec"]["template"]["spec"]["nodeSelector"]
@@ -355,24 +339,18 @@ class Controller:
             raise errors[0]
 
     def _force_delete(self, pod: PodView) -> None:
-        from kubernetes.client.exceptions import ApiException
-
         if self.dry_run:
             return
-        try:
-            self.core.delete_namespaced_pod(pod.name, pod.namespace, grace_period_seconds=0, **self._may_write())
+        if self.kube.delete("Pod", pod.name, pod.namespace, grace_seconds=0):
             log.info("deleted pod %s/%s left on %s, which is down", pod.namespace, pod.name, pod.node)
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
 
     def _event(self, record: Record, name: str, reason: str, message: str, warning: bool) -> None:
-        from kubernetes.client.exceptions import ApiException
-
         if self.dry_run:
             return
         now = _now_rfc3339()
         body = {
+            "apiVersion": "v1",
+            "kind": "Event",
             "metadata": {"generateName": f"{name}.", "namespace": record.namespace},
             "involvedObject": {"apiVersion": "apps/v1", "kind": "Deployment", "name": name, "namespace": record.namespace},
             "reason": reason,
@@ -386,8 +364,10 @@ class Controller:
             "count": 1,
         }
         try:
-            self.core.create_namespaced_event(record.namespace, body, **self._may_write())
-        except ApiException as exc:
+            self.kube.create(body)
+        except Exception as exc:
+            if status_of(exc) is None:
+                raise
             log.warning("event %s for %s not recorded: %s %s", reason, name, exc.status, exc.reason)
 
     def _write_status(self, record: Record, view: ClusterView, stranded: dict[str, str], waiting: list[str]) -> str:
@@ -434,18 +414,13 @@ class Controller:
 
     def _load_history(self, record: Record) -> None:
         """After a restart, the last moves come back from the status ConfigMap."""
-        from kubernetes.client.exceptions import ApiException
-
         key = (record.namespace, record.name)
         if key in self.history:
             return
         self.history[key] = {}
+        configmap = self.kube.get("ConfigMap", status_name(record.deployment), record.namespace) or {}
         try:
-            configmap = self.core.read_namespaced_config_map(status_name(record.deployment), record.namespace)
-            self.history[key] = json.loads((configmap.data or {}).get("moves.json", "{}"))
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
+            self.history[key] = json.loads((configmap.get("data") or {}).get("moves.json", "{}"))
         except ValueError:
             pass
 
@@ -688,8 +663,6 @@ class Controller:
     def _apply_scaled(self, record: Record, modules, start: list[str], stop: list[str]) -> None:
         """Create the new instances' Deployments (and any the record has but the cluster lacks, after a takeover),
         apply the robots ConfigMaps that changed, and delete drained instances' Deployments."""
-        from kubernetes.client.exceptions import ApiException
-
         handover = {
             (record.spec.name, m.name): scaling.ScaleState.from_dict(record.scaling.get(f"{record.spec.name}/{m.name}")).handover
             for m in modules
@@ -712,11 +685,7 @@ class Controller:
         for name in stop:
             if self.dry_run:
                 continue
-            try:
-                self.apps.delete_namespaced_deployment(name, record.namespace, **self._may_write())
-            except ApiException as exc:
-                if exc.status != 404:
-                    raise
+            self.kube.delete("Deployment", name, record.namespace)
 
     def reconcile(self) -> float | None:
         """One pass over every record; returns when the earliest waiting fault becomes due."""
@@ -727,14 +696,14 @@ class Controller:
         wake = []
         self.shortfalls = []
         fleets = set()
-        for configmap in sorted(self.records.snapshot(), key=object_key):
+        for configmap in sorted(self.records.snapshot(), key=store_key):
             fleets.add(configmap["metadata"].get("namespace", ""))
             try:
                 at = self.reconcile_record(configmap, view, now)
             except leader_election.NotLeader:
                 raise
             except KuberosError as exc:
-                log.error("record %s/%s: %s", *object_key(configmap), exc)
+                log.error("record %s/%s: %s", *store_key(configmap), exc)
                 continue
             if at is not None:
                 wake.append(at)
@@ -742,17 +711,11 @@ class Controller:
         return min(wake) if wake else None
 
     def _read_demand(self, namespace: str) -> dict | None:
-        from kubernetes.client.exceptions import ApiException
-
+        configmap = self.kube.get("ConfigMap", capacity.CONFIGMAP, namespace) or {}
         try:
-            configmap = self.core.read_namespaced_config_map(capacity.CONFIGMAP, namespace)
-            return json.loads((configmap.data or {}).get(capacity.KEY) or "null")
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
+            return json.loads((configmap.get("data") or {}).get(capacity.KEY) or "null")
         except ValueError:
-            pass
-        return None
+            return None
 
     def _write_demand(self, namespaces: list[str]) -> None:
         """What each fleet lacks (``capacity.demand``) into its ``kuberos-capacity`` ConfigMap, for a cloud

@@ -42,7 +42,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
     page,
     select,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, object_key
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.watch import Store, store_key
 
 EVENT_SOURCE = "kuberos-controller"
 MAX_STREAMS = 64
@@ -87,13 +87,13 @@ class Dashboard:
         self.metrics = ControllerMetrics(self.current_view, self.leader)
         controller.metrics = self.metrics
         quiet = threading.Event()  # these stores never wake the controller's passes
-        core = controller.core
         self.extra: tuple[Store, ...] = ()
         if watch_extra:
+            configmaps, events = controller.kube.list_call("ConfigMap"), controller.kube.list_call("Event")
             self.extra = (
-                Store("statuses", core.list_config_map_for_all_namespaces, quiet, label_selector=f"{STATUS_LABEL}=true"),
-                Store("catalogs", core.list_config_map_for_all_namespaces, quiet, label_selector=f"{CATALOG_LABEL}=true"),
-                Store("events", core.list_event_for_all_namespaces, quiet, field_selector=f"source={EVENT_SOURCE}"),
+                Store("statuses", configmaps, quiet, label_selector=f"{STATUS_LABEL}=true"),
+                Store("catalogs", configmaps, quiet, label_selector=f"{CATALOG_LABEL}=true"),
+                Store("events", events, quiet, field_selector=f"source={EVENT_SOURCE}"),
             )
         self.loop: asyncio.AbstractEventLoop | None = None
         self.thread: threading.Thread | None = None
@@ -124,7 +124,7 @@ class Dashboard:
         found = []
         seen = set()
         for configmap in self.controller.records.snapshot():
-            key = object_key(configmap)
+            key = store_key(configmap)
             seen.add(key)
             version = configmap["metadata"].get("resourceVersion", "")
             cached = self.parsed.get(key)

@@ -26,6 +26,8 @@ import threading
 import time
 from dataclasses import dataclass
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, clients_of, status_of
+
 log = logging.getLogger("kuberos.controller.lease")
 
 
@@ -94,14 +96,12 @@ class LeaderElector:
 
     def __init__(self, api_client, namespace: str, name: str, identity: str, timings: Timings | None = None,
                  on_change=None, stand_down=None, clock=time.monotonic):  # fmt: skip
-        from kubernetes import client
-
-        self.leases = client.CoordinationV1Api(api_client)
-        self.core = client.CoreV1Api(api_client)
+        self.timings = timings or Timings()
+        deadline = self.timings.renew_deadline_s
+        self.kube = Kube(clients_of(api_client), timeout=deadline, read_timeout=deadline)
         self.namespace = namespace
         self.name = name
         self.identity = identity
-        self.timings = timings or Timings()
         self.on_change = on_change or (lambda leading: None)
         self.stand_down = stand_down or (lambda: None)  # returns why this replica should not lead, or None
         self.clock = clock
@@ -132,19 +132,7 @@ class LeaderElector:
 
     # -- the Lease ---------------------------------------------------------------------------------
     def _read(self) -> dict | None:
-        import json
-
-        from kubernetes.client.exceptions import ApiException
-
-        try:
-            response = self.leases.read_namespaced_lease(
-                self.name, self.namespace, _preload_content=False, _request_timeout=self.timings.renew_deadline_s
-            )
-        except ApiException as exc:
-            if exc.status == 404:
-                return None
-            raise
-        return json.loads(response.data)
+        return self.kube.get("Lease", self.name, self.namespace)
 
     def _body(self, old: dict | None, holder: str, acquired: bool, duration: float) -> dict:
         spec = dict((old or {}).get("spec") or {})
@@ -161,35 +149,30 @@ class LeaderElector:
         return {"apiVersion": "coordination.k8s.io/v1", "kind": "Lease", "metadata": metadata, "spec": spec}
 
     def _write(self, old: dict | None, body: dict) -> bool:
-        from kubernetes.client.exceptions import ApiException
-
-        timeout = self.timings.renew_deadline_s
         try:
             if old is None:
                 try:
-                    self.leases.create_namespaced_lease(self.namespace, body, _request_timeout=timeout)
-                except ApiException as exc:
-                    if exc.status != 404:
+                    self.kube.create(body)
+                except Exception as exc:
+                    if status_of(exc) != 404:
                         raise
                     self._ensure_namespace()
-                    self.leases.create_namespaced_lease(self.namespace, body, _request_timeout=timeout)
+                    self.kube.create(body)
             else:
-                self.leases.replace_namespaced_lease(self.name, self.namespace, body, _request_timeout=timeout)
-        except ApiException as exc:
-            if exc.status in (409, 422):  # another replica wrote first (conflict or already exists)
+                self.kube.replace(body)
+        except Exception as exc:
+            if status_of(exc) in (409, 422):  # another replica wrote first (conflict or already exists)
                 return False
             raise
         self.transitions = body["spec"]["leaseTransitions"]
         return True
 
     def _ensure_namespace(self) -> None:
-        from kubernetes.client.exceptions import ApiException
-
         try:
-            self.core.create_namespace({"metadata": {"name": self.namespace}})
+            self.kube.create({"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": self.namespace}})
             log.info("created namespace %s for the Lease", self.namespace)
-        except ApiException as exc:
-            if exc.status != 409:
+        except Exception as exc:
+            if status_of(exc) != 409:
                 raise
 
     def attempt(self) -> bool:

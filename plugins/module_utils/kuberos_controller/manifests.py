@@ -27,7 +27,7 @@ import copy
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import MANAGED_BY
 
 NAME = "kuberos-controller"
 READ_ROLE = "kuberos-controller-read"

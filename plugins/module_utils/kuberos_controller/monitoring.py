@@ -21,7 +21,7 @@ import copy
 import re
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import MANAGED_BY
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.manifests import (
     DASHBOARD_PORT,
     NAME,

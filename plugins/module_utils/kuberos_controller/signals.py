@@ -20,6 +20,8 @@ import logging
 import re
 import urllib.parse
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scaling import gauge_value
+
 log = logging.getLogger("kuberos.controller.signals")
 TIMEOUT_S = 2.0
 _CPU_USAGE = re.compile(r"^([0-9.]+)(n|u|m|)$")
@@ -32,23 +34,6 @@ def cpu_millis(usage: str) -> float:
         raise ValueError(f"not a CPU usage: {usage!r}")
     number, unit = float(found.group(1)), found.group(2)
     return number * {"n": 1e-6, "u": 1e-3, "m": 1.0, "": 1000.0}[unit]
-
-
-def gauge_value(text: str, metric: str) -> float | None:
-    """The sum of a gauge's samples (all label sets) in a Prometheus text exposition, or None when it is absent."""
-    from prometheus_client.parser import text_string_to_metric_families
-
-    total, seen = 0.0, False
-    try:
-        for family in text_string_to_metric_families(text):
-            for sample in family.samples:
-                if sample.name == metric:
-                    total += float(sample.value)
-                    seen = True
-    except (ValueError, TypeError) as exc:
-        log.debug("unreadable metrics text: %s", exc)
-        return None
-    return total if seen else None
 
 
 def _get(url: str, timeout: float) -> bytes:

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import INSTANCE
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import INSTANCE
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.reconcile import (
     ClusterView,

@@ -10,7 +10,8 @@ import threading
 log = logging.getLogger("kuberos.controller")
 
 
-def object_key(obj: dict) -> tuple[str, str]:
+def store_key(obj: dict) -> tuple[str, str]:
+    """(namespace, name): an object in a ``Store``, which holds one kind."""
     meta = obj["metadata"]
     return meta.get("namespace", ""), meta["name"]
 
@@ -37,7 +38,7 @@ class Store:
         response = self.list_call(_preload_content=False, **self.selector)
         body = json.loads(response.data)
         with self.lock:
-            self.items = {object_key(item): item for item in body.get("items", [])}
+            self.items = {store_key(item): item for item in body.get("items", [])}
             self.generation += 1
         self.synced.set()
         self.changed.set()
@@ -91,9 +92,9 @@ class Store:
             return version
         with self.lock:
             if kind == "DELETED":
-                self.items.pop(object_key(obj), None)
+                self.items.pop(store_key(obj), None)
             else:
-                self.items[object_key(obj)] = obj
+                self.items[store_key(obj)] = obj
             self.generation += 1
         self.changed.set()
         return version

@@ -34,8 +34,8 @@ import shutil
 import subprocess
 import time
 
-from ansible_collections.kuberos.platform.plugins.module_utils import local_images as li
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import kubeadm_images as ki
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images as li
 
 RECIPE_VERSION = "3"
 NODE_BASE_VERSION = "1"  # the node image's Debian root: its own key, so that image recipe changes do not rebuild it

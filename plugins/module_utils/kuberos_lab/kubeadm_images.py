@@ -42,7 +42,7 @@ import subprocess
 import sys
 import time
 
-from ansible_collections.kuberos.platform.plugins.module_utils import local_images as li
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images as li
 
 RECIPE_VERSION = "1"
 DEFAULT_REPOSITORY = "registry.k8s.io"

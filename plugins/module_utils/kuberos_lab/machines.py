@@ -62,8 +62,8 @@ import uuid
 import zlib
 from dataclasses import asdict, dataclass, field
 
-from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
-from ansible_collections.kuberos.platform.plugins.module_utils import local_images as li
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import background_process as bg
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images as li
 
 RECIPE_VERSION = "1"
 SUITE = "bookworm"

@@ -30,13 +30,13 @@ import urllib.error
 import urllib.parse
 from dataclasses import dataclass
 
-from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
-from ansible_collections.kuberos.platform.plugins.module_utils import pki
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.registry_api import (
     MANIFEST_TYPES,
     RegistryApi,
     RegistryError,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import background_process as bg
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site import pki
 
 PROGRAM = "docker-registry"
 CERT_DAYS = 365

@@ -42,7 +42,7 @@ import subprocess
 import sys
 import time
 
-from ansible_collections.kuberos.platform.plugins.module_utils import local_images
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines as lab_machines
 
 TAG = "ks"

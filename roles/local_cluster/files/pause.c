@@ -5,7 +5,7 @@
  * SIGINT or SIGTERM (the kubelet stopping the sandbox), and reaps any child that gets reparented to it
  * (when the pod shares its PID namespace the sandbox process is PID 1 there).
  *
- * Built by plugins/module_utils/local_images.py: gcc -static -Os -s -o pause pause.c
+ * Built by plugins/module_utils/kuberos_lab/local_images.py: gcc -static -Os -s -o pause pause.c
  * `pause -v` prints the version and exits.
  */
 #include <errno.h>

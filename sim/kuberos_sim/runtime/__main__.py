@@ -21,8 +21,8 @@ from .runtime import DEFAULT_CPU_SCALE, ProcessExitedError, Runtime
 
 def load_inventory_file(path: str):
     """An Ansible inventory (file or directory) as the resource model, read as the collection reads it."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.ansible_inventory import read_inventory
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.ansible_inventory import read_inventory
 
     return load_inventory(read_inventory(path), source=path)
 

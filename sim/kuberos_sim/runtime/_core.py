@@ -18,9 +18,9 @@ try:
 except ImportError:
     sys.path.insert(0, COLLECTIONS_DIR)
 
-from ansible_collections.kuberos.platform.plugins.module_utils import ros_wheels  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import inventory, labels, manifests, naming  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError  # noqa: E402
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import ros_wheels  # noqa: E402
 
 __all__ = [
     "COLLECTIONS_DIR",

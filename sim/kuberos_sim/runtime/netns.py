@@ -13,7 +13,7 @@ import os
 import shutil
 import subprocess
 
-from ansible_collections.kuberos.platform.plugins.module_utils.background_process import run_checked
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.background_process import run_checked
 
 ETC_NETNS = "/etc/netns"
 TUN = "eth0"

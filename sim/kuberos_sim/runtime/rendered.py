@@ -278,7 +278,7 @@ def _deployment(obj: dict, rel: str, configmaps: dict, problems: list[Problem]) 
         name=name,
         namespace=namespace,
         node=str(node),
-        component=str(pod_labels.get(manifests.COMPONENT, "")),
+        component=str(pod_labels.get(labels.COMPONENT, "")),
         pod_labels=dict(pod_labels),
         containers=tuple(c for c in containers if c is not None),
         volumes=volumes,

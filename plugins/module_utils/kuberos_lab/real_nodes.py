@@ -43,13 +43,11 @@ import signal
 import subprocess
 import sys
 import time
-import urllib.error
 from dataclasses import dataclass, field
 
-from ansible.module_utils.urls import open_url
-
-from ansible_collections.kuberos.platform.plugins.module_utils import background_process as bg
-from ansible_collections.kuberos.platform.plugins.module_utils import delay_fabric
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, api_clients, message
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import background_process as bg
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import delay_fabric
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.registry import (
     LocalRegistry,
     RegistryError,
@@ -141,6 +139,7 @@ class RealNodes:
     log: list = field(default_factory=list)
     _children: dict = field(default_factory=dict, repr=False)  # (component, node) -> Popen, started by this object
     _served: dict = field(default_factory=dict, repr=False)  # built image -> its pull reference in the lab registry
+    _kube: Kube | None = field(default=None, repr=False)  # the access layer as the administrator, made when first used
 
     def __post_init__(self):
         if not 1 <= len(self.tag) <= 4 or not self.tag.isalnum():
@@ -462,29 +461,18 @@ class RealNodes:
             "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": "system:kuberos:coredns"},
             "subjects": [{"apiGroup": "rbac.authorization.k8s.io", "kind": "User", "name": "system:kuberos:coredns"}],
         }
-        for obj, plural in ((role, "clusterroles"), (binding, "clusterrolebindings")):
-            self.api("PATCH", f"/apis/rbac.authorization.k8s.io/v1/{plural}/{obj['metadata']['name']}", obj)
+        for obj in (role, binding):
+            self._as_admin(lambda kube, obj=obj: kube.apply(obj, manager="kuberos-local-cluster"))
 
-    def api(self, method: str, path: str, body: dict | None = None) -> dict:
-        """One request to the API server as the administrator (server-side apply for PATCH)."""
-        if method == "PATCH":
-            path += "?fieldManager=kuberos-local-cluster&force=true"
-        data = json.dumps(body).encode() if body else None
-        headers = {"Content-Type": "application/apply-patch+yaml"} if body is not None else None
-        tls = {
-            "ca_path": self.plane.path("pki", "ca.crt"),
-            "client_cert": self.plane.path("pki", "admin.crt"),
-            "client_key": self.plane.path("pki", "admin.key"),
-        }
+    def _as_admin(self, call):
+        """``call(kube)`` through the access layer as the local control plane's administrator; RealNodeError saying
+        what went wrong when the API server cannot be used."""
+        if self._kube is None:
+            self._kube = Kube(api_clients(self.plane.kubeconfig), "kuberos-local-cluster")
         try:
-            with open_url(self.plane.server + path, method=method, data=data, headers=headers, timeout=10, **tls) as response:
-                return json.loads(response.read() or b"{}")
-        except urllib.error.HTTPError as error:
-            if error.code == 404 and method == "GET":
-                return {}
-            raise RealNodeError(f"{method} {path}: HTTP {error.code}: {error.read()[:500].decode(errors='replace')}") from error
-        except (urllib.error.URLError, OSError) as error:
-            raise RealNodeError(f"{method} {path}: {error}") from error
+            return call(self._kube)
+        except Exception as exc:
+            raise RealNodeError(message(exc, self.plane.kubeconfig)) from exc
 
     def _containerd_config(self, net: NodeNet) -> str:
         directory = self.path(net.name, "containerd")
@@ -731,7 +719,7 @@ class RealNodes:
             return False
         from concurrent.futures import ThreadPoolExecutor
 
-        from ansible_collections.kuberos.platform.plugins.module_utils.local_images import import_images
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_images import import_images
 
         def one(net: NodeNet) -> tuple[str, list[str], float]:
             started = time.monotonic()
@@ -819,7 +807,7 @@ class RealNodes:
         waiting = set(self.nets)
         while waiting and time.monotonic() < deadline:
             for name in sorted(waiting):
-                node = self.api("GET", f"/api/v1/nodes/{name}")
+                node = self._as_admin(lambda kube, name=name: kube.get("Node", name)) or {}
                 conditions = {c["type"]: c["status"] for c in node.get("status", {}).get("conditions", [])}
                 if conditions.get("Ready") == "True":
                     waiting.discard(name)

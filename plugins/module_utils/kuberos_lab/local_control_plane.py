@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 from ansible.module_utils.urls import open_url
 
-from ansible_collections.kuberos.platform.plugins.module_utils import pki
-from ansible_collections.kuberos.platform.plugins.module_utils.background_process import alive
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.background_process import alive
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site import pki
 
 COMPONENTS = ("etcd", "kube-apiserver", "kube-controller-manager", "kube-scheduler", "kwok")
 SERVICE_CIDR = "10.96.0.0/16"

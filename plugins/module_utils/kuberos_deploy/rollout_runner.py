@@ -16,8 +16,8 @@ import subprocess
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pod_security
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import HOSTNAME
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import INSTANCE, MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import HOSTNAME, INSTANCE, MANAGED_BY
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import (
     Change,
     Downtime,
@@ -26,9 +26,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout i
     gate_verdict,
     pod_failure,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import RENDERED_KINDS, Kube, status_of
 
 ROLLOUT_MANAGER = "kuberos-rollout"
-APPLY_TYPE = "application/apply-patch+yaml"
 
 
 class GateFailed(Exception):
@@ -36,12 +36,10 @@ class GateFailed(Exception):
 
 
 class Cluster:
-    """The few calls a rollout makes: server-side apply, delete, and the pods of instances."""
+    """The few calls a rollout makes (through the access layer): server-side apply, delete, and the pods of instances."""
 
     def __init__(self, clients, field_manager: str):
-        self.core = clients["core"]
-        self.apps = clients["apps"]
-        self.networking = clients.get("networking")
+        self.kube = Kube(clients, field_manager)
         self.field_manager = field_manager
         self._names: dict[str, str] | None = None
         self._ready: dict[str, bool] = {}
@@ -51,11 +49,11 @@ class Cluster:
         """Node names and readiness, read at most once a second."""
         if self._names is not None and time.monotonic() - self._nodes_read < 1.0:
             return
-        items = self.core.list_node().items
-        self._names = {n.metadata.name: (n.metadata.labels or {}).get(HOSTNAME, n.metadata.name) for n in items}
-        self._ready = {
-            n.metadata.name: any(c.type == "Ready" and c.status == "True" for c in n.status.conditions or []) for n in items
+        items = self.kube.list("Node")
+        self._names = {
+            n["metadata"]["name"]: (n["metadata"].get("labels") or {}).get(HOSTNAME, n["metadata"]["name"]) for n in items
         }
+        self._ready = {n["metadata"]["name"]: _condition(n, "Ready") for n in items}
         self._nodes_read = time.monotonic()
 
     def inventory_name(self, node: str) -> str:
@@ -68,55 +66,25 @@ class Cluster:
         return self._ready.get(node, False)
 
     def apply(self, obj: dict, dry_run: bool = False, manager: str | None = None) -> None:
-        meta = obj["metadata"]
-        kwargs = {"field_manager": manager or self.field_manager, "force": True, "_content_type": APPLY_TYPE}
-        if dry_run:
-            kwargs["dry_run"] = "All"
-        body = json.loads(json.dumps(obj))
-        if obj["kind"] == "Deployment":
-            self.apps.patch_namespaced_deployment(meta["name"], meta["namespace"], body, **kwargs)
-        elif obj["kind"] == "ConfigMap":
-            self.core.patch_namespaced_config_map(meta["name"], meta["namespace"], body, **kwargs)
-        elif obj["kind"] == "Service":
-            self.core.patch_namespaced_service(meta["name"], meta["namespace"], body, **kwargs)
-        elif obj["kind"] == "Secret":
-            self.core.patch_namespaced_secret(meta["name"], meta["namespace"], body, **kwargs)
-        elif obj["kind"] == "NetworkPolicy":
-            self.networking.patch_namespaced_network_policy(meta["name"], meta["namespace"], body, **kwargs)
-        elif obj["kind"] == "Namespace":
+        if obj["kind"] not in RENDERED_KINDS:
+            raise ValueError(f"a rollout does not apply {obj['kind']}")
+        if obj["kind"] == "Namespace":
             # never stricter than the namespace is: other deployments of the fleet may need its level
-            live = json.loads(self.core.read_namespace(meta["name"], _preload_content=False).data)
+            obj = json.loads(json.dumps(obj))
+            live = self.kube.get("Namespace", obj["metadata"]["name"]) or {}
             enforced = ((live.get("metadata") or {}).get("labels") or {}).get(pod_security.ENFORCE)
-            labels = body["metadata"].setdefault("labels", {})
+            labels = obj["metadata"].setdefault("labels", {})
             if enforced in pod_security.LEVELS and labels.get(pod_security.ENFORCE):
                 labels[pod_security.ENFORCE] = pod_security.loosest([enforced, labels[pod_security.ENFORCE]])
-            self.core.patch_namespace(meta["name"], body, **kwargs)
-        else:
-            raise ValueError(f"a rollout does not apply {obj['kind']}")
+        self.kube.apply(obj, dry_run=dry_run, manager=manager)
 
     def delete(self, kind: str, namespace: str, name: str) -> None:
-        from kubernetes.client.exceptions import ApiException
-
-        calls = {
-            "Deployment": self.apps.delete_namespaced_deployment,
-            "ConfigMap": self.core.delete_namespaced_config_map,
-            "Service": self.core.delete_namespaced_service,
-            "Secret": self.core.delete_namespaced_secret,
-        }
-        if self.networking is not None:
-            calls["NetworkPolicy"] = self.networking.delete_namespaced_network_policy
-        try:
-            calls[kind](name, namespace, propagation_policy="Background")
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
+        self.kube.delete(kind, name, namespace)
 
     def prestage(self, namespace: str, plan: dict[str, dict], timeout: float, parallel: int, progress) -> dict:
         """Pull each robot's new images (``RolloutPlan.prestage``) through a short-lived pod on the robot, at most
         ``parallel`` robots at a time, for at most ``timeout`` seconds in all; the pods are removed after. What was
         pulled where, and the problems (a failed pull, a robot still pulling at the timeout): the waves go on."""
-        from kubernetes.client.exceptions import ApiException
-
         started = time.monotonic()
         waiting = list(plan)
         running: dict[str, str] = {}  # node -> its pod's name
@@ -128,8 +96,10 @@ class Cluster:
                     node = waiting.pop(0)
                     pod = prestage_pod(namespace, node, plan[node])
                     try:
-                        self.core.create_namespaced_pod(namespace, pod)
-                    except ApiException as exc:
+                        self.kube.create(pod)
+                    except Exception as exc:
+                        if status_of(exc) is None:
+                            raise
                         problems.append(f"{node}: the prestage pod was refused ({exc.status} {exc.reason})")
                         continue
                     running[node] = pod["metadata"]["name"]
@@ -138,11 +108,8 @@ class Cluster:
                     problems += [f"{node}: not started within {timeout:g} s" for node in waiting]
                     break
                 for node, name in list(running.items()):
-                    try:
-                        pod = self.core.read_namespaced_pod(name, namespace)
-                    except ApiException as exc:
-                        if exc.status != 404:
-                            raise
+                    pod = self.kube.get("Pod", name, namespace)
+                    if pod is None:
                         problems.append(f"{node}: the prestage pod went away")
                         del running[node]
                         continue
@@ -163,38 +130,39 @@ class Cluster:
                 "problems": problems}  # fmt: skip
 
     def _delete_pod(self, namespace: str, name: str) -> None:
-        from kubernetes.client.exceptions import ApiException
-
-        try:
-            self.core.delete_namespaced_pod(name, namespace, grace_period_seconds=0)
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
+        self.kube.delete("Pod", name, namespace, grace_seconds=0)
 
     def pods(self, namespace: str, instances: set[str]) -> dict[str, list[PodState]]:
         found: dict[str, list[PodState]] = {}
         if not instances:
             return found
         selector = f"{MANAGED_BY}=kuberos,{INSTANCE} in ({','.join(sorted(instances))})"  # only the wave's pods
-        items = self.core.list_namespaced_pod(namespace, label_selector=selector).items
-        for pod in items:
-            instance = (pod.metadata.labels or {}).get(INSTANCE)
+        for pod in self.kube.list("Pod", namespace, selector=selector):
+            meta, spec, status = pod["metadata"], pod.get("spec") or {}, pod.get("status") or {}
+            instance = (meta.get("labels") or {}).get(INSTANCE)
             if instance not in instances:
                 continue
-            statuses = pod.status.container_statuses or []
-            waiting = next((s.state.waiting.reason or "" for s in statuses if s.state and s.state.waiting), "")
+            statuses = status.get("containerStatuses") or []
+            waiting = next(
+                (
+                    ((s.get("state") or {}).get("waiting") or {}).get("reason") or ""
+                    for s in statuses
+                    if (s.get("state") or {}).get("waiting")
+                ),
+                "",
+            )
+            node = spec.get("nodeName") or ""
             found.setdefault(instance, []).append(
                 PodState(
-                    pod.metadata.name,
-                    self.inventory_name(pod.spec.node_name) if pod.spec.node_name else "",
-                    pod.status.phase or "",
+                    meta["name"],
+                    self.inventory_name(node) if node else "",
+                    status.get("phase") or "",
                     # A pod on a node that is not Ready is not serving, whatever its last reported condition.
-                    any(c.type == "Ready" and c.status == "True" for c in pod.status.conditions or [])
-                    and self.node_ready(pod.spec.node_name),
-                    sum(s.restart_count or 0 for s in statuses),
+                    _condition(pod, "Ready") and self.node_ready(node),
+                    sum(s.get("restartCount") or 0 for s in statuses),
                     waiting,
-                    bool(pod.metadata.deletion_timestamp),
-                    pod.spec.containers[0].image if pod.spec.containers else "",
+                    bool(meta.get("deletionTimestamp")),
+                    (spec.get("containers") or [{}])[0].get("image", ""),
                 )
             )
         return found
@@ -211,13 +179,13 @@ def pinned_options(clients, params: dict, dep, namespace: str, bridges: bool):
     from dataclasses import replace
 
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import image_digests
-    from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import render_options
 
     options = render_options(params)
     if not params.get("pin_images"):
         return options
     wanted = image_digests.pull_secrets([dep])
-    listed = json.loads(clients["core"].list_namespaced_secret(namespace, _preload_content=False).data).get("items") or []
+    listed = Kube(clients).list("Secret", namespace)
     secrets = [s for s in listed if (namespace, s["metadata"]["name"]) in wanted]
     digests = image_digests.for_render([dep], params, secrets, bridges)
     return replace(options, image_digests=tuple(sorted(digests.items())))
@@ -227,8 +195,7 @@ def prestage_pod(namespace: str, node: str, entry: dict) -> dict:
     """A pod on ``node`` with one container per image of ``entry`` (``RolloutPlan.prestage``): the kubelet pulls
     each as for the module's own pod; the container itself only runs ``true`` (or fails to start where the image
     has no ``true``: pulled all the same), never the module."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import ROBOT_TAINT
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import COMPONENT, ROBOT_TAINT
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import dns_label
 
     return {
@@ -263,21 +230,26 @@ def prestage_pod(namespace: str, node: str, entry: dict) -> dict:
     }
 
 
-def prestage_verdict(pod) -> tuple[bool, str]:
+def _condition(obj: dict, kind: str) -> bool:
+    """Whether a node's or a pod's condition ``kind`` is True."""
+    return any(c.get("type") == kind and c.get("status") == "True" for c in (obj.get("status") or {}).get("conditions") or [])
+
+
+def prestage_verdict(pod: dict) -> tuple[bool, str]:
     """(done, problem) of a prestage pod: done once every container's image is on the node (the kubelet created or
     ran its container, or reports its image) or its pull failed (the problem says how; the wave's gate will too)."""
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import IMAGE_PULL_REASONS
 
-    statuses = {s.name: s for s in (pod.status.container_statuses or [])} if pod.status else {}
+    statuses = {s["name"]: s for s in (pod.get("status") or {}).get("containerStatuses") or []}
     problems = []
-    for container in pod.spec.containers:
-        status = statuses.get(container.name)
+    for container in pod["spec"]["containers"]:
+        status = statuses.get(container["name"])
         if status is None:
             return False, ""
-        waiting = status.state.waiting if status.state else None
-        if waiting and waiting.reason in IMAGE_PULL_REASONS:
-            problems.append(f"{container.image}: {waiting.reason} {waiting.message or ''}".strip())
-        elif not status.image_id and waiting and (waiting.reason or "ContainerCreating") in PRESTAGE_WAITING:
+        waiting = (status.get("state") or {}).get("waiting")
+        if waiting and waiting.get("reason") in IMAGE_PULL_REASONS:
+            problems.append(f"{container['image']}: {waiting['reason']} {waiting.get('message') or ''}".strip())
+        elif not status.get("imageID") and waiting and (waiting.get("reason") or "ContainerCreating") in PRESTAGE_WAITING:
             return False, ""
     return True, "; ".join(problems)
 
@@ -483,56 +455,41 @@ class Rollout:
 
 
 # -- one rollout, end to end --------------------------------------------------------------------------
-def _plain(obj) -> dict:
-    from kubernetes.client import ApiClient
-
-    return ApiClient().sanitize_for_serialization(obj)
-
-
 def read_record(clients, namespace: str, deployment: str):
     """The deployment's record as it is in the cluster (plain dict), with the fleet's live discovery servers."""
-    from kubernetes.client.exceptions import ApiException
-
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
-        COMPONENT,
-        discovery_from_deployments,
-    )
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import COMPONENT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import discovery_from_deployments
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
         parse_record,
         pin_live_discovery,
         record_name,
     )
 
-    try:
-        configmap = _plain(clients["core"].read_namespaced_config_map(record_name(deployment), namespace))
-    except ApiException as exc:
-        if exc.status == 404:
-            raise SpecError(
-                [
-                    Problem(
-                        f"deployment {deployment}",
-                        "",
-                        f"is not deployed in {namespace} (no record); deploy it first with playbooks/deploy.yml",
-                    )
-                ]
-            ) from None
-        raise
+    kube = Kube(clients)
+    configmap = kube.get("ConfigMap", record_name(deployment), namespace)
+    if configmap is None:
+        raise SpecError(
+            [
+                Problem(
+                    f"deployment {deployment}",
+                    "",
+                    f"is not deployed in {namespace} (no record); deploy it first with playbooks/deploy.yml",
+                )
+            ]
+        )
     record = parse_record(configmap)
-    found = clients["apps"].list_namespaced_deployment(namespace, label_selector=f"{COMPONENT}=discovery-server").items
-    live = discovery_from_deployments([_plain(d) for d in found])
+    live = discovery_from_deployments(kube.list("Deployment", namespace, selector=f"{COMPONENT}=discovery-server"))
     pin_live_discovery(record, live)
     return record, configmap
 
 
 def list_revisions(clients, namespace: str, deployment: str) -> list[dict]:
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import DEPLOYMENT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import DEPLOYMENT
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import REVISION_LABEL
 
-    items = (
-        clients["core"].list_namespaced_config_map(namespace, label_selector=f"{DEPLOYMENT}={deployment},{REVISION_LABEL}").items
-    )
-    return sorted((_plain(i) for i in items), key=lambda c: int(c["metadata"]["labels"][REVISION_LABEL]))
+    items = Kube(clients).list("ConfigMap", namespace, selector=f"{DEPLOYMENT}={deployment},{REVISION_LABEL}")
+    return sorted(items, key=lambda c: int(c["metadata"]["labels"][REVISION_LABEL]))
 
 
 def marker(record, body: dict | None) -> dict:
@@ -557,15 +514,8 @@ def _target(clients, params: dict, namespace_of):
         name, fleet = params["deployment"], params["fleet"]
         if not name or not fleet:
             raise SpecError([Problem("rollback", "deployment", "a rollback needs the deployment's name and fleet")])
-        from kubernetes.client.exceptions import ApiException
-
-        try:
-            configmap = _plain(
-                clients["core"].read_namespaced_config_map(revision_name(name, params["revision"]), namespace_of(fleet))
-            )
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
+        configmap = Kube(clients).get("ConfigMap", revision_name(name, params["revision"]), namespace_of(fleet))
+        if configmap is None:
             kept = [c["data"].get("revision") for c in list_revisions(clients, namespace_of(fleet), name)]
             raise SpecError(
                 [
@@ -596,14 +546,9 @@ def _target(clients, params: dict, namespace_of):
 
 def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     """Plan a rollout of one deployment to a new state, and (unless check mode) carry it out; see the module."""
-    from ansible_collections.kuberos.platform.plugins.module_utils import cluster_state
-    from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import FLEET_COMPONENTS
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
-        COMPONENT,
-        DEPLOYMENT,
-        render_deployment,
-    )
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import COMPONENT, DEPLOYMENT
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import render_deployment
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
         RECORD_LABEL,
@@ -613,6 +558,8 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     )
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import behind_live, plan_rollout
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import cluster_state
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import FLEET_COMPONENTS
 
     started = time.monotonic()
     dep, text, source, catalog, cause = _target(clients, params, fleet_namespace)
@@ -630,9 +577,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     options = pinned_options(clients, params, dep, namespace, bool(placement.bridges))
     # What runs: the record's state, except the modules of robots an earlier rollout left pending while they were
     # offline (they still run the older image); robots offline now are left pending in turn.
-    live = cluster_state._items(
-        clients["apps"].list_namespaced_deployment(namespace, label_selector=f"{DEPLOYMENT}={dep.name}", _preload_content=False)
-    )
+    live = Kube(clients).list("Deployment", namespace, selector=f"{DEPLOYMENT}={dep.name}")
     before = behind_live(render_deployment(record.deployments, record.placement, record.options), live)
     after = render_deployment([dep], placement, options)
     robots = list(inventory.fleets[dep.fleet])
@@ -715,5 +660,5 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     return result
 
 
-class RolloutBusy(Exception):
+class RolloutBusy(KuberosError):
     """Another rollout of the deployment is in progress."""

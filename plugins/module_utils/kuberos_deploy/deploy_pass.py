@@ -9,40 +9,25 @@ kind and namespace), dry-run once and, only when the dry run says the cluster wo
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
-from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import (
-    api_clients,
-    node_allocations,
-    previous_placement,
-    running_modules,
-    stale_objects,
-    unavailable_nodes,
-)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
     change_summary,
     clean_object,
     object_diff,
-    object_key,
-    object_label,
     record_changes,
     summary_text,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
-    COMPONENT,
-    DEPLOYMENT,
-    MANAGED_BY,
-    MODULE,
-    bridge_secret_name,
-)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import COMPONENT, DEPLOYMENT, MANAGED_BY, MODULE
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import bridge_secret_name
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import object_key, object_label
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantities import parse_cpu, parse_memory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name, record_placement
@@ -54,90 +39,31 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec impo
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import compare, deploy_table
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
-from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import RenderDirError
-from ansible_collections.kuberos.platform.plugins.module_utils.render_pass import render_to_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import (
+    node_allocations,
+    previous_placement,
+    running_modules,
+    stale_objects,
+    unavailable_nodes,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_dir import RenderDirError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_pass import render_to_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import (
+    REFUSALS,
+    RENDERED_KINDS,
+    Kube,
+    api_clients,
+    clients_of,
+    refusal,
+    status_of,
+)
 
-APPLY_TYPE = "application/apply-patch+yaml"
-REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid, forbidden by a policy, a conflict)
-# kind -> (api, list, server-side apply, delete) of the typed clients; every kind but Namespace is namespaced.
-KINDS = {
-    "Namespace": ("core", "list_namespace", "patch_namespace", "delete_namespace"),
-    "ConfigMap": ("core", "list_namespaced_config_map", "patch_namespaced_config_map", "delete_namespaced_config_map"),
-    "Service": ("core", "list_namespaced_service", "patch_namespaced_service", "delete_namespaced_service"),
-    "Secret": ("core", "list_namespaced_secret", "patch_namespaced_secret", "delete_namespaced_secret"),
-    "Deployment": ("apps", "list_namespaced_deployment", "patch_namespaced_deployment", "delete_namespaced_deployment"),
-    "NetworkPolicy": (
-        "networking",
-        "list_namespaced_network_policy",
-        "patch_namespaced_network_policy",
-        "delete_namespaced_network_policy",
-    ),
-}
-API_VERSIONS = {"Deployment": "apps/v1", "NetworkPolicy": "networking.k8s.io/v1"}
 CLUSTER_HINT = 'in the inventory (docs/inventory.md, "Third-party clusters")'
-
-
-def refusal(exc) -> str:
-    """What the API server said, in one line (its Status message when it sent one)."""
-    try:
-        return json.loads(exc.body).get("message") or f"{exc.status} {exc.reason}"
-    except (TypeError, ValueError, AttributeError):
-        return f"{exc.status} {exc.reason}"
 
 
 # Seconds an image problem that is not yet final (the kubelet has failed the pull once) may last before the deploy's
 # wait gives up on it anyway: the kubelet tries again after 10-15 s, and a second pull of a large image takes a while.
 PULL_PROBLEM_LIMIT = 120.0
-
-
-class Api:
-    """Raw JSON lists, server-side applies and deletes of the kinds KubeROS renders, through the typed clients
-    (``_preload_content=False``: the answer is read as the server sent it, without building model objects)."""
-
-    def __init__(self, clients, field_manager: str, name: str = ""):
-        self.clients = clients
-        self.field_manager = field_manager
-        self.name = name  # '' for this cluster, else the third-party cluster's inventory name
-
-    def _method(self, kind: str, which: int):
-        if kind not in KINDS:
-            raise KuberosError(f"KubeROS does not apply a {kind}")
-        api, *methods = KINDS[kind]
-        return getattr(self.clients[api], methods[which])
-
-    def list(self, kind: str, namespace: str = "") -> list[dict]:
-        """Every object of ``kind`` (in ``namespace``), with apiVersion and kind set; [] when the namespace is gone."""
-        from kubernetes.client.exceptions import ApiException
-
-        args = (namespace,) if kind != "Namespace" else ()
-        try:
-            response = self._method(kind, 0)(*args, _preload_content=False)
-        except ApiException as exc:
-            if exc.status == 404:
-                return []
-            raise
-        head = {"kind": kind, "apiVersion": API_VERSIONS.get(kind, "v1")}  # first, as the server writes single objects
-        return [{**head, **item} for item in json.loads(response.data).get("items") or []]
-
-    def apply(self, obj: dict, dry_run: bool) -> dict:
-        meta = obj["metadata"]
-        where = (meta["name"],) if obj["kind"] == "Namespace" else (meta["name"], meta["namespace"])
-        extra = {"dry_run": "All"} if dry_run else {}
-        response = self._method(obj["kind"], 1)(
-            *where, obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE, _preload_content=False, **extra
-        )
-        return json.loads(response.data)
-
-    def delete(self, obj: dict) -> None:
-        from kubernetes.client.exceptions import ApiException
-
-        meta = obj["metadata"]
-        where = (meta["name"],) if obj["kind"] == "Namespace" else (meta["name"], meta["namespace"])
-        try:
-            self._method(obj["kind"], 2)(*where, propagation_policy="Background")
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
 
 
 def keep_pod_security_levels(namespaces: list[dict], objects: list[dict], live: dict, stale: list[dict]) -> None:
@@ -174,15 +100,14 @@ def remote_clients(name: str, connection: dict | None):
     configuration.verify_ssl = True
     if connection.get("ca_cert"):
         configuration.ssl_ca_cert = connection["ca_cert"]
-    api = client.ApiClient(configuration)
-    return {"core": client.CoreV1Api(api), "apps": client.AppsV1Api(api), "networking": client.NetworkingV1Api(api)}
+    return clients_of(client.ApiClient(configuration))
 
 
 @dataclass
 class Target:
     """One cluster's share of a deploy: its namespaces and other objects, what is live there, what the dry run said."""
 
-    api: Api
+    api: Kube
     namespaces: list[dict]
     objects: list[dict]
     live: dict = field(default_factory=dict)  # object_key -> live object
@@ -205,7 +130,7 @@ class Target:
         found = self.api.list("Namespace")
         self.existing = {n["metadata"]["name"] for n in found}
         self.live.update((object_key(n), n) for n in found if n["metadata"]["name"] in wanted)
-        jobs = [(kind, ns) for ns in sorted(wanted & self.existing) for kind in KINDS if kind != "Namespace"]
+        jobs = [(kind, ns) for ns in sorted(wanted & self.existing) for kind in RENDERED_KINDS if kind != "Namespace"]
         for items in pool.map(lambda job: self.api.list(*job), jobs):
             self.live.update((object_key(o), o) for o in items)
         self.read_namespaces |= wanted
@@ -266,7 +191,7 @@ class DeployPass:
         self.clients = api_clients(self.params["kubeconfig"])
         names = [d.name for d in self.deployments]
         fleets = [d.fleet for d in self.deployments]
-        self.local = Target(Api(self.clients, self.params["field_manager"]), [], [])
+        self.local = Target(Kube(self.clients, self.params["field_manager"]), [], [])
         with ThreadPoolExecutor(max_workers=self.workers) as pool:  # the reads are independent: side by side
             reads = [
                 pool.submit(node_allocations, self.clients, names, fleets),
@@ -341,7 +266,7 @@ class DeployPass:
         out = [self.local]
         for cluster, share in sorted(rendered["remote"].items()):
             connection = (self.params.get("clusters") or {}).get(cluster)
-            api = Api(remote_clients(cluster, connection), self.params["field_manager"], cluster)
+            api = Kube(remote_clients(cluster, connection), self.params["field_manager"], cluster)
             out.append(Target(api, share["namespaces"], share["apply_objects"] + remote_secrets.get(cluster, [])))
         return out
 
@@ -360,8 +285,6 @@ class DeployPass:
 
     def _dry_run(self, target: Target, pool: ThreadPoolExecutor) -> dict[str, str]:
         """Dry-run every object of ``target`` whose namespace exists; the others are new. Returns the refusals."""
-        from kubernetes.client.exceptions import ApiException
-
         refused = {}
 
         def one(obj):
@@ -370,8 +293,8 @@ class DeployPass:
                 return obj, obj, None  # a new namespace in check mode: no dry run can be done there; the object is new
             try:
                 return obj, target.api.apply(obj, dry_run=True), None
-            except ApiException as exc:
-                if exc.status not in REFUSALS:
+            except Exception as exc:
+                if status_of(exc) not in REFUSALS:
                     raise
                 return obj, None, refusal(exc)
 
@@ -393,7 +316,7 @@ class DeployPass:
     def _undo_namespaces(self, targets: list[Target]) -> None:
         for target in targets:
             for name in target.created:
-                target.api.delete({"kind": "Namespace", "metadata": {"name": name}})
+                target.api.delete("Namespace", name)
 
     def _needs_apply(self, target: Target, obj: dict) -> bool:
         key = object_key(obj)
@@ -454,7 +377,7 @@ class DeployPass:
                 list(pool.map(lambda pair: pair[0].api.apply(pair[1], dry_run=False), rest))
                 applied = [object_label(o) + t.label for t, o in changes]
                 self._lap("apply")
-                list(pool.map(targets[0].api.delete, stale))
+                list(pool.map(targets[0].api.delete_object, stale))
                 self._lap("prune")
             else:
                 applied = [object_label(o) + t.label for t, o in changes]
@@ -552,18 +475,19 @@ class DeployPass:
         servers, bridge server, catalog) go with its last deployment."""
         from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import render_remote
         from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
-        from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import render_options
 
         self.clients = api_clients(self.params["kubeconfig"])
         self.placement = place_modules(self.deployments, self.inventory)  # names the fleets and bridges
         names = [d.name for d in self.deployments]
-        local = Api(self.clients, self.params["field_manager"])
+        local = Kube(self.clients, self.params["field_manager"])
         removed = []
         with ThreadPoolExecutor(max_workers=self.workers) as pool:
             if self.placement.bridges:
                 remote = render_remote(self.deployments, self.placement, self.inventory.clusters, render_options(self.params))
                 for cluster, objects in sorted(remote.items()):
-                    api = Api(remote_clients(cluster, (self.params.get("clusters") or {}).get(cluster)), "", cluster)
+                    connection = (self.params.get("clusters") or {}).get(cluster)
+                    api = Kube(remote_clients(cluster, connection), self.params["field_manager"], cluster)
                     gone = [o for o in reversed(objects) if o["kind"] != "Namespace"]
                     gone += [
                         {"kind": "Secret", "metadata": {"name": bridge_secret_name(BRIDGE_CLIENT), "namespace": b.namespace}}
@@ -571,16 +495,17 @@ class DeployPass:
                         for b in bridges
                         if b.cluster == cluster
                     ]
-                    live = {object_key(o) for ns in {o["metadata"]["namespace"] for o in gone} for k in KINDS if k != "Namespace"
-                            for o in api.list(k, ns)}  # fmt: skip
+                    namespaces = {o["metadata"]["namespace"] for o in gone}
+                    kinds = [k for k in RENDERED_KINDS if k != "Namespace"]
+                    live = {object_key(o) for ns in namespaces for k in kinds for o in api.list(k, ns)}
                     gone = [o for o in gone if object_key(o) in live]
                     removed += [f"{object_label(o)} (cluster {cluster})" for o in gone]
                     if not self.check_mode:
-                        list(pool.map(api.delete, gone))
+                        list(pool.map(api.delete_object, gone))
             for fleet in sorted({d.fleet for d in self.deployments}):
                 namespace = naming.fleet_namespace(fleet)
                 target = Target(local, [], [])
-                for kind in KINDS:
+                for kind in RENDERED_KINDS:
                     if kind != "Namespace":
                         target.live.update((object_key(o), o) for o in local.list(kind, namespace))
                 live = target.managed(namespace)
@@ -593,6 +518,6 @@ class DeployPass:
                 stale = stale_objects(live, [], names, remove_discovery=not others)
                 removed += [f"{o['kind']}/{namespace}/{o['metadata']['name']}" for o in stale]
                 if not self.check_mode:
-                    list(pool.map(local.delete, stale))
+                    list(pool.map(local.delete_object, stale))
         self._lap("remove")
         return {"changed": bool(removed), "removed": removed}

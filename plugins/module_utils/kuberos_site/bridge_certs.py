@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 
-from ansible_collections.kuberos.platform.plugins.module_utils import pki
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site import pki
 
 FILES = {
     "ca_cert": "ca.crt",

@@ -21,8 +21,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import build_records, catalog_configmap
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import placement_table
-from ansible_collections.kuberos.platform.plugins.module_utils.render_args import render_options
-from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import apply_plan, plan_render_dir
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import render_options
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_dir import apply_plan, plan_render_dir
 
 
 def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[dict]:
@@ -30,11 +30,10 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
     import base64
     import os
 
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FLEET
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import COMPONENT, DEPLOYMENT, FLEET, MANAGED_BY
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import COMPONENT, DEPLOYMENT, MANAGED_BY
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import BRIDGE_CLIENT
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_bridge.certs import generate_certificates
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.bridge_certs import generate_certificates
 
     files = []
     for fleet, bridges in sorted(placement.bridges.items()):

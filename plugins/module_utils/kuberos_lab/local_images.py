@@ -31,7 +31,7 @@ to the lab's registry, `kuberos_lab.registry`, and pulled from it). Four images:
         nothing must recompile at run time (the controller runs on a read-only root filesystem);
         and a chroot smoke test imports the main modules before the base is cached.
         The rootfs becomes one layer with ``umoci unpack`` / ``umoci repack``, and ``umoci config`` sets the
-        environment of `plugins/module_utils/ros_wheels.ros_environment` with the image's paths (PATH starts
+        environment of `plugins/module_utils/kuberos_lab/ros_wheels.ros_environment` with the image's paths (PATH starts
         with /opt/ros/jazzy/bin, so ``python``, ``python3`` and ``fast-discovery-server`` are the venv's;
         LD_LIBRARY_PATH, _ROS_WHEELS_BOOTSTRAP_COMPLETE=1) plus ROS_LOG_DIR=/tmp/ros, HOME=/tmp,
         PYTHONPATH=/opt/kuberos, RMW_IMPLEMENTATION=rmw_fastrtps_cpp, and working directory /opt/kuberos; no
@@ -85,7 +85,7 @@ root-owned files in the layers). KUBEROS_DEBIAN_MIRROR overrides the Debian mirr
 command line (``--json`` prints images and aliases as JSON; ``import --address <containerd socket>`` also imports):
 
     PYTHONPATH=.collections .venv/bin/python -m \\
-        ansible_collections.kuberos.platform.plugins.module_utils.local_images build [--cache-dir D]
+        ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_images build [--cache-dir D]
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ import tarfile
 import threading
 import time
 
-from ansible_collections.kuberos.platform.plugins.module_utils.ros_wheels import ros_environment
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.ros_wheels import ros_environment
 
 ROS_IMAGE = "kuberos.local/ros"
 # The published ROS image's contract (docker.io/library/ros:jazzy-ros-base): ROS under /opt/ros/<distro>, the
@@ -617,7 +617,10 @@ def _app_files(repo_root: str) -> list[tuple[str, bytes | None, bool]]:
     for source, destination in APP_TREES:
         top = os.path.join(repo_root, source)
         if not os.path.isdir(top):
-            raise ImageBuildError(f"{top} is missing")
+            raise ImageBuildError(
+                f"{top} is missing: the lab builds its images from a checkout of the collection's repository"
+                " (the installed collection leaves sim/ out)"
+            )
         parts = destination.strip("/").split("/")
         for depth in range(1, len(parts)):
             entries.setdefault("/".join(parts[:depth]), (None, True))
@@ -1091,7 +1094,9 @@ def import_images(
 def main(argv: list[str] | None = None) -> int:
     here = os.path.dirname(os.path.abspath(__file__))
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--repo-root", default=os.path.dirname(os.path.dirname(here)), help="the repository [%(default)s]")
+    common.add_argument(
+        "--repo-root", default=os.path.dirname(os.path.dirname(os.path.dirname(here))), help="the repository [%(default)s]"
+    )
     common.add_argument(
         "--cache-dir",
         default=os.environ.get("KUBEROS_CACHE_DIR") or os.path.expanduser("~/.cache/kuberos"),
@@ -1101,7 +1106,7 @@ def main(argv: list[str] | None = None) -> int:
         "--json", action="store_true", help='print {"images": {reference: archive}, "aliases": {alias: reference}, ...}'
     )
     parser = argparse.ArgumentParser(
-        prog="python -m ansible_collections.kuberos.platform.plugins.module_utils.local_images",
+        prog="python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.local_images",
         description="Build the collection's container images as OCI archives (cached), or import them into a containerd.",
     )
     commands = parser.add_subparsers(dest="command", required=True)

@@ -33,9 +33,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import file_reader
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
-from ansible_collections.kuberos.platform.plugins.module_utils.render_dir import apply_plan, plan_files
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_dir import apply_plan, plan_files
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, status_of
 
-APPLY_TYPE = "application/apply-patch+yaml"
 PROGRESS_EVERY_S = 30.0
 INDEX_LABEL = "batch.kubernetes.io/job-completion-index"
 PLAN_JSON = "batch.json"
@@ -103,93 +103,45 @@ def plan_render(dest: str, job: batch.BatchJob, objects: list[dict], rows: list[
 
 
 class Cluster:
-    """The calls a batch run makes, as raw JSON through the typed clients."""
+    """The calls a batch run makes, through the access layer."""
 
     def __init__(self, clients, field_manager: str):
-        self.core, self.batch, self.field_manager = clients["core"], clients["batch"], field_manager
-        self.networking = clients.get("networking")
+        self.kube = Kube(clients, field_manager)
 
     def apply(self, obj: dict) -> None:
-        meta = obj["metadata"]
-        kind = obj["kind"]
-        if kind == "Namespace":
-            self.core.patch_namespace(meta["name"], obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE)
-        elif kind == "ConfigMap":
-            self.core.patch_namespaced_config_map(
-                meta["name"], meta["namespace"], obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE
-            )
-        elif kind == "NetworkPolicy":
-            self.networking.patch_namespaced_network_policy(
-                meta["name"], meta["namespace"], obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE
-            )
-        elif kind == "Job":
-            self.batch.patch_namespaced_job(
-                meta["name"], meta["namespace"], obj, field_manager=self.field_manager, force=True, _content_type=APPLY_TYPE
-            )
-        else:
-            raise KuberosError(f"a batch job does not apply a {kind}")
-
-    def _list(self, method, namespace: str, selector: str) -> list[dict]:
-        response = method(namespace, label_selector=selector, _preload_content=False)
-        return json.loads(response.data).get("items") or []
+        if obj["kind"] not in ("Namespace", "ConfigMap", "NetworkPolicy", "Job"):
+            raise KuberosError(f"a batch job does not apply a {obj['kind']}")
+        self.kube.apply(obj)
 
     def jobs(self, namespace: str, name: str) -> list[dict]:
-        return self._list(self.batch.list_namespaced_job, namespace, f"{batch.BATCH}={name}")
+        return self.kube.list("Job", namespace, selector=f"{batch.BATCH}={name}")
 
     def pods(self, namespace: str, name: str) -> list[dict]:
-        return self._list(self.core.list_namespaced_pod, namespace, f"{batch.BATCH}={name}")
+        return self.kube.list("Pod", namespace, selector=f"{batch.BATCH}={name}")
 
     def enforced_level(self, namespace: str) -> str | None:
         """The Pod Security level ``namespace`` enforces; None when it enforces none or does not exist."""
-        from kubernetes.client.exceptions import ApiException
-
-        try:
-            found = json.loads(self.core.read_namespace(namespace, _preload_content=False).data)
-        except ApiException as exc:
-            if exc.status == 404:
-                return None
-            raise
+        found = self.kube.get("Namespace", namespace) or {}
         return ((found.get("metadata") or {}).get("labels") or {}).get(pod_security.ENFORCE)
 
     def configmaps(self, namespace: str, name: str) -> list[dict]:
-        return self._list(self.core.list_namespaced_config_map, namespace, f"{batch.BATCH}={name}")
+        return self.kube.list("ConfigMap", namespace, selector=f"{batch.BATCH}={name}")
 
     def delete_job(self, namespace: str, name: str) -> None:
-        from kubernetes.client.exceptions import ApiException
-
-        try:
-            self.batch.delete_namespaced_job(name, namespace, propagation_policy="Background")
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
+        self.kube.delete("Job", name, namespace)
 
     def delete_pod(self, namespace: str, name: str) -> None:
-        from kubernetes.client.exceptions import ApiException
-
-        try:
-            self.core.delete_namespaced_pod(name, namespace, grace_period_seconds=0)
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
+        self.kube.delete("Pod", name, namespace, grace_seconds=0)
 
     def delete_configmap(self, namespace: str, name: str) -> None:
-        from kubernetes.client.exceptions import ApiException
-
-        try:
-            self.core.delete_namespaced_config_map(name, namespace)
-        except ApiException as exc:
-            if exc.status != 404:
-                raise
+        self.kube.delete("ConfigMap", name, namespace)
 
     def log(self, namespace: str, pod: str, container: str) -> str:
-        from kubernetes.client.exceptions import ApiException
-
         try:
-            return self.core.read_namespaced_pod_log(pod, namespace, container=container) or ""
-        except ApiException as exc:  # a node without a kubelet (kwok) keeps no logs
-            return f"(no log: {exc.status} {exc.reason})\n"
-        except Exception as exc:
-            return f"(no log: {exc})\n"
+            return self.kube.log(pod, namespace, container)
+        except Exception as exc:  # a node without a kubelet (kwok) keeps no logs
+            status = status_of(exc)
+            return f"(no log: {exc.status} {exc.reason})\n" if status is not None else f"(no log: {exc})\n"
 
 
 def _outcome(pod: dict) -> tuple[str, str]:
@@ -357,7 +309,10 @@ def run_batch(clients_factory, params: dict, check_mode: bool, progress) -> dict
     cluster = None
     allocated, unavailable = dict(params.get("allocated") or {}), {}
     if params["apply"]:
-        from ansible_collections.kuberos.platform.plugins.module_utils.cluster_state import node_allocations, unavailable_nodes
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import (
+            node_allocations,
+            unavailable_nodes,
+        )
 
         clients = clients_factory()
         cluster = Cluster(clients, params["field_manager"])

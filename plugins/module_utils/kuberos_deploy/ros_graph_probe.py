@@ -3,7 +3,7 @@
 Run by ``rosdeployment_rollout`` after a wave's soak (its ``ros_probe`` option, the ``rosdeployment_rollout_ros_probe``
 role variable), on a machine that reaches the discovery servers (``ROS_DISCOVERY_SERVER`` set as the modules have it):
 
-    python -m ansible_collections.kuberos.platform.plugins.module_utils.ros_graph_probe \\
+    python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.ros_graph_probe \\
         --expect '/{robot}/motion_planner' --timeout 10
 
 Every ``--expect`` is a fully qualified node name; ``{robot}`` stands for each robot of the wave (``KUBEROS_ROBOTS``,

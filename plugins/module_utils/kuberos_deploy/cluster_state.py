@@ -7,94 +7,36 @@ core stays free of Kubernetes imports.
 from __future__ import annotations
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import (
-    COMPONENT,
-    DEPLOYMENT,
-    INSTANCE,
-    MANAGED_BY,
-)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import COMPONENT, DEPLOYMENT, INSTANCE, MANAGED_BY
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import (
     IMAGE_PULL_REASONS,
     image_pull_problem,
     pod_note,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import MANAGED_KINDS, Kube, object_key
 
-# The argument every module that talks to a cluster takes (documented by the kuberos.platform.cluster fragment).
-KUBECONFIG_ARG = {"kubeconfig": {"type": "path", "required": True}}
-
-# Kinds KubeROS renders inside fleet namespaces: (apiVersion, kind, list method, delete method, api).
-MANAGED_KINDS = (
-    ("apps/v1", "Deployment", "list_namespaced_deployment", "delete_namespaced_deployment", "apps"),
-    ("v1", "Service", "list_namespaced_service", "delete_namespaced_service", "core"),
-    ("v1", "ConfigMap", "list_namespaced_config_map", "delete_namespaced_config_map", "core"),
-    ("v1", "Secret", "list_namespaced_secret", "delete_namespaced_secret", "core"),
-    ("networking.k8s.io/v1", "NetworkPolicy", "list_namespaced_network_policy", "delete_namespaced_network_policy", "networking"),
-)
 # What a fleet shares between its deployments: removed with the fleet's last deployment, like its discovery servers.
 FLEET_COMPONENTS = ("discovery-server", "bridge-server", "catalog", "network-policy")
 
 
-START_HINT = "start the local cluster with `make cluster`, or set kuberos_kubeconfig to your cluster's kubeconfig"
-
-
-class ClusterUnreachable(Exception):
-    """The cluster cannot be reached; the message says which and what to do."""
-
-
-def api_clients(kubeconfig: str):
-    import os
-
-    from kubernetes import client, config
-
-    if not os.path.exists(kubeconfig):
-        raise ClusterUnreachable(f"no kubeconfig at {kubeconfig}; {START_HINT}")
-    api = config.new_client_from_config(config_file=kubeconfig)
-    return {
-        "core": client.CoreV1Api(api),
-        "apps": client.AppsV1Api(api),
-        "batch": client.BatchV1Api(api),
-        "networking": client.NetworkingV1Api(api),
-    }
-
-
-def explain(exc: Exception, kubeconfig: str) -> str:
-    """One line for a failure to talk to the cluster: unreachable, refused, or what the API server said."""
-    from kubernetes.client.exceptions import ApiException
-    from urllib3.exceptions import HTTPError
-
-    if isinstance(exc, ClusterUnreachable):
-        return str(exc)
-    if isinstance(exc, ApiException):
-        return f"the API server refused: {exc.status} {exc.reason}: {(exc.body or '')[:500]}"
-    if isinstance(exc, (HTTPError, OSError)):
-        reason = getattr(exc, "reason", None) or exc
-        return f"the cluster of {kubeconfig} is not reachable ({reason}); {START_HINT}"
-    return f"cannot use the cluster of {kubeconfig}: {exc}"
-
-
-def _key(obj: dict) -> tuple:
-    return (obj["apiVersion"], obj["kind"], obj["metadata"].get("namespace", ""), obj["metadata"]["name"])
+def kube_of(clients) -> Kube:
+    """The access layer over ``clients`` (the typed clients by name), or ``clients`` when it is one already."""
+    return clients if isinstance(clients, Kube) else Kube(clients)
 
 
 def managed_objects(clients, namespace: str) -> list[dict]:
     """Every object KubeROS manages in a namespace, as {apiVersion, kind, metadata{name, namespace, labels}}."""
-    from kubernetes.client.exceptions import ApiException
-
+    kube = kube_of(clients)
     found = []
-    for api_version, kind, list_method, _delete, api in MANAGED_KINDS:
-        try:
-            items = getattr(clients[api], list_method)(namespace, label_selector=f"{MANAGED_BY}=kuberos").items
-        except ApiException as exc:
-            if exc.status == 404:
-                return []
-            raise
-        for item in items:
+    for kind in MANAGED_KINDS:
+        for item in kube.list(kind, namespace, selector=f"{MANAGED_BY}=kuberos"):
+            meta = item["metadata"]
             found.append(
                 {
-                    "apiVersion": api_version,
+                    "apiVersion": item["apiVersion"],
                     "kind": kind,
-                    "metadata": {"name": item.metadata.name, "namespace": namespace, "labels": dict(item.metadata.labels or {})},
+                    "metadata": {"name": meta["name"], "namespace": namespace, "labels": dict(meta.get("labels") or {})},
                 }
             )
     return found
@@ -104,7 +46,7 @@ def stale_objects(live: list[dict], keep: list[dict], deployments: list[str], re
     """Live objects of ``deployments`` (and discovery servers) that are not in ``keep``."""
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import REVISION_HISTORY, REVISION_LABEL
 
-    wanted = {_key(o) for o in keep}
+    wanted = {object_key(o) for o in keep}
     newest: dict[str, int] = {}
     for obj in live:
         number = obj["metadata"]["labels"].get(REVISION_LABEL, "")
@@ -119,32 +61,15 @@ def stale_objects(live: list[dict], keep: list[dict], deployments: list[str], re
             continue  # a kept revision (rollback.yml returns to it); the oldest beyond the history go
         ours = obj_labels.get(DEPLOYMENT) in deployments
         discovery = obj_labels.get(COMPONENT) in FLEET_COMPONENTS and remove_discovery
-        if (ours or discovery) and _key(obj) not in wanted:
+        if (ours or discovery) and object_key(obj) not in wanted:
             stale.append(obj)
     return stale
 
 
 def delete_object(clients, obj: dict) -> None:
-    from kubernetes.client.exceptions import ApiException
-
-    for api_version, kind, _list, delete_method, api in MANAGED_KINDS:
-        if (api_version, kind) == (obj["apiVersion"], obj["kind"]):
-            try:
-                getattr(clients[api], delete_method)(
-                    obj["metadata"]["name"], obj["metadata"]["namespace"], propagation_policy="Background"
-                )
-            except ApiException as exc:
-                if exc.status != 404:
-                    raise
-            return
-    raise ValueError(f"KubeROS does not manage {obj['kind']}")
-
-
-def _items(response) -> list[dict]:
-    """The items of a LIST answer read without building the client's model objects (much faster for many pods)."""
-    import json
-
-    return json.loads(response.data).get("items") or []
+    if obj["kind"] not in MANAGED_KINDS:
+        raise ValueError(f"KubeROS does not manage {obj['kind']}")
+    kube_of(clients).delete(obj["kind"], obj["metadata"]["name"], obj["metadata"]["namespace"])
 
 
 def _ready(pod: dict) -> bool:
@@ -170,10 +95,8 @@ def _image_problem(clients, pod: dict) -> tuple[str, bool]:
         if waiting["reason"] not in RETRIED_PULL_REASONS:
             return image_pull_problem(container.get("image", ""), waiting["reason"], message), True
         meta = pod["metadata"]
-        events = _items(
-            clients["core"].list_namespaced_event(
-                meta["namespace"], field_selector=f"involvedObject.uid={meta['uid']},reason=Failed", _preload_content=False
-            )
+        events = kube_of(clients).list(
+            "Event", meta["namespace"], field_selector=f"involvedObject.uid={meta['uid']},reason=Failed"
         )
         failed = [e for e in events if "pull" in (e.get("message") or "").lower()]
         # The kubelet also records "Error: ErrImagePull" and "Error: ImagePullBackOff" as Failed events, often
@@ -193,10 +116,7 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
     that is not ready is not (``status.pod_note``)."""
     rows = []
     for fleet in sorted(set(fleets)):
-        response = clients["core"].list_namespaced_pod(
-            fleet_namespace(fleet), label_selector=f"{MANAGED_BY}=kuberos", _preload_content=False
-        )
-        for pod in _items(response):
+        for pod in kube_of(clients).list("Pod", fleet_namespace(fleet), selector=f"{MANAGED_BY}=kuberos"):
             meta = pod["metadata"]
             pod_labels = meta.get("labels") or {}
             discovery = pod_labels.get(COMPONENT) in FLEET_COMPONENTS
@@ -228,10 +148,7 @@ def node_allocations(clients, exclude_deployments: list[str], exclude_discovery_
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 
     used: dict[str, dict] = {}
-    response = clients["core"].list_pod_for_all_namespaces(
-        field_selector="status.phase!=Succeeded,status.phase!=Failed", _preload_content=False
-    )
-    for pod in _items(response):
+    for pod in kube_of(clients).list("Pod", field_selector="status.phase!=Succeeded,status.phase!=Failed"):
         spec = pod.get("spec") or {}
         node = spec.get("nodeName")
         pod_labels = pod["metadata"].get("labels") or {}
@@ -253,14 +170,14 @@ def node_allocations(clients, exclude_deployments: list[str], exclude_discovery_
 
 def namespace_names(clients) -> list[str]:
     """Names of the namespaces that exist in the cluster, sorted."""
-    return sorted(ns.metadata.name for ns in clients["core"].list_namespace().items)
+    return sorted(ns["metadata"]["name"] for ns in kube_of(clients).list("Namespace"))
 
 
 def unavailable_nodes(clients, wanted: list[str]) -> dict[str, str]:
     """Of the ``wanted`` nodes (inventory names), those that are not Ready or not in the cluster, with why.
     A node's inventory name is its ``device.kuberos.io/hostname`` label, else its name."""
     found = {}
-    for node in _items(clients["core"].list_node(_preload_content=False)):
+    for node in kube_of(clients).list("Node"):
         name = (node["metadata"].get("labels") or {}).get(node_labels.HOSTNAME, node["metadata"]["name"])
         conditions = (node.get("status") or {}).get("conditions") or []
         ready = next((c for c in conditions if c.get("type") == "Ready"), None)
@@ -280,9 +197,6 @@ def unavailable_nodes(clients, wanted: list[str]) -> dict[str, str]:
 def previous_placement(clients, targets: list[dict]) -> dict:
     """What runs now for sticky placement, as placement data: the instances of the targets' records
     (``[{name, fleet}]``) and the live discovery servers of their fleets."""
-    from kubernetes.client import ApiClient
-    from kubernetes.client.exceptions import ApiException
-
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import discovery_from_deployments
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import (
         merge_previous,
@@ -290,32 +204,23 @@ def previous_placement(clients, targets: list[dict]) -> dict:
         record_placement,
     )
 
-    plain = ApiClient().sanitize_for_serialization
+    kube = kube_of(clients)
     placements, objects, revisions = [], [], {}
     for fleet in sorted({t["fleet"] for t in targets}):
         namespace = fleet_namespace(fleet)
-        try:
-            found = clients["apps"].list_namespaced_deployment(namespace, label_selector=f"{COMPONENT}=discovery-server")
-        except ApiException as exc:
-            if exc.status == 404:
-                continue
-            raise
-        objects.extend(plain(d) for d in found.items)
+        objects.extend(kube.list("Deployment", namespace, selector=f"{COMPONENT}=discovery-server"))
         for target in (t for t in targets if t["fleet"] == fleet):
-            try:
-                configmap = clients["core"].read_namespaced_config_map(record_name(target["name"]), namespace)
-            except ApiException as exc:
-                if exc.status == 404:
-                    continue
-                raise
-            data = configmap.data or {}
+            configmap = kube.get("ConfigMap", record_name(target["name"]), namespace)
+            if configmap is None:
+                continue
+            data = configmap.get("data") or {}
             if data.get("rollout.json"):
                 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError
 
                 raise SpecError(
                     [
                         Problem(
-                            f"ConfigMap {namespace}/{configmap.metadata.name}",
+                            f"ConfigMap {namespace}/{configmap['metadata']['name']}",
                             "data.rollout.json",
                             f"a rollout of {target['name']} is in progress ({data['rollout.json'][:200]}); wait for it to "
                             "end, or remove this key if its process died (docs/software.md)",
@@ -323,6 +228,6 @@ def previous_placement(clients, targets: list[dict]) -> dict:
                     ],
                     title="a rollout is in progress",
                 )
-            placements.append(record_placement(plain(configmap)))
+            placements.append(record_placement(configmap))
             revisions[target["name"]] = {"revision": int(data.get("revision") or 0), "hash": data.get("revision-hash", "")}
     return {**merge_previous(placements, discovery_from_deployments(objects)).to_dict(), "revisions": revisions}

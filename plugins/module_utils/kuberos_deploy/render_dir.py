@@ -12,6 +12,7 @@ import os
 import tempfile
 from dataclasses import dataclass, field
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
 
 MARKER = ".kuberos-render"
@@ -52,8 +53,8 @@ class RenderPlan:
         return out
 
 
-class RenderDirError(Exception):
-    pass
+class RenderDirError(KuberosError):
+    """The render directory cannot be written as planned; the message says which file and why."""
 
 
 def read_text(path: str) -> str | None:

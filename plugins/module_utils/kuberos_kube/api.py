@@ -1,0 +1,255 @@
+"""The one way the collection talks to Kubernetes: typed clients from a kubeconfig, one table of the kinds it
+reads and writes, and get, list, apply (server-side), create and delete that answer in plain JSON, as the API
+server sent it, and treat a missing object one way: ``get`` gives None, ``list`` gives [] for a namespace that is
+gone, ``delete`` gives False for an object already gone. ``message`` turns any failure to talk to a cluster into
+one sentence.
+
+Used by deploy, diff, prune, rollout, batch, status (``kuberos_deploy``), the controller and the lab. The clients
+are the Kubernetes Python client's typed APIs; answers are read with ``_preload_content=False``, so no model
+objects are built. A test gives ``Kube`` its own ``clients`` (objects with the typed clients' method names).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import object_key
+
+APPLY_TYPE = "application/apply-patch+yaml"
+FIELD_MANAGER = "kuberos"
+# The argument every module that talks to a cluster takes (documented by the kuberos.platform.cluster fragment).
+KUBECONFIG_ARG = {"kubeconfig": {"type": "path", "required": True}}
+REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid, forbidden by a policy, a conflict)
+START_HINT = "start the local cluster with `make cluster`, or set kuberos_kubeconfig to your cluster's kubeconfig"
+
+
+@dataclass(frozen=True)
+class Kind:
+    """How the typed clients reach a kind: the client (``api``), the method suffix and whether it is namespaced."""
+
+    api: str
+    method: str
+    namespaced: bool
+    api_version: str
+
+
+KINDS = {
+    "Namespace": Kind("core", "namespace", False, "v1"),
+    "Node": Kind("core", "node", False, "v1"),
+    "ConfigMap": Kind("core", "config_map", True, "v1"),
+    "Service": Kind("core", "service", True, "v1"),
+    "Secret": Kind("core", "secret", True, "v1"),
+    "Pod": Kind("core", "pod", True, "v1"),
+    "Event": Kind("core", "event", True, "v1"),
+    "Deployment": Kind("apps", "deployment", True, "apps/v1"),
+    "Job": Kind("batch", "job", True, "batch/v1"),
+    "NetworkPolicy": Kind("networking", "network_policy", True, "networking.k8s.io/v1"),
+    "Lease": Kind("coordination", "lease", True, "coordination.k8s.io/v1"),
+    "ClusterRole": Kind("rbac", "cluster_role", False, "rbac.authorization.k8s.io/v1"),
+    "ClusterRoleBinding": Kind("rbac", "cluster_role_binding", False, "rbac.authorization.k8s.io/v1"),
+}
+# What KubeROS renders for a deployment (applied, diffed, pruned, rolled out), in the order they are applied.
+RENDERED_KINDS = ("Namespace", "ConfigMap", "Service", "Secret", "Deployment", "NetworkPolicy")
+# What KubeROS keeps inside a fleet's namespace (its label selector finds them for prune, undeploy and status).
+MANAGED_KINDS = ("Deployment", "Service", "ConfigMap", "Secret", "NetworkPolicy")
+
+
+class ClusterUnreachable(Exception):
+    """The cluster cannot be reached; the message says which and what to do."""
+
+
+def api_clients(kubeconfig: str) -> dict:
+    """The typed clients of the cluster ``kubeconfig`` names, by the names ``KINDS`` uses."""
+    from kubernetes import config
+
+    if not os.path.exists(kubeconfig):
+        raise ClusterUnreachable(f"no kubeconfig at {kubeconfig}; {START_HINT}")
+    api = config.new_client_from_config(config_file=kubeconfig)
+    return clients_of(api)
+
+
+def clients_of(api) -> dict:
+    """The typed clients over one ``kubernetes.client.ApiClient``."""
+    from kubernetes import client
+
+    return {
+        "core": client.CoreV1Api(api),
+        "apps": client.AppsV1Api(api),
+        "batch": client.BatchV1Api(api),
+        "networking": client.NetworkingV1Api(api),
+        "coordination": client.CoordinationV1Api(api),
+        "rbac": client.RbacAuthorizationV1Api(api),
+    }
+
+
+def status_of(exc: BaseException) -> int | None:
+    """The HTTP status of an API server's refusal (the typed clients' ApiException), else None."""
+    status = getattr(exc, "status", None)
+    return status if isinstance(status, int) and hasattr(exc, "body") else None
+
+
+def refusal(exc) -> str:
+    """What the API server said, in one line (its Status message when it sent one)."""
+    try:
+        return json.loads(exc.body).get("message") or f"{exc.status} {exc.reason}"
+    except (TypeError, ValueError, AttributeError):
+        return f"{exc.status} {exc.reason}"
+
+
+def message(exc: BaseException, kubeconfig: str = "") -> str:
+    """One sentence for a failure to talk to a cluster: unreachable, refused, or what the API server said."""
+    from urllib3.exceptions import HTTPError
+
+    where = kubeconfig or "(no kubeconfig)"
+    if isinstance(exc, ClusterUnreachable):
+        return str(exc)
+    if status_of(exc) is not None:
+        return f"the API server refused: {exc.status} {exc.reason}: {(exc.body or '')[:500]}"
+    if isinstance(exc, (HTTPError, OSError)):
+        reason = getattr(exc, "reason", None) or exc
+        return f"the cluster of {where} is not reachable ({reason}); {START_HINT}"
+    return f"cannot use the cluster of {where}: {exc}"
+
+
+class Kube:
+    """Reads and writes of the kinds in ``KINDS`` through the typed clients, as plain JSON.
+
+    ``name`` is '' for this cluster, else the third-party cluster's inventory name (for messages).
+    ``timeout`` (seconds, or a callable giving them before each write) bounds each write: the controller's fence
+    gives its lease's remaining time there, and refuses a write it may not make by raising. ``read_timeout``
+    (seconds) bounds each read."""
+
+    def __init__(self, clients: dict, field_manager: str = FIELD_MANAGER, name: str = "", timeout=None, read_timeout=None):
+        self.clients = clients
+        self.field_manager = field_manager
+        self.name = name
+        self.timeout = timeout
+        self.read_timeout = read_timeout
+
+    def _method(self, kind: str, verb: str):
+        found = KINDS.get(kind)
+        if found is None:
+            raise ValueError(f"KubeROS does not handle a {kind}")
+        client = self.clients.get(found.api)
+        if client is None:
+            raise ValueError(f"no {found.api} client for a {kind}")
+        namespaced = "namespaced_" if found.namespaced and verb != "list_all" else ""
+        if verb == "list_all":
+            return getattr(client, f"list_{found.method}_for_all_namespaces")
+        return getattr(client, f"{verb}_{namespaced}{found.method}")
+
+    def _where(self, kind: str, name: str, namespace: str) -> tuple:
+        return (name, namespace) if KINDS[kind].namespaced else (name,)
+
+    def _reads(self) -> dict:
+        return {} if self.read_timeout is None else {"_request_timeout": self.read_timeout}
+
+    def _limits(self) -> dict:
+        timeout = self.timeout() if callable(self.timeout) else self.timeout
+        return {} if timeout is None else {"_request_timeout": timeout}
+
+    def _head(self, kind: str) -> dict:
+        return {"kind": kind, "apiVersion": KINDS[kind].api_version}
+
+    def list_call(self, kind: str):
+        """The typed client's LIST of ``kind`` (in all namespaces for a namespaced kind), for a watch of its own."""
+        return self._method(kind, "list_all" if KINDS[kind].namespaced else "list")
+
+    def get(self, kind: str, name: str, namespace: str = "") -> dict | None:
+        """One object, or None when there is no such object (or namespace)."""
+        try:
+            response = self._method(kind, "read")(*self._where(kind, name, namespace), _preload_content=False, **self._reads())
+        except Exception as exc:
+            if status_of(exc) == 404:
+                return None
+            raise
+        return {**self._head(kind), **json.loads(response.data)}
+
+    def list(self, kind: str, namespace: str = "", selector: str = "", field_selector: str = "") -> list[dict]:
+        """Every object of ``kind`` (in ``namespace``; in all namespaces when a namespaced kind is given none), with
+        apiVersion and kind set; [] when the namespace is gone."""
+        query = {"label_selector": selector} if selector else {}
+        if field_selector:
+            query["field_selector"] = field_selector
+        try:
+            if KINDS.get(kind) and KINDS[kind].namespaced and not namespace:
+                response = self._method(kind, "list_all")(_preload_content=False, **query)
+            else:
+                args = (namespace,) if KINDS.get(kind) and KINDS[kind].namespaced else ()
+                response = self._method(kind, "list")(*args, _preload_content=False, **query)
+        except Exception as exc:
+            if status_of(exc) == 404:
+                return []
+            raise
+        head = self._head(kind)  # first, as the server writes single objects
+        return [{**head, **item} for item in json.loads(response.data).get("items") or []]
+
+    def apply(self, obj: dict, dry_run: bool = False, manager: str | None = None) -> dict:
+        """Server-side apply of ``obj`` (its fields owned by ``manager``, conflicts forced); what the server holds."""
+        meta = obj["metadata"]
+        extra = {"dry_run": "All"} if dry_run else {}
+        body = json.loads(json.dumps(obj))  # the client serialises plain data only
+        response = self._method(obj["kind"], "patch")(
+            *self._where(obj["kind"], meta["name"], meta.get("namespace", "")),
+            body,
+            field_manager=manager or self.field_manager,
+            force=True,
+            _content_type=APPLY_TYPE,
+            _preload_content=False,
+            **extra,
+            **self._limits(),
+        )
+        return json.loads(response.data)
+
+    def patch(self, kind: str, name: str, namespace: str, patch, content_type: str | None = None) -> dict:
+        """A merge (or ``content_type``) patch of one object; what the server holds."""
+        extra = {"_content_type": content_type} if content_type else {}
+        response = self._method(kind, "patch")(
+            *self._where(kind, name, namespace), patch, _preload_content=False, **extra, **self._limits()
+        )
+        return json.loads(response.data)
+
+    def replace(self, obj: dict) -> dict:
+        """Replace ``obj`` as a whole (its ``resourceVersion`` makes the API server refuse a stale one: 409)."""
+        meta = obj["metadata"]
+        body = json.loads(json.dumps(obj))
+        response = self._method(obj["kind"], "replace")(
+            *self._where(obj["kind"], meta["name"], meta.get("namespace", "")), body, _preload_content=False, **self._limits()
+        )
+        return json.loads(response.data)
+
+    def create(self, obj: dict) -> dict:
+        """Create ``obj``; the API server's refusal (409 when it exists) is raised."""
+        meta = obj["metadata"]
+        args = (meta["namespace"],) if KINDS[obj["kind"]].namespaced else ()
+        body = json.loads(json.dumps(obj))
+        response = self._method(obj["kind"], "create")(*args, body, _preload_content=False, **self._limits())
+        return json.loads(response.data)
+
+    def delete(self, kind: str, name: str, namespace: str = "", grace_seconds: int | None = None) -> bool:
+        """Delete one object (its dependents in the background); False when it was already gone."""
+        extra = {} if grace_seconds is None else {"grace_period_seconds": grace_seconds}
+        try:
+            self._method(kind, "delete")(
+                *self._where(kind, name, namespace), propagation_policy="Background", **extra, **self._limits()
+            )
+        except Exception as exc:
+            if status_of(exc) == 404:
+                return False
+            raise
+        return True
+
+    def delete_object(self, obj: dict) -> bool:
+        """``delete`` of the object ``obj`` names (its kind, namespace and name)."""
+        kind, namespace, name = object_key(obj)
+        return self.delete(kind, name, namespace)
+
+    def log(self, pod: str, namespace: str, container: str = "", tail_lines: int | None = None) -> str:
+        """What a pod's container printed (the kubelet's log; the API server's refusal is raised)."""
+        extra = {"container": container} if container else {}
+        if tail_lines is not None:
+            extra["tail_lines"] = tail_lines
+        response = self.clients["core"].read_namespaced_pod_log(pod, namespace, _preload_content=False, **extra)
+        return response.data.decode("utf-8", errors="replace")
