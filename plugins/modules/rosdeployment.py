@@ -189,12 +189,10 @@ timings:
 
 from ansible.module_utils.basic import AnsibleModule
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.deploy_pass import DeployPass
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.deploy_pass import DeployPass, NotReady
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import api_clients
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),
@@ -213,95 +211,6 @@ ARGUMENT_SPEC = dict(
 )
 
 
-def _batch_file(path: str) -> bool:
-    """Whether the file holds batch jobs (RosBatchJob, or the reference format's BatchJob) rather than deployments."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.batch import is_batch_document
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import load_documents, read_text
-
-    try:
-        documents = [d.data for d in load_documents(read_text(path, path), path) if d.data is not None]
-    except KuberosError:
-        return False  # reported by the deploy's own reading
-    return bool(documents) and all(is_batch_document(d) for d in documents)
-
-
-def run_batch_job(module: AnsibleModule) -> dict:
-    """A batch job given to the deploy: run it (or, with apply false, render it) as playbooks/batch.yml does."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.batch_runner import remove_batch, run_batch
-
-    params = {**module.params, "poll": 2.0}
-    if params["state"] == "absent":
-        return {"changed": False} if module.check_mode else remove_batch(api_clients(params["kubeconfig"]), params)
-    progress = []
-    result = run_batch(lambda: api_clients(params["kubeconfig"]), params, module.check_mode, progress.append)
-    outcome = "\n".join(progress + result.get("failures", []))
-    return {**result, "progress": progress, "table": result["plan"] + ("\n\n" + outcome if outcome else ""), "batch": True}
-
-
-def run(module: AnsibleModule) -> dict:
-    if _batch_file(module.params["src"]):
-        return run_batch_job(module)
-    work = DeployPass(module.params, module.check_mode, module._diff)
-    work.load()
-    if module.params["state"] == "absent":
-        result = work.undeploy()
-        if module._diff:
-            result["diff"] = {"before": "".join(f"{r}\n" for r in result["removed"]), "after": ""}
-        return {**result, "timings": work.timings}
-    if not module.params["apply"]:
-        work.previous = {}
-        work.allocated, work.unavailable = dict(module.params["allocated"]), {}
-        work.place()
-        work.render()
-        rendered = work.rendered
-        result = {"changed": rendered["changed"], "table": rendered["table"]}
-        if module._diff:
-            result["diff"] = rendered["plan"].diff()
-    else:
-        try:
-            work.read_cluster()
-        except KuberosError:
-            raise
-        except Exception:
-            # A cluster that cannot be read: a spec that cannot be placed even on empty nodes says so first.
-            work.previous, work.allocated, work.unavailable = {}, {}, {}
-            work.place()
-            raise
-        work.place()
-        work.pin_images()
-        work.render()
-        rendered = work.rendered
-        result = work.deploy()
-        diffs = result.pop("diffs")
-        if module._diff:
-            result["diff"] = [{"prepared": result["summary"] + "\n\n"}, *diffs]
-        result["changed"] = result["changed"] or rendered["changed"]
-        if module.check_mode:
-            result["table"] = rendered["table"]
-        else:
-            waited = work.wait() if module.params["wait_timeout"] else {"rows": [], "ready": True, "table": rendered["table"]}
-            result.update(waited)
-            if not waited["ready"]:
-                waiting = [
-                    f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" + (f" ({r['note']})" * bool(r["note"]))
-                    for r in waited["rows"]
-                    if not r["ready"]
-                ]
-                msg = f"not every module is Ready on its placed node after {module.params['wait_timeout']} s: "
-                if waited["problems"]:
-                    stuck = [f"{r['robot']}/{r['module']}" for r in waited["rows"] if r["problem"] and not r["ready"]]
-                    msg = f"{', '.join(stuck[:10])} cannot start: {'; '.join(waited['problems'][:5])}. Not Ready: "
-                module.fail_json(msg=msg + "; ".join(waiting[:10]), **{**result, "timings": work.timings})
-    return {
-        **result,
-        "notes": [note for dep in work.deployments for note in dep.notes],
-        "placement": work.placement.to_dict(),
-        "dest": rendered["dest"],
-        "files": rendered["files"],
-        "timings": work.timings,
-    }
-
-
 def main():
     module = AnsibleModule(
         argument_spec=ARGUMENT_SPEC,
@@ -310,7 +219,9 @@ def main():
     )
     require_packages(module)
     try:
-        module.exit_json(**run(module))
+        module.exit_json(**DeployPass(module.params, module.check_mode, module._diff).run())
+    except NotReady as exc:  # applied, but not every module Ready in time: what was done, and why not
+        module.fail_json(msg=str(exc), **exc.result)
     except Exception as exc:  # a KubeROS error (its headline, its problems below), or the cluster's: no traceback
         fail(module, exc, module.params["kubeconfig"])
 

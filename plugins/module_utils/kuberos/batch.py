@@ -396,9 +396,10 @@ def is_batch_document(data) -> bool:
     return isinstance(data, dict) and data.get("kind") in (KIND, REFERENCE_KIND)
 
 
-def load_batch_jobs(text: str, source: str = "<batch job>", catalog=None, read_file=None) -> list[BatchJob]:
-    """Every batch job of a file (``RosBatchJob`` or the reference's ``BatchJob``); every problem at once."""
-    documents = [d for d in load_documents(text, source) if d.data is not None]
+def load_batch_jobs(text: str, source: str = "<batch job>", catalog=None, read_file=None, documents=None) -> list[BatchJob]:
+    """Every batch job of a file (``RosBatchJob`` or the reference's ``BatchJob``); every problem at once.
+    ``documents``: the file's documents when the caller has read them from ``text`` already."""
+    documents = [d for d in (load_documents(text, source) if documents is None else documents) if d.data is not None]
     jobs, problems = [], []
     for doc in documents:
         if len(documents) > 1:

@@ -24,6 +24,7 @@ NOT_READY_TAINT = "node.kubernetes.io/not-ready"
 
 # The labels and annotations of the objects KubeROS renders (the manifests, the record, what the controller reads).
 MANAGED_BY = "app.kubernetes.io/managed-by"
+FIELD_MANAGER = "kuberos"  # who owns the fields KubeROS applies (server-side apply), unless a site names another
 COMPONENT = "kuberos.io/component"
 DEPLOYMENT = "kuberos.io/deployment"
 MODULE = "kuberos.io/module"

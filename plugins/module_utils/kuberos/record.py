@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from . import naming
 from .errors import Problem, SpecError
 from .inventory import Inventory, load_inventory
-from .labels import COMPONENT, DEPLOYMENT, MANAGED_BY
+from .labels import COMPONENT, DEPLOYMENT, FIELD_MANAGER, MANAGED_BY
 from .manifests import RenderOptions, device_options
 from .placement import Placement
 from .spec import RosDeployment, file_reader, load_rosdeployments
@@ -250,13 +250,17 @@ def build_records(
     "hash"}`` in the cluster; ``catalog`` (a ``Catalog``) holds the catalog entries the spec resolved: each record
     keeps those its deployment uses, so that it reads back alone. Raises ``SpecError`` (every deployment's problem
     at once) when a record or revision would not fit in a ConfigMap."""
-    documents = spec_documents(spec_text)
+    documents = None if all(d.document for d in deployments) else spec_documents(spec_text)  # read with the spec
     inventory_packed = _pack(inventory_raw)
     placements = split_placement(placement, [d.name for d in deployments])
     records, problems = [], []
     for dep in deployments:
-        line = _document(dep, documents).line
-        spec_packed = pack_text(document_of(dep, documents))
+        if dep.document:
+            text = dep.document
+            line = len(text) - len(text.lstrip("\n")) + 1
+        else:
+            line, text = _document(dep, documents).line, document_of(dep, documents)
+        spec_packed = pack_text(text)
         number = next_revision(dep, (revisions or {}).get(dep.name))
         placement_packed = _pack(placements[dep.name].to_dict())
         revision, record = _record_pair(dep, number, cause, source, line, spec_packed, options, field_manager, catalog)
@@ -506,6 +510,7 @@ def parse_record(configmap: dict) -> Record:
             raise ValueError(f"its spec has no RosDeployment named {name!r}")
         inventory_raw = _unpack(binary["inventory.json.gz"])
         options = json.loads(data["options.json"])
+        defaults = RenderOptions()  # a record written before an option existed renders with the option's default
         placement = Placement.from_dict(_unpack(binary["placement.json.gz"]))
         inventory = load_inventory(inventory_raw, f"{where} inventory")
     except SpecError:
@@ -521,13 +526,13 @@ def parse_record(configmap: dict) -> Record:
         inventory=inventory,
         placement=placement,
         options=RenderOptions(
-            cluster_domain=options.get("cluster_domain", "cluster.local"),
-            discovery_image=options.get("discovery_image", "ros:jazzy-ros-base"),
-            image_pull_policy=options.get("image_pull_policy", "IfNotPresent"),
+            cluster_domain=options.get("cluster_domain", defaults.cluster_domain),
+            discovery_image=options.get("discovery_image", defaults.discovery_image),
+            image_pull_policy=options.get("image_pull_policy", defaults.image_pull_policy),
             image_digests=tuple(sorted((options.get("image_digests") or {}).items())),
             **device_options(inventory),
         ),
-        field_manager=options.get("field_manager", "kuberos"),
+        field_manager=options.get("field_manager", FIELD_MANAGER),
         resource_version=meta.get("resourceVersion", ""),
         writer=data.get("writer", WRITER_DEPLOY),
         revision=int(data.get("revision") or 0),

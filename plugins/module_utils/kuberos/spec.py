@@ -197,6 +197,9 @@ class RosDeployment:
     notes: tuple[str, ...] = field(default=(), compare=False)  # what the translation ignored or changed, and why
     files: tuple[tuple[str, str], ...] = field(default=(), compare=False, repr=False)  # (path, text) read for maps
     field_names: tuple[tuple[str, str], ...] = field(default=(), compare=False, repr=False)  # our path -> the spec's
+    # Its document as the record keeps it (``document_text``), read with the rest of the file: every line at its number
+    # in the file; '' when it was not read from a file's text.
+    document: str = field(default="", compare=False, repr=False)
 
     def parameter_map(self, name: str) -> ParameterMap | None:
         return next((m for m in self.parameter_maps if m.name == name), None)
@@ -905,10 +908,22 @@ def file_reader(spec_path: str, files: dict | None = None):
     return read
 
 
-def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | None = None, read_file=None) -> list[RosDeployment]:
+def document_text(doc: Document) -> str:
+    """What a record keeps of a document: its text as written, preceded by blank lines so that every line keeps its
+    number in the file, when that alone reads as the same data (it does unless a directive above it gives it its
+    meaning); else its data written out again, its first line still where it was."""
+    if doc.directives:
+        return "\n" * (doc.line - 1) + yaml.safe_dump(doc.data, sort_keys=False, default_flow_style=False)
+    return "\n" * (doc.line - 1) + doc.text + ("" if doc.text.endswith("\n") else "\n")
+
+
+def load_rosdeployments(
+    text: str, source: str = "<spec>", catalog: Catalog | None = None, read_file=None, documents: list[Document] | None = None
+) -> list[RosDeployment]:
     """Parse and validate every document of a spec file; all problems of all documents at once. ``read_file``
-    (``file_reader``) reads the files parameter maps name; without it a map must give its data inline."""
-    documents = [doc for doc in load_documents(text, source) if doc.data is not None]
+    (``file_reader``) reads the files parameter maps name; without it a map must give its data inline. ``documents``
+    are the file's documents when the caller has read them from ``text`` already (``load_documents``)."""
+    documents = [doc for doc in (load_documents(text, source) if documents is None else documents) if doc.data is not None]
     if not documents:
         raise SpecError([Problem(source, "", "no RosDeployment found; the file is empty")], title=f"{source} is not valid")
     deployments, problems = [], []
@@ -920,7 +935,7 @@ def load_rosdeployments(text: str, source: str = "<spec>", catalog: Catalog | No
         raise SpecError(too_many, title=f"{source} is not a valid RosDeployment")
     for doc in documents:
         try:
-            deployments.append(_parse_any(doc, catalog, read_file))
+            deployments.append(replace(_parse_any(doc, catalog, read_file), document=document_text(doc)))
         except SpecError as exc:
             problems.extend(exc.problems)
     names: dict[str, str] = {}

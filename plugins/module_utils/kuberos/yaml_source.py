@@ -39,6 +39,7 @@ if yaml is None:
 else:
     LOADER = yaml.CSafeLoader if getattr(yaml, "__with_libyaml__", False) else yaml.SafeLoader
 _LINE_BREAK = re.compile("\r\n|\r|\n")
+_DIRECTIVE = re.compile(r"^%", re.M)
 
 
 def format_path(parts) -> str:
@@ -61,12 +62,17 @@ def path_prefix(path: str, prefixes) -> str | None:
 
 @dataclass
 class Document:
-    """One YAML document: its data and the line of each path in it."""
+    """One YAML document: its data, the line of each path in it, and its text as written (from the start of the line
+    its root node starts on: ``line``), and whether a directive above it (``%TAG``, ``%YAML``) gives that text a
+    meaning it would not have alone."""
 
     data: object
     source: str
     index: int = 0
     lines: dict = field(default_factory=dict)
+    line: int = 1
+    text: str = ""
+    directives: bool = False
 
     def line_of(self, parts) -> int | None:
         parts = tuple(parts)
@@ -305,6 +311,7 @@ def load_documents(text: str, source: str) -> list[Document]:
     try:
         _check_tokens(text)
         index = 0
+        previous_end = 0
         while loader.check_node():
             node = loader.get_node()
             if node is None:
@@ -317,7 +324,12 @@ def load_documents(text: str, source: str) -> list[Document]:
             walker.walk(node, (), 0)
             problems.extend(walker.problems)
             data = loader.construct_document(node)
-            documents.append(Document(data, source, index, walker.lines))
+            start = node.start_mark.index - node.start_mark.column  # from the start of its line: indentation stays
+            span = text[start : node.end_mark.index]
+            directives = bool(_DIRECTIVE.search(text, previous_end, start))
+            previous_end = node.end_mark.index
+            line = node.start_mark.line + 1
+            documents.append(Document(data, source, index, walker.lines, line, span, directives))
             index += 1
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark

@@ -276,10 +276,11 @@ def write_results(dest: str, runs: list[dict]) -> None:
             writer.writerow({**run, "parameters": json.dumps(run["parameters"], sort_keys=True)})
 
 
-def load(params: dict):
-    """The batch job of ``params["src"]`` (one per file), in its fleet, and the inventory model."""
-    text = read_text(params["src"], params["src"])
-    jobs = batch.load_batch_jobs(text, params["src"], read_file=file_reader(params["src"]))
+def load(params: dict, documents=None):
+    """The batch job of ``params["src"]`` (one per file; ``documents``: the file's, when the caller has read them),
+    in its fleet, and the inventory model."""
+    text = "" if documents is not None else read_text(params["src"], params["src"])
+    jobs = batch.load_batch_jobs(text, params["src"], read_file=file_reader(params["src"]), documents=documents)
     if len(jobs) != 1:
         raise SpecError([Problem(params["src"], "", f"holds {len(jobs)} batch jobs; expected one per file")])
     inventory = load_inventory(params["inventory"])
@@ -302,9 +303,9 @@ def _batch_namespace(namespace: str, enforced: str | None, needed: str | None) -
     return {"apiVersion": "v1", "kind": "Namespace", "metadata": {"name": namespace, "labels": labels}}
 
 
-def run_batch(clients_factory, params: dict, check_mode: bool, progress) -> dict:
+def run_batch(clients_factory, params: dict, check_mode: bool, progress, documents=None) -> dict:
     """The whole batch run; ``clients_factory()`` gives the API clients (only called when applying)."""
-    job, inventory = load(params)
+    job, inventory = load(params, documents)
     options = RenderOptions(**device_options(inventory))
     cluster = None
     allocated, unavailable = dict(params.get("allocated") or {}), {}

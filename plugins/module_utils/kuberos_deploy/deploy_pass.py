@@ -9,12 +9,12 @@ kind and namespace), dry-run once and, only when the dry run says the cluster wo
 
 from __future__ import annotations
 
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.batch import is_batch_document
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
     change_summary,
@@ -38,7 +38,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec impo
     name_clash_problems,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import compare, deploy_table
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import read_text
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.yaml_source import load_documents, read_text
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import (
     node_allocations,
     previous_placement,
@@ -160,8 +160,19 @@ class Target:
         return out
 
 
+class NotReady(KuberosError):
+    """The deploy applied its objects, but not every module was Ready on its placed node in time; ``result`` is the
+    deploy's result (what changed, the rows, the problems)."""
+
+    def __init__(self, message: str, result: dict):
+        super().__init__(message)
+        self.result = result
+
+
 class DeployPass:
-    """The ``rosdeployment`` module's work; ``params`` are its options, ``check_mode`` and ``diff_mode`` Ansible's."""
+    """The ``rosdeployment`` module's work, in one call (``run``); ``params`` are its options, ``check_mode`` and
+    ``diff_mode`` Ansible's. The spec file is read and parsed once; what it holds flows through placement,
+    rendering, the dry run, the apply, the record and the wait."""
 
     def __init__(self, params: dict, check_mode: bool, diff_mode: bool):
         self.params = params
@@ -178,11 +189,100 @@ class DeployPass:
 
     # --- reading ---------------------------------------------------------------------------------------------------
 
+    def run(self) -> dict:
+        """Deploy (or undeploy, or render only) the spec file, or run the batch job it holds; the module's result."""
+        self.load()
+        if self.batch:
+            return self._batch()
+        if self.params["state"] == "absent":
+            result = self.undeploy()
+            if self.diff_mode:
+                result["diff"] = {"before": "".join(f"{r}\n" for r in result["removed"]), "after": ""}
+            return {**result, "timings": self.timings}
+        if not self.params["apply"]:
+            self.previous, self.allocated, self.unavailable = {}, dict(self.params["allocated"]), {}
+            self.place()
+            self.render()
+            result = {"changed": self.rendered["changed"], "table": self.rendered["table"]}
+            if self.diff_mode:
+                result["diff"] = self.rendered["plan"].diff()
+        else:
+            result = self._apply()
+        return {
+            **result,
+            "notes": [note for dep in self.deployments for note in dep.notes],
+            "placement": self.placement.to_dict(),
+            "dest": self.rendered["dest"],
+            "files": self.rendered["files"],
+            "timings": self.timings,
+        }
+
+    def _apply(self) -> dict:
+        try:
+            self.read_cluster()
+        except KuberosError:
+            raise
+        except Exception:
+            # A cluster that cannot be read: a spec that cannot be placed even on empty nodes says so first.
+            self.previous, self.allocated, self.unavailable = {}, {}, {}
+            self.place()
+            raise
+        self.place()
+        self.pin_images()
+        self.render()
+        rendered = self.rendered
+        result = self.deploy()
+        diffs = result.pop("diffs")
+        if self.diff_mode:
+            result["diff"] = [{"prepared": result["summary"] + "\n\n"}, *diffs]
+        result["changed"] = result["changed"] or rendered["changed"]
+        if self.check_mode:
+            result["table"] = rendered["table"]
+            return result
+        timeout = self.params["wait_timeout"]
+        waited = self.wait() if timeout else {"rows": [], "ready": True, "table": rendered["table"]}
+        result.update(waited)
+        if not waited["ready"]:
+            waiting = [
+                f"{r['robot']}/{r['module']}: {r['phase']} on {r['node'] or '-'}" + (f" ({r['note']})" * bool(r["note"]))
+                for r in waited["rows"]
+                if not r["ready"]
+            ]
+            msg = f"not every module is Ready on its placed node after {timeout} s: "
+            if waited["problems"]:
+                stuck = [f"{r['robot']}/{r['module']}" for r in waited["rows"] if r["problem"] and not r["ready"]]
+                msg = f"{', '.join(stuck[:10])} cannot start: {'; '.join(waited['problems'][:5])}. Not Ready: "
+            raise NotReady(msg + "; ".join(waiting[:10]), {**result, "timings": self.timings})
+        return result
+
+    def _batch(self) -> dict:
+        """A batch job given to the deploy: run it (or, with apply false, render it) as playbooks/batch.yml does."""
+        from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.batch_runner import remove_batch, run_batch
+
+        params = {**self.params, "poll": 2.0}
+        if params["state"] == "absent":
+            return {"changed": False} if self.check_mode else remove_batch(api_clients(params["kubeconfig"]), params)
+        progress = []
+        result = run_batch(
+            lambda: api_clients(params["kubeconfig"]), params, self.check_mode, progress.append, documents=self.documents
+        )
+        outcome = "\n".join(progress + result.get("failures", []))
+        return {**result, "progress": progress, "table": result["plan"] + ("\n\n" + outcome if outcome else ""), "batch": True}
+
     def load(self) -> None:
+        """Read the spec file once: its documents are either batch jobs (run as ``playbooks/batch.yml`` does) or
+        deployments, parsed from the same documents, with the catalog and the inventory."""
         params = self.params
-        self.catalog = load_catalog(params["catalog"]) if params.get("catalog") else None
         self.spec_text = read_text(params["src"], params["src"])  # read once: parsed here, kept in the record
-        self.deployments = load_rosdeployments(self.spec_text, params["src"], self.catalog, file_reader(params["src"]))
+        self.documents = load_documents(self.spec_text, params["src"])
+        data = [d.data for d in self.documents if d.data is not None]
+        self.batch = bool(data) and all(is_batch_document(d) for d in data)
+        if self.batch:
+            return
+        self.catalog = load_catalog(params["catalog"]) if params.get("catalog") else None
+        self.deployments = load_rosdeployments(
+            self.spec_text, params["src"], self.catalog, file_reader(params["src"]), documents=self.documents
+        )
         self.inventory = load_inventory(params["inventory"])
         self._lap("validate")
 
@@ -271,16 +371,11 @@ class DeployPass:
         return out
 
     def _secret_objects(self) -> tuple[list[dict], dict[str, list[dict]]]:
-        """The bridges' TLS Secrets, read from the render directory where they are kept (not there yet in check mode)."""
-        import yaml
-
+        """The bridges' TLS Secrets as render made them (none yet in check mode before their certificates exist)."""
         local, remote = [], {}
-        for entry in self.rendered["secret_files"]:
-            if not os.path.exists(entry["path"]):
-                continue
-            with open(entry["path"], encoding="utf-8") as handle:
-                secret = yaml.safe_load(handle)
-            (remote.setdefault(entry["cluster"], []) if entry["cluster"] else local).append(secret)
+        for entry in self.rendered["secrets"]:
+            if entry["secret"] is not None:
+                (remote.setdefault(entry["cluster"], []) if entry["cluster"] else local).append(entry["secret"])
         return local, remote
 
     def _dry_run(self, target: Target, pool: ThreadPoolExecutor) -> dict[str, str]:

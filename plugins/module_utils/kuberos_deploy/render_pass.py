@@ -26,7 +26,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.re
 
 
 def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[dict]:
-    """Certificates of every bridge, made once and kept in dest/tls; Secret manifests for both ends beside them."""
+    """Certificates of every bridge, made once and kept in dest/tls; Secret manifests for both ends beside them.
+    Each entry names the cluster a Secret goes to ('' for this one), its bridge, its file and the Secret itself
+    (``secret``; None in check mode before its certificates exist), which the deploy applies as it is."""
     import base64
     import os
 
@@ -40,14 +42,14 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
         for bridge in bridges:
             folder = os.path.join(dest, "tls", fleet, bridge.cluster)
             first = next(i.deployment for i in placement.instances if i.cluster == bridge.cluster and i.fleet == fleet)
-            files.append({"cluster": "", "bridge": bridge.cluster, "path": os.path.join(folder, "secret-server.yaml")})
-            files.append(
-                {"cluster": bridge.cluster, "bridge": bridge.cluster, "path": os.path.join(folder, "secret-client.yaml")}
-            )
-            if check_mode:
-                continue
+            server = {"cluster": "", "bridge": bridge.cluster, "path": os.path.join(folder, "secret-server.yaml"), "secret": None}
+            client = {"cluster": bridge.cluster, "bridge": bridge.cluster, "path": os.path.join(folder, "secret-client.yaml"),
+                      "secret": None}  # fmt: skip
+            files += [server, client]
             names = ("ca.crt", "server.crt", "server.key", "client.crt", "client.key")
             if not all(os.path.exists(os.path.join(folder, n)) for n in names):
+                if check_mode:
+                    continue
                 os.makedirs(folder, mode=0o700, exist_ok=True)
                 generate_certificates(folder, bridge.name)
 
@@ -55,9 +57,9 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
                 with open(os.path.join(folder, name), "rb") as handle:
                     return base64.b64encode(handle.read()).decode()
 
-            for side, secret_name, cert, key in (
-                ("server", bridge_secret_name(bridge.name), "server.crt", "server.key"),
-                ("client", bridge_secret_name(BRIDGE_CLIENT), "client.crt", "client.key"),
+            for entry, side, secret_name, cert, key in (
+                (server, "server", bridge_secret_name(bridge.name), "server.crt", "server.key"),
+                (client, "client", bridge_secret_name(BRIDGE_CLIENT), "client.crt", "client.key"),
             ):
                 secret = {
                     "apiVersion": "v1",
@@ -75,10 +77,11 @@ def bridge_secrets(dest: str, placement: Placement, check_mode: bool) -> list[di
                     },
                     "data": {"tls.crt": read(cert), "tls.key": read(key), "ca.crt": read("ca.crt")},
                 }
-                path = os.path.join(folder, f"secret-{side}.yaml")
-                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-                with os.fdopen(fd, "w", encoding="utf-8") as handle:
-                    handle.write(dump_object(secret))
+                entry["secret"] = secret
+                if not check_mode:
+                    fd = os.open(entry["path"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+                    with os.fdopen(fd, "w", encoding="utf-8") as handle:
+                        handle.write(dump_object(secret))
     return files
 
 
@@ -144,7 +147,7 @@ def render_to_dir(
     plan = plan_render_dir(params["dest"], objects, placement.to_dict(), table, render_placement_svg(placement), remote)
     if plan.changed and not check_mode:
         apply_plan(plan)
-    secret_files = bridge_secrets(plan.root, placement, check_mode) if placement.bridges else []
+    secrets = bridge_secrets(plan.root, placement, check_mode) if placement.bridges else []
     others = [o for o in objects if o["kind"] != "Namespace"]
     return {
         "changed": plan.changed,
@@ -168,7 +171,8 @@ def render_to_dir(
             }
             for cluster, cluster_objects in remote.items()
         },
-        "secret_files": secret_files,
+        "secret_files": [{k: v for k, v in entry.items() if k != "secret"} for entry in secrets],
+        "secrets": secrets,  # with the Secrets themselves, for the deploy (never in a module's result: keys)
         "table": table,
         "dest": plan.root,
         "files": {"created": plan.created, "updated": plan.updated, "removed": plan.removed},

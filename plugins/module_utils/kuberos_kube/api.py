@@ -15,10 +15,10 @@ import json
 import os
 from dataclasses import dataclass
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FIELD_MANAGER
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import object_key
 
 APPLY_TYPE = "application/apply-patch+yaml"
-FIELD_MANAGER = "kuberos"
 # The argument every module that talks to a cluster takes (documented by the kuberos.platform.cluster fragment).
 KUBECONFIG_ARG = {"kubeconfig": {"type": "path", "required": True}}
 REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid, forbidden by a policy, a conflict)
