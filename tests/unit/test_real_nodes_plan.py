@@ -98,3 +98,20 @@ def test_a_state_folder_too_deep_for_containerds_socket_is_named_before_anything
     )
     shallow = RealNodes(Plane("/tmp/s"), nodes, {}, {})
     assert not any("too deep" in problem for problem in shallow.problems())
+
+
+def test_a_real_nodes_configuration_is_rendered_from_its_names_and_paths_alone():
+    """The pure half of the real nodes (kuberos_cluster.real_node_config): what each program is given."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster import real_node_config as config
+
+    net = config.NodeNet("robot-1", 2, "kt", 40)
+    taint = {"key": "kuberos.io/robot", "value": "robot-1", "effect": "NoSchedule"}
+    kubelet = config.kubelet_config(
+        net, {"taints": [taint]}, ca_file="/p/ca.crt", dns="10.40.0.1", resolv_conf="/r", socket="/s.sock", pod_logs="/l"
+    )
+    assert (kubelet["address"], kubelet["podCIDR"], kubelet["registerWithTaints"]) == ("10.41.0.12", "10.42.2.0/24", [taint])
+    assert kubelet["containerRuntimeEndpoint"] == "unix:///s.sock" and kubelet["cgroupRoot"] == "/kt-robot-1"
+    assert 'address = "/s.sock"' in config.containerd_config("/d", "/s.sock", "/cni/bin", "/cni/conf")
+    assert '"subnet": "10.42.2.0/24"' in config.cni_config(net, "/ipam")
+    assert config.kube_proxy_config(net, "/kp", "10.42.0.0/16")["hostnameOverride"] == "robot-1"
+    assert "bind 10.40.0.1" in config.corefile("10.40.0.1", "/c.kubeconfig") and config.host_address(40) == "10.40.0.1"

@@ -8,7 +8,6 @@ or raises ``SpecError`` listing every problem (file, line, field path, value, ex
 
 from __future__ import annotations
 
-import copy
 import functools
 import re
 from dataclasses import dataclass, field, replace
@@ -18,7 +17,30 @@ from .catalog import Catalog, CatalogEntry
 from .errors import Problem, SpecError, describe
 from .pod_security import DEFAULT_USER
 from .schema import API_VERSION, KIND, MAX_MODULES, MAX_MODULES_PER_FILE, SCHEMA, TIERS
-from .semver import parse_range
+from .spec_catalog import _catalog_problems, _resolve
+from .spec_maps import _broken, _parameter_maps
+from .spec_model import (
+    _UNITS,
+    BATCH_KINDS,
+    DEFAULT_CPU,
+    DEFAULT_MEMORY,
+    DEFAULT_PREFERENCE,
+    DEFAULT_ROBOTS_PER_INSTANCE,
+    FALLBACK_ORDER,
+    MAX_QUANTITY,
+    BridgeTopic,
+    ImageRegistry,
+    LaunchArgument,
+    ParameterMap,
+    Requirements,
+    Resources,
+    RosDeployment,
+    RosModule,
+    ScalingPolicy,
+    _env_value,
+    _problem,
+)
+from .spec_names import name_clash_problems
 from .third_party import yaml
 from .validation import (
     RESERVED_ENV,
@@ -27,205 +49,17 @@ from .validation import (
     image_reference_problem,
     label_key_problem,
     launch_problems,
-    problem,
     ros_parameter_problems,
     schema_problems,
     strict_validator,
 )
-from .yaml_source import Document, format_path, load_documents, path_prefix, read_text
-
-# A single preferred tier falls back to the others in this order.
-FALLBACK_ORDER = {
-    "onboard": ("onboard", "edge", "cloud"),
-    "edge": ("edge", "cloud", "onboard"),
-    "cloud": ("cloud", "edge", "onboard"),
-}
-DEFAULT_PREFERENCE = "edge"
-DEFAULT_CPU = "100m"
-DEFAULT_MEMORY = "128Mi"
-DEFAULT_ROBOTS_PER_INSTANCE = 4
-BATCH_KINDS = ("RosBatchJob", "BatchJob")  # batch.py reads these
-MAX_QUANTITY = 2**63 - 1  # Kubernetes keeps quantities in 64-bit integers (cpu in millicores)
-_UNITS = {"cpu": "millicores", "memory": "bytes", "max_latency": "milliseconds"}
-NO_CATALOG = (
-    "no catalog given; set kuberos_catalog to the software catalog (a directory of RosModuleCatalog files, "
-    "by default the inventory's catalog/ directory), or give image and launch instead"
-)
+from .yaml_source import Document, format_path, load_documents, read_text
 
 
 @functools.cache
 def _validator():
     """Built on first use, not at import: jsonschema may be missing where the core is only imported (third_party.py)."""
     return strict_validator(SCHEMA)
-
-
-@dataclass(frozen=True)
-class Resources:
-    cpu_millis: int
-    memory_bytes: int
-    gpu: int = 0
-
-
-@dataclass(frozen=True)
-class Requirements:
-    onboard: bool = False
-    max_latency_ms: float | None = None
-    arch: tuple[str, ...] = ()
-    devices: tuple[str, ...] = ()
-    resource_groups: tuple[str, ...] = ()  # the deployment's resourceGroups: edge and cloud nodes must be in one
-
-
-@dataclass(frozen=True)
-class ParameterMap:
-    """A parameter map (``parameterMaps``; the reference format's ``rosParamMap``), a ConfigMap of the fleet."""
-
-    name: str
-    type: str  # key-value | yaml
-    values: tuple[tuple[str, str], ...] = ()  # key-value: each key and its value as text
-    text: str = ""  # yaml: the file's text
-    path: str = ""  # the file it was read from, as the spec wrote it ("" for inline data)
-
-    @property
-    def file_name(self) -> str:
-        """The yaml map's file in its mount directory (and its key in the ConfigMap)."""
-        return self.name if self.name.endswith((".yaml", ".yml")) else f"{self.name}.yaml"
-
-    def value(self, key: str) -> str | None:
-        return dict(self.values).get(key)
-
-
-@dataclass(frozen=True)
-class ImageRegistry:
-    name: str
-    pull_secret: str = ""
-    pull_policy: str = ""
-
-
-@dataclass(frozen=True)
-class LaunchArgument:
-    """``name:=value`` appended to the first launch line; a device's parameter is known once the instance is placed."""
-
-    name: str
-    value: str = ""
-    device: str = ""  # with parameter: the value is this device's parameter on the instance's node
-    parameter: str = ""
-    map: str = ""  # with key: the value came from this key of this key-value parameter map
-    key: str = ""
-
-
-@dataclass(frozen=True)
-class ScalingPolicy:
-    """How the controller scales a shared module (docs/scaling.md); durations in seconds."""
-
-    min_instances: int
-    max_instances: int
-    metric: str = "cpu"  # "cpu" or the name of a gauge the module serves in Prometheus format
-    target: float = 0.8
-    metrics_port: int = 9464
-    scale_up_window_s: float = 0.0
-    scale_down_window_s: float = 60.0
-    drain_s: float = 15.0
-
-    @property
-    def uses_cpu(self) -> bool:
-        return self.metric == "cpu"
-
-
-@dataclass(frozen=True)
-class BridgeTopic:
-    name: str
-    type: str
-    direction: str  # to_module | from_module
-
-
-@dataclass(frozen=True)
-class RosModule:
-    name: str
-    image: str
-    launch: tuple[str, ...]
-    tiers: tuple[str, ...]
-    requirements: Requirements
-    resources: Resources
-    strategy: str = "dedicated"
-    robots_per_instance: int = 1
-    env: tuple[tuple[str, str], ...] = ()
-    ros_parameters: dict = field(default_factory=dict, compare=False)
-    index: int = 0
-    cluster: str = ""  # a registered third-party cluster; its topics cross the bridge
-    bridge_topics: tuple[BridgeTopic, ...] = ()
-    version: str = ""  # the catalog version it was resolved to; "" for a module that gives its image
-    catalog_module: str = ""  # the catalog module it names (``module: <name>@<range>``)
-    upgrade: str = "surge"  # surge | recreate (never two at once: modules that hold hardware)
-    ros_distro: str = ""  # the catalog entry's rosDistro
-    scaling: ScalingPolicy | None = None  # shared modules the controller scales
-    env_from: tuple[str, ...] = ()  # key-value parameter maps given as environment
-    launch_arguments: tuple[LaunchArgument, ...] = ()
-    parameter_files: tuple[tuple[str, str], ...] = ()  # (yaml parameter map, mount directory)
-    registry: ImageRegistry | None = None
-    privileged: bool = False
-    user: int = DEFAULT_USER  # the user ID its containers run as; 0 is root (pod_security)
-    workspace: str = ""  # a ROS workspace's install directory, sourced before each launch line
-    shell: bool = False  # each launch line runs with /bin/bash -c as written
-
-    @property
-    def path(self) -> str:
-        return f"rosModules[{self.index}]"
-
-    @property
-    def maps(self) -> tuple[str, ...]:
-        """The parameter maps the module's containers read (environment and files), each once."""
-        return tuple(dict.fromkeys((*self.env_from, *(m for m, _d in self.parameter_files))))
-
-
-@dataclass(frozen=True)
-class RosDeployment:
-    name: str
-    fleet: str
-    robots: tuple[str, ...] | None
-    modules: tuple[RosModule, ...]
-    ros_domain_id: int = 0
-    discovery_servers: int = 2
-    discovery_port: int = 11811
-    robot_servers: bool = True  # a discovery server on each robot computer that runs its onboard modules
-    labels: tuple[tuple[str, str], ...] = ()
-    source: str = "<spec>"
-    lines: dict = field(default_factory=dict, compare=False, repr=False)
-    rmw: str = "fastdds"  # fastdds | cyclonedds
-    parameter_maps: tuple[ParameterMap, ...] = ()
-    resource_groups: tuple[str, ...] = ()
-    kind: str = KIND  # RosDeployment, or ApplicationDeployment (the reference format, translated)
-    notes: tuple[str, ...] = field(default=(), compare=False)  # what the translation ignored or changed, and why
-    files: tuple[tuple[str, str], ...] = field(default=(), compare=False, repr=False)  # (path, text) read for maps
-    field_names: tuple[tuple[str, str], ...] = field(default=(), compare=False, repr=False)  # our path -> the spec's
-    # Its document as the record keeps it (``document_text``), read with the rest of the file: every line at its number
-    # in the file; '' when it was not read from a file's text.
-    document: str = field(default="", compare=False, repr=False)
-
-    def parameter_map(self, name: str) -> ParameterMap | None:
-        return next((m for m in self.parameter_maps if m.name == name), None)
-
-    @property
-    def uses_robot_servers(self) -> bool:
-        """Its onboard modules list a discovery server on their robot's computer (Fast DDS; docs/connectivity.md)."""
-        return self.robot_servers and self.rmw == "fastdds"
-
-    def field(self, path: str) -> str:
-        """``path`` as the spec's own format names it (a reference-format spec's ``metadata.targetRobots[0]`` for
-        ``metadata.robotSelector.robot[0]``)."""
-        names = dict(self.field_names)
-        prefix = path_prefix(path, names)
-        return path if prefix is None else names[prefix] + path[len(prefix) :]
-
-    def line_of(self, path: str) -> int | None:
-        """The line of ``path``, else of the nearest field holding it (a translated spec knows its fields' lines)."""
-        while path and path not in self.lines:
-            path, cut = _LAST_FIELD.subn("", path)
-            path = path if cut else ""
-        return self.lines[path] if path else None
-
-
-def _problem(doc: Document, parts: tuple, message: str) -> Problem:
-    return problem(doc, parts, message)
 
 
 def _schema_problems(doc: Document) -> list[Problem]:
@@ -287,8 +121,11 @@ class _Context:
 
 
 ENV_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-_LAST_FIELD = re.compile(r"(\.[^.\[]*|\[\d+\])$")  # metadata.robotSelector.robot[0] -> metadata.robotSelector.robot
+
+
 _REFERENCE = re.compile(r"\{([^{}]*)\}")
+
+
 DEVICE_PREFIX = "device:"
 
 
@@ -534,131 +371,6 @@ def _scaling_policy(module: dict, strategy: str, problem) -> ScalingPolicy | Non
     )
 
 
-def _env_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return str(value)
-
-
-def _deep_merge(base: dict, over: dict) -> dict:
-    """``over`` written over ``base``: mappings merge key by key, anything else replaces."""
-    merged = copy.deepcopy(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = _deep_merge(merged[key], value)
-        else:
-            merged[key] = copy.deepcopy(value)
-    return merged
-
-
-def _merged_module(module: dict, entry: CatalogEntry, index: int, doc: Document, problems: list[Problem]) -> dict | None:
-    """The spec's module written over the catalog entry (docs/software.md, "Resolution and overrides")."""
-    merged = {key: value for key, value in module.items() if key != "module"}
-    merged["image"] = entry.image_ref
-    merged.setdefault("launch", list(entry.launch))
-    spec_requirements = module.get("requirements") or {}
-    # A spec that pins the module onboard does not inherit the catalog's preference (it would contradict).
-    if "preference" not in module and entry.preference is not None and not spec_requirements.get("onboard"):
-        merged["preference"] = list(entry.preference) if isinstance(entry.preference, tuple) else entry.preference
-    requirements = {**entry.requirements, **spec_requirements}
-    # The images exist for the catalog's architectures only: the module may run on nodes of those.
-    built = list(entry.architectures)
-    if built and entry.requirements.get("arch"):
-        built = [a for a in built if a in as_tuple(entry.requirements["arch"])]
-    if built:
-        wanted = as_tuple(spec_requirements.get("arch"))
-        arch = [a for a in built if a in wanted] if wanted else built
-        if not arch:
-            problems.append(
-                _problem(
-                    doc,
-                    ("rosModules", index, "requirements", "arch"),
-                    f"{describe(spec_requirements['arch'])} shares no architecture with {entry.label}, "
-                    f"whose image is built for {', '.join(built)}; expected some of them (or leave arch out)",
-                )
-            )
-            return None
-        requirements["arch"] = arch
-    merged["requirements"] = requirements
-    merged["resources"] = {**entry.resources, **(module.get("resources") or {})}
-    merged["rosParameters"] = _deep_merge(entry.ros_parameters, module.get("rosParameters") or {})
-    merged["env"] = {**entry.env, **(module.get("env") or {})}
-    if "upgrade" not in module and entry.upgrade:
-        merged["upgrade"] = entry.upgrade
-    return merged
-
-
-def _resolve(module: dict, index: int, doc: Document, catalog: Catalog | None, problems: list[Problem]):
-    """The catalog entry ``module:`` names and the module merged over it, or None (a problem is added)."""
-    path = ("rosModules", index, "module")
-    reference = module["module"]
-    if catalog is None:
-        problems.append(_problem(doc, path, f"'{reference}' names a catalog module, but {NO_CATALOG}"))
-        return None
-    name, _sep, range_text = reference.partition("@")
-    try:
-        entry = catalog.resolve(name.strip(), range_text.strip() or None)
-    except (LookupError, ValueError) as exc:
-        problems.append(_problem(doc, path, str(exc)))
-        return None
-    merged = _merged_module(module, entry, index, doc, problems)
-    return None if merged is None else (merged, entry)
-
-
-def _catalog_problems(doc: Document, resolved: list[tuple[RosModule, CatalogEntry]], unresolved: set[str]) -> list[Problem]:
-    """The catalog modules of one deployment agree: dependencies, rosDistro and interface versions.
-
-    ``unresolved`` names the catalog modules of modules already reported (no second error for them).
-    """
-    problems = []
-
-    def add(module: RosModule, message: str):
-        problems.append(_problem(doc, ("rosModules", module.index, "module"), message))
-
-    def named(module: RosModule, entry: CatalogEntry) -> str:
-        return f"{module.path} ({module.name}: {entry.label})"
-
-    by_catalog: dict[str, list[tuple[RosModule, CatalogEntry]]] = {}
-    for module, entry in resolved:
-        by_catalog.setdefault(entry.name, []).append((module, entry))
-    distro = None
-    interfaces: dict[str, tuple[int, RosModule, CatalogEntry]] = {}
-    for module, entry in resolved:
-        for name, text in entry.dependencies:
-            users = by_catalog.get(name)
-            if not users and name in unresolved:
-                continue
-            if not users:
-                add(module, f"{entry.label} depends on {name} {text}; the deployment has no module from {name}")
-                continue
-            try:
-                wanted = parse_range(text)
-            except ValueError:  # the catalog checked its ranges; a hand-made Catalog may not have
-                add(module, f"{entry.label} depends on {name} with an invalid range {text!r}")
-                continue
-            for other, other_entry in users:
-                if not wanted.matches(other_entry.semver):
-                    add(module, f"{entry.label} depends on {name} {text}; {other.path} ({other.name}) uses {other_entry.label}")
-        if entry.ros_distro:
-            if distro is None:
-                distro = (module, entry)
-            elif distro[1].ros_distro != entry.ros_distro:
-                add(
-                    module,
-                    f"{entry.label} is built for ROS 2 {entry.ros_distro}, but {named(*distro)} is built for "
-                    f"{distro[1].ros_distro}; expected one rosDistro in a deployment",
-                )
-        for name, number in entry.interfaces:
-            first = interfaces.setdefault(name, (number, module, entry))
-            if first[0] != number:
-                add(
-                    module,
-                    f"{entry.label} speaks interface {name} version {number}, but {named(first[1], first[2])} speaks "
-                    f"version {first[0]}; expected one version of each interface in a deployment",
-                )
-    return problems
-
-
 def _metadata_problems(doc: Document, broken: set[str]) -> list[Problem]:
     """Labels the collection owns, and a name KubeROS keeps for its own objects."""
     metadata = doc.data.get("metadata") if isinstance(doc.data, dict) else None
@@ -676,66 +388,6 @@ def _metadata_problems(doc: Document, broken: set[str]) -> list[Problem]:
         if why and f"metadata.labels.{key}" not in broken:
             problems.append(_problem(doc, ("metadata", "labels", key), f"{describe(key)} {why}"))
     return problems
-
-
-def _broken(broken: set, prefix: str) -> bool:
-    return any(path == prefix or path.startswith(prefix + ".") or path.startswith(prefix + "[") for path in broken)
-
-
-def _map_content(raw: dict, parts: tuple, doc: Document, read_file, problems: list[Problem], files: list):
-    """A parameter map's data: inline, or the YAML file ``path`` names (read with ``read_file``)."""
-    if ("data" in raw) == ("path" in raw):
-        problems.append(_problem(doc, parts, "needs data (the map inline) or path (a file), one of the two"))
-        return None, ""
-    if "data" in raw:
-        return raw["data"], ""
-    if read_file is None:
-        problems.append(_problem(doc, (*parts, "path"), "files cannot be read here (the spec has no directory); give data"))
-        return None, ""
-    try:
-        display, text = read_file(raw["path"])
-        documents = [d for d in load_documents(text, display) if d.data is not None]
-    except SpecError as exc:
-        problems.append(_problem(doc, (*parts, "path"), f"cannot be used: {exc.problems[0].message} ({exc.problems[0].source})"))
-        return None, ""
-    if len(documents) != 1 or not isinstance(documents[0].data, dict):
-        problems.append(_problem(doc, (*parts, "path"), f"{display} does not hold one YAML mapping; expected a parameter file"))
-        return None, ""
-    files.append((raw["path"], text))
-    return documents[0].data, text
-
-
-def _parameter_maps(
-    data: dict, doc: Document, broken: set, read_file, problems: list[Problem], files: list, unreadable: set
-) -> dict:
-    maps: dict[str, ParameterMap] = {}
-    for index, raw in enumerate(data.get("parameterMaps") or ()):
-        parts = ("parameterMaps", index)
-        if _broken(broken, format_path(parts)):
-            continue
-        if raw["name"] in maps:
-            problems.append(_problem(doc, (*parts, "name"), f"'{raw['name']}' is already a parameter map; expected unique names"))
-            continue
-        content, text = _map_content(raw, parts, doc, read_file, problems, files)
-        if content is None:
-            unreadable.add(raw["name"])
-            continue
-        if raw["type"] == "yaml":
-            text = text or yaml.safe_dump(content, sort_keys=False, default_flow_style=False)
-            maps[raw["name"]] = ParameterMap(raw["name"], "yaml", text=text, path=raw.get("path", ""))
-            continue
-        bad = [k for k, v in content.items() if not isinstance(k, str) or not k or not isinstance(v, (str, int, float, bool))]
-        if bad:
-            problems.append(
-                _problem(
-                    doc, parts, f"key-value map has {describe(bad[0])} with a value that is no text, number or boolean; "
-                    "expected flat key: value pairs (a yaml map holds nested parameters)",
-                )
-            )  # fmt: skip
-            continue
-        values = tuple((k, _env_value(v)) for k, v in content.items())
-        maps[raw["name"]] = ParameterMap(raw["name"], "key-value", values=values, path=raw.get("path", ""))
-    return maps
 
 
 def _registries(data: dict, doc: Document, problems: list[Problem]) -> dict:
@@ -955,85 +607,6 @@ def load_rosdeployments(
     if problems:
         raise SpecError(problems, title=f"{source} is not a valid RosDeployment")
     return deployments
-
-
-def _module_names(dep: RosDeployment, robots) -> list[tuple[naming.PlannedName, RosModule]]:
-    return [
-        (planned, module)
-        for module in dep.modules
-        for planned in naming.module_object_names(
-            dep.fleet,
-            dep.name,
-            module.name,
-            module.strategy == "shared",
-            robots,
-            bool(module.ros_parameters),
-            module.scaling is not None,
-        )
-    ]
-
-
-def name_clash_problems(deployments: list[RosDeployment], robots_of, live=()) -> list[Problem]:
-    """Objects that would get the same name: two modules of the deployments (``robots_of(deployment)`` gives the
-    robots each one serves, or None for all robots of its fleet when they are not known; see
-    ``naming.module_object_names``), or a
-    module and an object already in the cluster (``live``: mappings with kind, namespace, name and the deployment
-    and module that own it, '' when none) that is not this deployment's own. Modules of third-party clusters are
-    compared among themselves only.
-
-    Names join deployment, module and robot with '-' (``naming.py``), so that deployment ``a-b`` with module ``c``
-    and deployment ``a`` with module ``b-c`` name their instances alike; the problem is reported at the module
-    named second, naming the first.
-    """
-    problems: list[Problem] = []
-    first: dict[tuple, tuple[RosDeployment, RosModule, naming.PlannedName]] = {}
-    reported = set()
-    for dep in deployments:
-        robots = robots_of(dep)
-        for planned, module in _module_names(dep, robots):
-            key = (module.cluster, planned.kind, planned.namespace, planned.name)
-            other = first.setdefault(key, (dep, module, planned))
-            if other[2] is planned or (dep.name, module.name) in reported:
-                continue
-            other_dep, other_module, _planned = other
-            path = f"{module.path}.name"
-            where = f"{other_dep.source}:{other_dep.line_of(other_module.path + '.name')}"
-            problems.append(
-                Problem(
-                    dep.source,
-                    path,
-                    f"'{module.name}' of deployment {dep.name} would name a {planned.kind} {planned.name} ({planned.what}), "
-                    f"the name {other_module.path}.name '{other_module.name}' of deployment {other_dep.name} ({where}) gets; "
-                    "names join deployment, module and robot with '-'; expected module or deployment names that do not "
-                    "join to the same name (rename one of the two)",
-                    dep.line_of(path),
-                )
-            )
-            reported.add((dep.name, module.name))
-    mine = {(dep.name) for dep in deployments}
-    owners = {(obj["kind"], obj["namespace"], obj["name"]): obj for obj in live}
-    for (cluster, kind, namespace, name), (dep, module, planned) in first.items():
-        obj = owners.get((kind, namespace, name))
-        if cluster or obj is None or "<" in name or obj.get("deployment") in mine or (dep.name, module.name) in reported:
-            continue
-        owner = (
-            f"deployment {obj['deployment']} (module {obj.get('module') or '?'})"
-            if obj.get("deployment")
-            else "no KubeROS deployment"
-        )
-        path = f"{module.path}.name"
-        problems.append(
-            Problem(
-                dep.source,
-                path,
-                f"'{module.name}' of deployment {dep.name} would name a {kind} {name} ({planned.what}) in namespace "
-                f"{namespace}, but a {kind} of that name is already there and belongs to {owner}; names join deployment, "
-                "module and robot with '-'; expected module or deployment names that give other names",
-                dep.line_of(path),
-            )
-        )
-        reported.add((dep.name, module.name))
-    return problems
 
 
 def load_rosdeployment_file(path: str, display: str | None = None, catalog: Catalog | None = None) -> list[RosDeployment]:

@@ -45,6 +45,11 @@ import sys
 import time
 from dataclasses import dataclass, field
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster import real_node_config as config
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.real_node_config import (
+    NodeNet,
+    host_address,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, api_clients, message
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import background_process as bg
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import delay_fabric
@@ -60,15 +65,8 @@ CNI_BIN_DIRS = ("/usr/lib/cni", "/opt/cni/bin")
 CNI_PLUGINS = ("bridge", "host-local", "loopback", "portmap")
 NODE_COMPONENTS = ("containerd", "kubelet", "kube-proxy")
 SHARED_COMPONENTS = ("fabric", "apiserver-relay", "coredns")
-CLUSTER_DOMAIN = "cluster.local"
 DEVICE_PLUGIN_SOCKET = "/var/lib/kubelet/device-plugins/kubelet.sock"  # fixed in the kubelet, whatever --root-dir is
 SUN_PATH_MAX = 104  # what containerd accepts for a Unix socket path (sun_path, less its terminating NUL and margin)
-
-
-def host_address(base: int) -> str:
-    """The root namespace's address on the management bridge of the real nodes of ``base``: the API server relay,
-    CoreDNS and the registry listen there (and the API server advertises it)."""
-    return f"10.{base}.0.1"
 
 
 class RealNodeError(RuntimeError):
@@ -82,44 +80,6 @@ def in_netns(netns: str, command: list[str]) -> list[str]:
 
 def run(*command: str, check: bool = True, timeout: float = 60) -> subprocess.CompletedProcess:
     return bg.run_checked(command, RealNodeError, check, timeout)
-
-
-@dataclass(frozen=True)
-class NodeNet:
-    """One real node's names and addresses."""
-
-    name: str
-    index: int
-    tag: str
-    base: int
-
-    @property
-    def netns(self) -> str:
-        return f"{self.tag}n-{self.name}"
-
-    @property
-    def veth(self) -> str:
-        return f"{self.tag}m{self.index}"
-
-    @property
-    def mgmt_ip(self) -> str:
-        return f"10.{self.base}.0.{10 + self.index}"
-
-    @property
-    def node_ip(self) -> str:
-        return f"10.{self.base + 1}.0.{10 + self.index}"
-
-    @property
-    def pod_cidr(self) -> str:
-        return f"10.{self.base + 2}.{self.index}.0/24"
-
-    @property
-    def cgroup(self) -> str:
-        return f"{self.tag}-{self.name}"
-
-    @property
-    def cni_network(self) -> str:
-        return f"kuberos-{self.tag}-{self.name}"
 
 
 @dataclass
@@ -476,134 +436,27 @@ class RealNodes:
 
     def _containerd_config(self, net: NodeNet) -> str:
         directory = self.path(net.name, "containerd")
-        return "\n".join(
-            [
-                "version = 2",
-                f'root = "{directory}/root"',
-                f'state = "{directory}/state"',
-                "[grpc]",
-                f'  address = "{self.socket(net.name)}"',
-                "[ttrpc]",
-                f'  address = "{self.socket(net.name)}.ttrpc"',
-                '[plugins."io.containerd.internal.v1.opt"]',
-                f'  path = "{directory}/opt"',
-                '[plugins."io.containerd.grpc.v1.cri"]',
-                '  sandbox_image = "kuberos.local/pause:3.10"',
-                "  restrict_oom_score_adj = true  # root here lacks CAP_SYS_RESOURCE",
-                "  enable_selinux = false",
-                '  stream_server_address = "127.0.0.1"',
-                "  netns_mounts_under_state_dir = true  # pod network namespaces under the node's state, not /run/netns",
-                '[plugins."io.containerd.grpc.v1.cri".registry]',
-                f'  config_path = "{directory}/certs.d"  # hosts.toml per registry: the lab registry\'s CA',
-                '[plugins."io.containerd.grpc.v1.cri".cni]',
-                f'  bin_dir = "{self.cni_bin_dir()}"',
-                f'  conf_dir = "{self.path(net.name, "cni", "net.d")}"',
-                '[plugins."io.containerd.grpc.v1.cri".containerd]',
-                '  snapshotter = "overlayfs"',
-                '[plugins."io.containerd.grpc.v1.cri".containerd.runtimes.runc]',
-                '  runtime_type = "io.containerd.runc.v2"',
-                '[plugins."io.containerd.grpc.v1.cri".containerd.runtimes.runc.options]',
-                "  SystemdCgroup = false",
-                "",
-            ]
-        )
+        return config.containerd_config(directory, self.socket(net.name), self.cni_bin_dir(), self.path(net.name, "cni", "net.d"))
 
     def _cni_config(self, net: NodeNet) -> str:
-        return json.dumps(
-            {
-                "cniVersion": "0.4.0",
-                "name": net.cni_network,
-                "plugins": [
-                    {
-                        "type": "bridge",
-                        "bridge": "cni0",
-                        "isGateway": True,
-                        "ipMasq": False,  # pods keep their addresses across nodes; the root namespace routes back
-                        "hairpinMode": True,
-                        "ipam": {
-                            "type": "host-local",
-                            "ranges": [[{"subnet": net.pod_cidr}]],
-                            "routes": [{"dst": "0.0.0.0/0"}],
-                            "dataDir": self.path(net.name, "cni", "ipam"),
-                        },
-                    },
-                    {"type": "portmap", "capabilities": {"portMappings": True}},
-                ],
-            },
-            indent=1,
-        )
+        return config.cni_config(net, self.path(net.name, "cni", "ipam"))
 
     def _kubelet_config(self, net: NodeNet, node: dict) -> dict:
-        return {
-            "apiVersion": "kubelet.config.k8s.io/v1beta1",
-            "kind": "KubeletConfiguration",
-            "authentication": {
-                "anonymous": {"enabled": False},
-                "webhook": {"enabled": True},
-                "x509": {"clientCAFile": self.plane.path("pki", "ca.crt")},
-            },
-            "authorization": {"mode": "Webhook"},
-            "address": net.node_ip,
-            "healthzBindAddress": "127.0.0.1",
-            "readOnlyPort": 0,
-            "cgroupDriver": "cgroupfs",
-            "cgroupRoot": f"/{net.cgroup}",
-            "cgroupsPerQOS": True,
-            "failCgroupV1": False,
-            "failSwapOn": False,
-            "protectKernelDefaults": False,
-            "clusterDNS": [self.host_ip],
-            "clusterDomain": CLUSTER_DOMAIN,
-            "resolvConf": self.path(net.name, "resolv.conf"),
-            "containerRuntimeEndpoint": f"unix://{self.socket(net.name)}",
-            "podLogsDir": self.path(net.name, "pod-logs"),
-            "podCIDR": net.pod_cidr,
-            "registerNode": True,
-            "registerWithTaints": node.get("taints") or [],
-            "serializeImagePulls": False,
-            "rotateCertificates": False,
-            "imageGCHighThresholdPercent": 100,  # the imported images cannot be pulled again
-            "imageGCLowThresholdPercent": 99,
-            "evictionHard": {"memory.available": "100Mi", "nodefs.available": "1%", "imagefs.available": "1%"},
-            "nodeStatusUpdateFrequency": "5s",
-            "maxPods": 110,
-        }
+        return config.kubelet_config(
+            net,
+            node,
+            ca_file=self.plane.path("pki", "ca.crt"),
+            dns=self.host_ip,
+            resolv_conf=self.path(net.name, "resolv.conf"),
+            socket=self.socket(net.name),
+            pod_logs=self.path(net.name, "pod-logs"),
+        )
 
     def _kube_proxy_config(self, net: NodeNet) -> dict:
-        return {
-            "apiVersion": "kubeproxy.config.k8s.io/v1alpha1",
-            "kind": "KubeProxyConfiguration",
-            "mode": "iptables",
-            "clientConnection": {"kubeconfig": self.plane.path("kube-proxy.kubeconfig")},
-            "hostnameOverride": net.name,
-            "bindAddress": "0.0.0.0",
-            "clusterCIDR": self.cluster_cidr,
-            "healthzBindAddress": "127.0.0.1:10256",
-            "metricsBindAddress": "127.0.0.1:10249",
-            # conntrack limits are host-wide: left as they are
-            "conntrack": {"maxPerCore": 0, "min": 0, "tcpEstablishedTimeout": "0s", "tcpCloseWaitTimeout": "0s"},
-            "iptables": {"localhostNodePorts": False, "masqueradeAll": False},
-            "nodePortAddresses": ["primary"],
-        }
+        return config.kube_proxy_config(net, self.plane.path("kube-proxy.kubeconfig"), self.cluster_cidr)
 
     def _corefile(self) -> str:
-        return "\n".join(
-            [
-                ".:53 {",
-                f"    bind {self.host_ip}",
-                "    errors",
-                f"    health {self.host_ip}:8080",
-                f"    ready {self.host_ip}:8181",
-                f"    kubernetes {CLUSTER_DOMAIN} in-addr.arpa ip6.arpa {{",
-                f"        kubeconfig {self.plane.path('coredns.kubeconfig')} kuberos-local",
-                "        pods insecure",
-                "        fallthrough in-addr.arpa ip6.arpa",
-                "    }",
-                "    cache 5",
-                "}",
-                "",
-            ]
-        )
+        return config.corefile(self.host_ip, self.plane.path("coredns.kubeconfig"))
 
     # -- processes ----------------------------------------------------------------------------------------
     def _start(self, component: str, command: list[str], node: str | None = None, netns: str | None = None) -> bool:
