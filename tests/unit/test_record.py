@@ -274,3 +274,18 @@ def test_a_rollback_records_the_kept_document_again_unchanged(root, local_invent
     )
     record = only_records(again)["inventory-scan"]
     assert spec_text_of(record) == kept and record["data"]["spec-line"] == revision["data"]["spec-line"] != "1"
+
+
+def test_the_revision_hash_is_what_a_deployment_asks_for_not_how_its_document_is_written():
+    """Each deployment keeps its document's text from the one parse (for the record); a comment or a moved line
+    changes that text, not the revision: a deploy of the same request must not start a new one."""
+    import os
+
+    from helpers import ROOT
+
+    with open(os.path.join(ROOT, "examples", "listing1.yml"), encoding="utf-8") as handle:
+        text = handle.read()
+    (plain,) = load_rosdeployments(text, "a.yml")
+    (commented,) = load_rosdeployments("# a comment above\n\n" + text, "b.yml")
+    assert plain.document != commented.document and commented.document.startswith("\n\n\n")
+    assert fingerprint(plain) == fingerprint(commented)

@@ -77,6 +77,7 @@ def fingerprint(dep: RosDeployment) -> str:
     data = dataclasses.asdict(dep)
     data.pop("source", None)
     data.pop("lines", None)
+    data.pop("document", None)  # its text as written (comments, layout): where it was read, not what it asks for
     for module in data.get("modules", []):
         module.pop("index", None)
     return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16]
