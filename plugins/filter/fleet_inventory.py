@@ -13,7 +13,9 @@ description:
     made of every host of the groups C(robots), C(edge) and C(cloud) with its resource-model variables
     (C(kuberos_cpu), C(kuberos_fleet)... as listed in docs/inventory.md; site settings such as
     C(kuberos_kubeconfig) are left out).
-  - Validates it, failing with the host, the variable and the reason for each problem.
+  - Validates it, failing with the host, the variable and the reason for each problem, unless O(validate=false):
+    for a task whose module validates it anyway (the P(kuberos.platform.rosdeployment#module) family), so that an
+    inventory is validated once per task.
 options:
   _input:
     description: The C(groups) magic variable.
@@ -23,6 +25,10 @@ options:
     description: The C(hostvars) magic variable.
     type: raw
     required: true
+  validate:
+    description: Validate the resource model here (V(false) leaves it to the module the model is given to).
+    type: bool
+    default: true
 """
 
 EXAMPLES = r"""
@@ -45,9 +51,10 @@ from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import
 
 
 @reports_kuberos_errors
-def fleet_inventory(groups, hostvars):
+def fleet_inventory(groups, hostvars, validate=True):
     raw = plain(raw_inventory(groups, hostvars))
-    load_inventory(raw)  # validates: every problem named by host and variable
+    if validate:
+        load_inventory(raw)  # validates: every problem named by host and variable
     return raw
 
 
