@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifest_yaml import dump_object
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.files import text_or_none
 
 MARKER = ".kuberos-render"
 MANIFEST_DIR = "manifests"
@@ -57,15 +58,6 @@ class RenderDirError(KuberosError):
     """The render directory cannot be written as planned; the message says which file and why."""
 
 
-def read_text(path: str) -> str | None:
-    """A text file's content, or None when there is no such file."""
-    try:
-        with open(path, encoding="utf-8") as handle:
-            return handle.read()
-    except FileNotFoundError:
-        return None
-
-
 def plan_render_dir(
     root: str, objects: list[dict], placement: dict, table: str, picture: str = "", remote: dict[str, list[dict]] | None = None
 ) -> RenderPlan:
@@ -98,7 +90,7 @@ def plan_files(root: str, objects: list[dict], files: dict[str, str], remote: di
     plan.files.update(files)
     plan.files[MARKER] = "Rendered by the kuberos.platform collection; files here are replaced on every render.\n"
     for rel, text in sorted(plan.files.items()):
-        current = read_text(os.path.join(root, rel))
+        current = text_or_none(os.path.join(root, rel))
         if current is None:
             plan.created.append(rel)
         elif current != text:
@@ -110,7 +102,7 @@ def plan_files(root: str, objects: list[dict], files: dict[str, str], remote: di
                 rel = os.path.relpath(os.path.join(dirpath, name), root)
                 if rel not in plan.files:
                     plan.removed.append(rel)
-                    plan.before[rel] = read_text(os.path.join(root, rel)) or ""
+                    plan.before[rel] = text_or_none(os.path.join(root, rel)) or ""
     plan.removed.sort()
     return plan
 

@@ -29,6 +29,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import qu
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.third_party import yaml
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_site.files import text_or_none
 
 try:
     import paramiko
@@ -69,15 +70,6 @@ class RegistrationError(KuberosError):
 
 
 # --- the pure parts ---------------------------------------------------------------------------------------------
-
-
-def _text_or_none(path: str) -> str | None:
-    """A site file's text (a key, host variables, pins), or None when the file does not exist yet."""
-    try:
-        with open(path, encoding="utf-8") as handle:
-            return handle.read()
-    except FileNotFoundError:
-        return None
 
 
 def memory_quantity(meminfo: str) -> str:
@@ -544,7 +536,7 @@ def register(reg: Registration, check_mode: bool = False) -> dict:
             raise ValueError(f"extra device names {bad} are not valid; expected lowercase letters, digits and '-'")
     except ValueError as error:
         raise RegistrationError(str(error)) from None
-    pub = _text_or_none(reg.cluster_key)
+    pub = text_or_none(reg.cluster_key)
     if pub is None:
         raise RegistrationError(f"the cluster's public key {reg.cluster_key} does not exist")
     try:
@@ -567,12 +559,12 @@ def register(reg: Registration, check_mode: bool = False) -> dict:
         host_vars = host_vars_for(reg.fleet, reg.address, reg.target.user, report)
         check_robot(reg.robot, host_vars)
 
-        old_vars = _text_or_none(reg.host_vars_path)
+        old_vars = text_or_none(reg.host_vars_path)
         new_vars = host_vars_text(old_vars, host_vars, reg.host_vars_path)
-        old_registered = _text_or_none(reg.registered_path)
+        old_registered = text_or_none(reg.registered_path)
         new_registered = registered_text(old_registered, reg.robot, reg.registered_path)
         first_contact = not load_pins(reg.target)
-        old_pins = _text_or_none(reg.target.known_hosts)
+        old_pins = text_or_none(reg.target.known_hosts)
         pin_line = f"{known_hosts_name(reg.address, reg.target.port)} {presented.get_name()} {presented.get_base64()}\n"
         new_pins = ((old_pins + ("" if old_pins.endswith("\n") else "\n")) if old_pins else "") + pin_line
         install_key = not has_key(report.authorized_keys, key)
