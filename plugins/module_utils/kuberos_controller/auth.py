@@ -20,6 +20,8 @@ import threading
 import time
 from dataclasses import dataclass
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, clients_of, status_of
+
 DASHBOARD_PATH = "/kuberos/dashboard"
 METRICS_PATH = "/metrics"
 COOKIE = "kuberos_session"
@@ -35,10 +37,7 @@ class Verdict:
 
 class KubernetesAuth:
     def __init__(self, api_client, ttl_s: float = 60.0, session_s: float = 3600.0, largest: int = 4096):
-        from kubernetes import client
-
-        self.authn = client.AuthenticationV1Api(api_client)
-        self.authz = client.AuthorizationV1Api(api_client)
+        self.kube = Kube(clients_of(api_client))
         self.ttl_s = ttl_s
         self.session_s = session_s
         self.largest = largest
@@ -66,37 +65,36 @@ class KubernetesAuth:
         return verdict
 
     def _ask(self, token: str, path: str) -> Verdict:
-        from kubernetes.client.exceptions import ApiException
-
         try:
-            review = self.authn.create_token_review({"apiVersion": "authentication.k8s.io/v1", "kind": "TokenReview",
-                                                     "spec": {"token": token}})  # fmt: skip
-            status = review.status
-            if not status or not status.authenticated:
+            review = self.kube.create({"apiVersion": "authentication.k8s.io/v1", "kind": "TokenReview",
+                                       "spec": {"token": token}})  # fmt: skip
+            status = review.get("status") or {}
+            if not status.get("authenticated"):
                 return Verdict(401, why="the token is not valid")
-            user = status.user
-            access = self.authz.create_subject_access_review(
+            user = status.get("user") or {}
+            name = user.get("username", "")
+            access = self.kube.create(
                 {
                     "apiVersion": "authorization.k8s.io/v1",
                     "kind": "SubjectAccessReview",
                     "spec": {
-                        "user": user.username,
-                        "groups": user.groups or [],
-                        "uid": user.uid or "",
-                        "extra": user.extra or {},
+                        "user": name,
+                        "groups": user.get("groups") or [],
+                        "uid": user.get("uid") or "",
+                        "extra": user.get("extra") or {},
                         "nonResourceAttributes": {"path": path, "verb": "get"},
                     },
                 }
             )
-        except ApiException as exc:
-            log.warning("dashboard: token or access review failed: %s %s", exc.status, exc.reason)
+        except Exception as exc:  # refused, or a connection error (the API server restarting)
+            if status_of(exc) is not None:
+                log.warning("dashboard: token or access review failed: %s %s", exc.status, exc.reason)
+            else:
+                log.warning("dashboard: token or access review failed: %s", exc.__class__.__name__)
             return Verdict(503, why="the API server did not answer the review")
-        except Exception as exc:  # connection errors: the API server restarting
-            log.warning("dashboard: token or access review failed: %s", exc.__class__.__name__)
-            return Verdict(503, why="the API server did not answer the review")
-        if not access.status or not access.status.allowed:
-            return Verdict(403, user.username, f"{user.username} may not get {path}")
-        return Verdict(200, user.username)
+        if not (access.get("status") or {}).get("allowed"):
+            return Verdict(403, name, f"{name} may not get {path}")
+        return Verdict(200, name)
 
     # -- browser sessions -----------------------------------------------------------------------------
     def open_session(self, token: str) -> str:

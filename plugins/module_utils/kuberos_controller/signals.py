@@ -21,6 +21,7 @@ import re
 import urllib.parse
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scaling import gauge_value
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, clients_of, status_of
 
 log = logging.getLogger("kuberos.controller.signals")
 TIMEOUT_S = 2.0
@@ -111,16 +112,11 @@ class Signals:
             return {}
         if not self.metrics_api and now - self.metrics_api_checked < 300:
             return {}
-        from kubernetes import client
-        from kubernetes.client.exceptions import ApiException
-
         self.metrics_api_checked = now
         try:
-            listed = client.CustomObjectsApi(self.api_client).list_namespaced_custom_object(
-                "metrics.k8s.io", "v1beta1", namespace, "pods", _request_timeout=self.timeout
-            )
-        except ApiException as exc:
-            if exc.status in (404, 503):
+            listed = Kube(clients_of(self.api_client)).pod_metrics(namespace, timeout=self.timeout)
+        except Exception as exc:
+            if status_of(exc) in (404, 503):
                 if self.metrics_api:
                     log.warning("the cluster serves no metrics API (metrics.k8s.io: %s); cpu scaling holds", exc.status)
                 self.metrics_api = False
@@ -128,7 +124,7 @@ class Signals:
             raise
         self.metrics_api = True
         usage = {}
-        for item in listed.get("items") or []:
+        for item in listed:
             try:
                 usage[item["metadata"]["name"]] = sum(cpu_millis(c["usage"]["cpu"]) for c in item.get("containers") or [])
             except (KeyError, TypeError, ValueError):

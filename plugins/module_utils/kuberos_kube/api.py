@@ -25,14 +25,19 @@ REFUSALS = (400, 403, 409, 422)  # an object the cluster would not take (invalid
 START_HINT = "start the local cluster with `make cluster`, or set kuberos_kubeconfig to your cluster's kubeconfig"
 
 
+VERBS = ("read", "list", "patch", "create", "delete", "replace")
+
+
 @dataclass(frozen=True)
 class Kind:
-    """How the typed clients reach a kind: the client (``api``), the method suffix and whether it is namespaced."""
+    """How the typed clients reach a kind: the client (``api``), the method suffix, whether it is namespaced, and
+    the verbs the API server serves for it (a review is only created)."""
 
     api: str
     method: str
     namespaced: bool
     api_version: str
+    verbs: tuple = VERBS
 
 
 KINDS = {
@@ -49,7 +54,12 @@ KINDS = {
     "Lease": Kind("coordination", "lease", True, "coordination.k8s.io/v1"),
     "ClusterRole": Kind("rbac", "cluster_role", False, "rbac.authorization.k8s.io/v1"),
     "ClusterRoleBinding": Kind("rbac", "cluster_role_binding", False, "rbac.authorization.k8s.io/v1"),
+    # who a bearer token is, and whether it may read a path (the dashboard's authentication)
+    "TokenReview": Kind("authentication", "token_review", False, "authentication.k8s.io/v1", ("create",)),
+    "SubjectAccessReview": Kind("authorization", "subject_access_review", False, "authorization.k8s.io/v1", ("create",)),
 }
+# The resource metrics API (metrics-server): a pod's CPU use, for scaling on cpu.
+POD_METRICS = ("metrics.k8s.io", "v1beta1", "pods")
 # What KubeROS renders for a deployment (applied, diffed, pruned, rolled out), in the order they are applied.
 RENDERED_KINDS = ("Namespace", "ConfigMap", "Service", "Secret", "Deployment", "NetworkPolicy")
 # What KubeROS keeps inside a fleet's namespace (its label selector finds them for prune, undeploy and status).
@@ -81,6 +91,9 @@ def clients_of(api) -> dict:
         "networking": client.NetworkingV1Api(api),
         "coordination": client.CoordinationV1Api(api),
         "rbac": client.RbacAuthorizationV1Api(api),
+        "authentication": client.AuthenticationV1Api(api),
+        "authorization": client.AuthorizationV1Api(api),
+        "custom": client.CustomObjectsApi(api),
     }
 
 
@@ -222,7 +235,7 @@ class Kube:
 
     def create(self, obj: dict) -> dict:
         """Create ``obj``; the API server's refusal (409 when it exists) is raised."""
-        meta = obj["metadata"]
+        meta = obj.get("metadata") or {}
         args = (meta["namespace"],) if KINDS[obj["kind"]].namespaced else ()
         body = json.loads(json.dumps(obj))
         response = self._method(obj["kind"], "create")(*args, body, _preload_content=False, **self._limits())
@@ -245,6 +258,16 @@ class Kube:
         """``delete`` of the object ``obj`` names (its kind, namespace and name)."""
         kind, namespace, name = object_key(obj)
         return self.delete(kind, name, namespace)
+
+    def pod_metrics(self, namespace: str, timeout: float | None = None) -> list[dict]:
+        """The resource metrics API's PodMetrics of ``namespace`` (the API server's refusal, 404 or 503 where no
+        metrics-server serves it, is raised)."""
+        group, version, plural = POD_METRICS
+        extra = {} if timeout is None else {"_request_timeout": timeout}
+        response = self.clients["custom"].list_namespaced_custom_object(
+            group, version, namespace, plural, _preload_content=False, **extra
+        )
+        return json.loads(response.data).get("items") or []
 
     def log(self, pod: str, namespace: str, container: str = "", tail_lines: int | None = None) -> str:
         """What a pod's container printed (the kubelet's log; the API server's refusal is raised)."""
