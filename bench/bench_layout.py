@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
             "repeat": args.repeat,
             "base": subprocess.run(
                 ["git", "-C", str(REPO), "rev-parse", "--short", args.base], capture_output=True, text=True
-            ).stdout.strip(),  # fmt: skip
+            ).stdout.strip(),
             "manifests_differ": differ,
             **summary,
             "runs": {w: [{k: v for k, v in r.items() if k not in ("tail", "dest")} for r in rs] for w, rs in runs.items()},

@@ -94,7 +94,7 @@ def _tail(result) -> str:
 def test_site_yml_builds_an_ha_cluster_with_the_cloud_vm_over_the_vpn(chain):
     result = chain.site()
     assert result.returncode == 0, _tail(result)
-    found = site_lab.nodes(chain.core)
+    found = site_lab.nodes(chain.kube)
     assert set(found) == {ROBOT, OTHER_ROBOT, EDGE_WORKER, CLOUD, *CONTROL_PLANES}, found
     assert all(node["ready"] for node in found.values()), found
     assert found[ROBOT]["labels"]["robot.kuberos.io/name"] == "fetch-01"
@@ -173,7 +173,7 @@ def test_a_registered_robot_joins_and_gets_its_onboard_module(chain):
     result = chain.register_robot()
     assert result.returncode == 0, _tail(result)
     new = site_lab.NEW_ROBOT
-    assert site_lab.nodes(chain.core)[new]["ready"]
+    assert site_lab.nodes(chain.kube)[new]["ready"]
     result = chain.deploy(chain.render)
     assert result.returncode == 0, _tail(result)
     pods = chain.core.list_pod_for_all_namespaces(label_selector="kuberos.io/instance").items

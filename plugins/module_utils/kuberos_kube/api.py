@@ -186,6 +186,7 @@ class Kube:
         query = {"label_selector": selector} if selector else {}
         if field_selector:
             query["field_selector"] = field_selector
+        query.update(self._reads())
         try:
             if KINDS.get(kind) and KINDS[kind].namespaced and not namespace:
                 response = self._method(kind, "list_all")(_preload_content=False, **query)

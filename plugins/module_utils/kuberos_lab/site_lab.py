@@ -42,6 +42,7 @@ import subprocess
 import sys
 import time
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KINDS, Kube, api_clients, status_of
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines as lab_machines
 
@@ -247,12 +248,20 @@ CHECK_NAMESPACE = "kuberos-site-check"
 BIG_FILE_KIB = 256  # larger than any window: the TCP stream fills packets to the path's MTU
 
 
-def kube(kubeconfig: str):
-    """(core, apps) clients of the site's cluster."""
-    from kubernetes import client, config
+def kube(kubeconfig: str) -> Kube:
+    """The access layer (`kuberos_kube.api`) to the site's cluster."""
+    return Kube(api_clients(kubeconfig))
 
-    api = config.new_client_from_config(config_file=kubeconfig)
-    return client.CoreV1Api(api), client.AppsV1Api(api)
+
+def _new(kind: str, metadata: dict, **fields) -> dict:
+    """An object of ``kind`` to create: its apiVersion and kind, ``metadata`` and the other top-level ``fields``."""
+    return {"apiVersion": KINDS[kind].api_version, "kind": kind, "metadata": metadata, **fields}
+
+
+def _ready(obj: dict) -> bool:
+    """A node's or a pod's Ready condition is True."""
+    conditions = (obj.get("status") or {}).get("conditions") or []
+    return any(c.get("type") == "Ready" and c.get("status") == "True" for c in conditions)
 
 
 def wait_for(what: str, check, timeout: float, interval: float = 2.0):
@@ -271,61 +280,59 @@ def wait_for(what: str, check, timeout: float, interval: float = 2.0):
     raise SiteLabError(f"{what}: not within {timeout:.0f} s (last: {last!r})")
 
 
-def nodes(core) -> dict[str, dict]:
+def nodes(kube: Kube) -> dict[str, dict]:
     """node -> Ready, its InternalIP, labels and taints."""
     found = {}
-    for node in core.list_node().items:
-        ready = any(c.type == "Ready" and c.status == "True" for c in node.status.conditions or [])
-        internal = [a.address for a in node.status.addresses or [] if a.type == "InternalIP"]
-        found[node.metadata.name] = {
-            "ready": ready,
+    for node in kube.list("Node"):
+        status, meta = node.get("status") or {}, node["metadata"]
+        internal = [a.get("address") for a in status.get("addresses") or [] if a.get("type") == "InternalIP"]
+        taints = (node.get("spec") or {}).get("taints") or []
+        found[meta["name"]] = {
+            "ready": _ready(node),
             "internal_ip": internal[0] if internal else "",
-            "labels": dict(node.metadata.labels or {}),
-            "taints": [f"{t.key}={t.value or ''}:{t.effect}" for t in node.spec.taints or []],
+            "labels": dict(meta.get("labels") or {}),
+            "taints": [f"{t.get('key')}={t.get('value') or ''}:{t.get('effect')}" for t in taints],
         }
     return found
 
 
-def pod_network_check(core, toolbox: str, servers: dict[str, str], clients: list[tuple[str, str, str, bool]]) -> dict:
+def pod_network_check(kube: Kube, toolbox: str, servers: dict[str, str], clients: list[tuple[str, str, str, bool]]) -> dict:
     """Web servers (name -> node) that admit only pods labelled access=granted (a NetworkPolicy), and clients
     (name, node, server, admitted) that each fetch a file of BIG_FILE_KIB KiB from a server's pod IP. Returns
     client -> {"phase", "bytes"} (the reply's, headers included): an admitted client reads the whole file through
     the pod network (Calico's VXLAN, and the VPN for a cloud node, at the MTU the role set); a refused one reads
     nothing."""
-    from kubernetes.client.rest import ApiException
-
-    with contextlib.suppress(ApiException):
-        core.delete_namespace(CHECK_NAMESPACE)
-    wait_for("the check's old namespace is gone", lambda: CHECK_NAMESPACE not in _namespaces(core), 120)
-    core.create_namespace({"metadata": {"name": CHECK_NAMESPACE}})
-    from kubernetes import client as k8s
-
-    k8s.NetworkingV1Api(core.api_client).create_namespaced_network_policy(CHECK_NAMESPACE, {
-        "metadata": {"name": "servers-admit-granted"},
-        "spec": {
+    try:
+        kube.delete("Namespace", CHECK_NAMESPACE)
+    except Exception as error:  # the API server's refusal (gone, or already terminating) is no matter
+        if status_of(error) is None:
+            raise
+    wait_for("the check's old namespace is gone", lambda: CHECK_NAMESPACE not in _namespaces(kube), 120)
+    kube.create(_new("Namespace", {"name": CHECK_NAMESPACE}))
+    kube.create(_new("NetworkPolicy", {"name": "servers-admit-granted", "namespace": CHECK_NAMESPACE},
+        spec={
             "podSelector": {"matchLabels": {"app": "server"}}, "policyTypes": ["Ingress"],
             "ingress": [{"from": [{"podSelector": {"matchLabels": {"access": "granted"}}}], "ports": [{"port": 8080}]}],
         },
-    })  # fmt: skip
+    ))  # fmt: skip
     toleration = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}]
     serve = (
         f"mkdir -p /www && busybox dd if=/dev/zero of=/www/big bs=1024 count={BIG_FILE_KIB} 2>/dev/null "
         "&& exec busybox httpd -f -p 8080 -h /www"
     )
     for name, node in servers.items():
-        core.create_namespaced_pod(CHECK_NAMESPACE, {
-            "metadata": {"name": name, "labels": {"app": "server"}},
-            "spec": {"nodeName": node, "tolerations": toleration, "containers": [{
+        kube.create(_new("Pod", {"name": name, "namespace": CHECK_NAMESPACE, "labels": {"app": "server"}},
+            spec={"nodeName": node, "tolerations": toleration, "containers": [{
                 "name": "httpd", "image": toolbox, "command": ["/bin/sh", "-c", serve],
                 "readinessProbe": {"tcpSocket": {"port": 8080}, "periodSeconds": 1}}]},
-        })  # fmt: skip
+        ))  # fmt: skip
 
     def server_ips():
-        pods = {p.metadata.name: p for p in core.list_namespaced_pod(CHECK_NAMESPACE, label_selector="app=server").items}
+        pods = {p["metadata"]["name"]: p for p in kube.list("Pod", CHECK_NAMESPACE, selector="app=server")}
         ready = {
-            name: pod.status.pod_ip
+            name: (pod.get("status") or {}).get("podIP")
             for name, pod in pods.items()
-            if pod.status.pod_ip and any(c.type == "Ready" and c.status == "True" for c in pod.status.conditions or [])
+            if (pod.get("status") or {}).get("podIP") and _ready(pod)
         }
         return ready if len(ready) == len(servers) else None
 
@@ -335,42 +342,39 @@ def pod_network_check(core, toolbox: str, servers: dict[str, str], clients: list
             f"printf 'GET /big HTTP/1.0\\r\\n\\r\\n' | busybox nc -w 10 {ips[server]} 8080 > /tmp/reply; "
             "busybox wc -c < /tmp/reply; busybox head -n 1 /tmp/reply | busybox grep -q ' 200 '"
         )
-        core.create_namespaced_pod(CHECK_NAMESPACE, {
-            "metadata": {"name": name, "labels": {"access": "granted" if admitted else "none", "role": "client"}},
-            "spec": {"nodeName": node, "tolerations": toleration, "restartPolicy": "Never", "containers": [{
+        labels = {"access": "granted" if admitted else "none", "role": "client"}
+        kube.create(_new("Pod", {"name": name, "namespace": CHECK_NAMESPACE, "labels": labels},
+            spec={"nodeName": node, "tolerations": toleration, "restartPolicy": "Never", "containers": [{
                 "name": "fetch", "image": toolbox, "command": ["/bin/sh", "-c", fetch]}]},
-        })  # fmt: skip
+        ))  # fmt: skip
 
     def ended():
-        pods = core.list_namespaced_pod(CHECK_NAMESPACE, label_selector="role=client").items
-        phases = {p.metadata.name: p.status.phase for p in pods}
+        pods = kube.list("Pod", CHECK_NAMESPACE, selector="role=client")
+        phases = {p["metadata"]["name"]: (p.get("status") or {}).get("phase") for p in pods}
         return phases if all(phase in ("Succeeded", "Failed") for phase in phases.values()) else None
 
     phases = wait_for("the check's clients ended", ended, 180)
     results = {}
     for name, phase in phases.items():
-        log = core.read_namespaced_pod_log(name, CHECK_NAMESPACE) or ""
+        log = kube.log(name, CHECK_NAMESPACE) or ""
         numbers = [int(line) for line in log.split() if line.isdigit()]
         results[name] = {"phase": phase, "bytes": numbers[-1] if numbers else 0}
-    core.delete_namespace(CHECK_NAMESPACE)
+    kube.delete("Namespace", CHECK_NAMESPACE)
     return results
 
 
-def fleet_isolation_check(core, toolbox: str, fleet_namespace: str, node: str, clients: list[tuple[str, str]]) -> dict:
+def fleet_isolation_check(kube: Kube, toolbox: str, fleet_namespace: str, node: str, clients: list[tuple[str, str]]) -> dict:
     """A web server in ``fleet_namespace`` (under the policies deploy rendered there) and clients (name, namespace)
     that each fetch from its pod IP; a client's namespace that does not exist is made a fleet of its own, with the
     policies deploy renders for any fleet. Every pod runs as the restricted level asks (the fleet namespaces enforce
     it). Returns client -> {"phase", "bytes"}."""
-    from kubernetes import client as k8s
-
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import network_policy, pod_security
 
-    networking = k8s.NetworkingV1Api(core.api_client)
     made = []
-    for namespace in sorted({ns for _name, ns in clients} - _namespaces(core)):
-        core.create_namespace({"metadata": {"name": namespace, "labels": pod_security.namespace_labels("restricted")}})
+    for namespace in sorted({ns for _name, ns in clients} - _namespaces(kube)):
+        kube.create(_new("Namespace", {"name": namespace, "labels": pod_security.namespace_labels("restricted")}))
         for policy in network_policy.fleet_policies(namespace, {"app.kubernetes.io/managed-by": "kuberos-site-check"}):
-            networking.create_namespaced_network_policy(namespace, policy)
+            kube.create(policy)
         made.append(namespace)
     toleration = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}]
     serve = (
@@ -380,18 +384,16 @@ def fleet_isolation_check(core, toolbox: str, fleet_namespace: str, node: str, c
     server = "isolation-server"
     # the toolbox image has no /tmp, and its root is not the user's to write: a scratch volume
     scratch, mount = [{"name": "tmp", "emptyDir": {}}], [{"name": "tmp", "mountPath": "/tmp"}]
-    core.create_namespaced_pod(fleet_namespace, {
-        "metadata": {"name": server, "labels": {"app": "isolation-check"}},
-        "spec": pod_security.harden({"nodeName": node, "tolerations": toleration, "volumes": scratch, "containers": [{
+    kube.create(_new("Pod", {"name": server, "namespace": fleet_namespace, "labels": {"app": "isolation-check"}},
+        spec=pod_security.harden({"nodeName": node, "tolerations": toleration, "volumes": scratch, "containers": [{
             "name": "httpd", "image": toolbox, "command": ["/bin/sh", "-c", serve], "volumeMounts": mount,
             "readinessProbe": {"tcpSocket": {"port": 8080}, "periodSeconds": 1}}]}),
-    })  # fmt: skip
+    ))  # fmt: skip
     try:
 
         def server_ip():
-            pod = core.read_namespaced_pod(server, fleet_namespace)
-            ready = any(c.type == "Ready" and c.status == "True" for c in pod.status.conditions or [])
-            return pod.status.pod_ip if ready else None
+            pod = kube.get("Pod", server, fleet_namespace)
+            return (pod.get("status") or {}).get("podIP") if pod and _ready(pod) else None
 
         address = wait_for("the isolation check's web server is Ready", server_ip, 180)
         fetch = (
@@ -401,19 +403,21 @@ def fleet_isolation_check(core, toolbox: str, fleet_namespace: str, node: str, c
         for name, namespace in clients:
             fetcher = {"name": "fetch", "image": toolbox, "command": ["/bin/sh", "-c", fetch], "volumeMounts": mount}
             spec = {"nodeName": node, "tolerations": toleration, "restartPolicy": "Never", "volumes": scratch}
-            core.create_namespaced_pod(namespace, {
-                "metadata": {"name": name, "labels": {"app": "isolation-check"}},
-                "spec": pod_security.harden({**spec, "containers": [fetcher]}),
-            })  # fmt: skip
+            kube.create(_new("Pod", {"name": name, "namespace": namespace, "labels": {"app": "isolation-check"}},
+                spec=pod_security.harden({**spec, "containers": [fetcher]}),
+            ))  # fmt: skip
 
         def ended():
-            phases = {name: core.read_namespaced_pod(name, ns).status.phase for name, ns in clients}
+            pods = {name: kube.get("Pod", name, ns) for name, ns in clients}
+            if any(pod is None for pod in pods.values()):
+                return None
+            phases = {name: (pod.get("status") or {}).get("phase") for name, pod in pods.items()}
             return phases if all(phase in ("Succeeded", "Failed") for phase in phases.values()) else None
 
         phases = wait_for("the isolation check's clients ended", ended, 180)
         results = {}
         for name, namespace in clients:
-            log = core.read_namespaced_pod_log(name, namespace) or ""
+            log = kube.log(name, namespace) or ""
             numbers = [int(line) for line in log.split() if line.isdigit()]
             results[name] = {"phase": phases[name], "bytes": numbers[-1] if numbers else 0}
         return results
@@ -421,10 +425,10 @@ def fleet_isolation_check(core, toolbox: str, fleet_namespace: str, node: str, c
         for name, namespace in [(server, fleet_namespace), *clients]:
             if namespace not in made:
                 with contextlib.suppress(Exception):
-                    core.delete_namespaced_pod(name, namespace, grace_period_seconds=0)
+                    kube.delete("Pod", name, namespace, grace_seconds=0)
         for namespace in made:
             with contextlib.suppress(Exception):
-                core.delete_namespace(namespace)
+                kube.delete("Namespace", namespace)
 
 
 def etcd_members(machines, name: str) -> list[str]:
@@ -455,8 +459,8 @@ def vip_holder(machines, control_planes) -> str:
     return next(iter(vip_holders(machines, control_planes)), "")
 
 
-def _namespaces(core) -> set[str]:
-    return {n.metadata.name for n in core.list_namespace().items}
+def _namespaces(kube: Kube) -> set[str]:
+    return {n["metadata"]["name"] for n in kube.list("Namespace")}
 
 
 FLEET = "picking"
@@ -493,7 +497,8 @@ class SiteChain:
         self.spec = spec  # the example, aimed at the sample site's picking fleet
         self.log = log
         self.figures: dict = {}
-        self.core = self.apps = None
+        self.kube: Kube | None = None  # the chain's own reads and writes
+        self.core = None  # the typed CoreV1Api under it, for the test's own assertions
 
     def _play(self, name: str, *extra: str, timeout: float = 1800) -> subprocess.CompletedProcess:
         started = time.monotonic()
@@ -503,7 +508,8 @@ class SiteChain:
         return result
 
     def connect(self):
-        self.core, self.apps = kube(self.lab.kubeconfig)
+        self.kube = kube(self.lab.kubeconfig)
+        self.core = self.kube.clients["core"]
         return self
 
     def site(self, key: str = "bare_to_ready_s") -> subprocess.CompletedProcess:
@@ -513,8 +519,8 @@ class SiteChain:
         if result.returncode == 0:
             self.connect()
             expected = len(self.lab.machines.machines)
-            wait_for("every node Ready", lambda: len([n for n in nodes(self.core).values() if n["ready"]]) == expected, 300)
-            found = nodes(self.core)
+            wait_for("every node Ready", lambda: len([n for n in nodes(self.kube).values() if n["ready"]]) == expected, 300)
+            found = nodes(self.kube)
             cloud = found.get(CLOUD_VM, {})
             self.figures.update(hosts=len(found), control_planes=len(CONTROL_PLANES))
             tunnel_ip = self.lab.vpn_address(CLOUD_VM)
@@ -525,7 +531,7 @@ class SiteChain:
     def network(self, toolbox: str, robot: str, edge: str, other_edge: str, cloud: str) -> dict:
         """Pod to pod across nodes (robot to edge worker, robot to cloud VM through the VPN) and a refusal."""
         results = pod_network_check(
-            self.core, toolbox, {"server-edge": edge, "server-cloud": cloud},
+            self.kube, toolbox, {"server-edge": edge, "server-cloud": cloud},
             [("robot-to-edge", robot, "server-edge", True), ("robot-to-cloud", robot, "server-cloud", True),
              ("edge-refused", other_edge, "server-edge", False)],
         )  # fmt: skip
@@ -543,7 +549,7 @@ class SiteChain:
         """The app's fleet namespace under the policies deploy rendered: its own pods reach a server there, a pod of
         another fleet and one of the metrics namespace (on a port that is not a metrics port) do not."""
         results = fleet_isolation_check(
-            self.core, toolbox, f"kuberos-{FLEET}", node,
+            self.kube, toolbox, f"kuberos-{FLEET}", node,
             [("same-fleet", f"kuberos-{FLEET}"), ("other-fleet", "kuberos-other-fleet"), ("metrics-ns", "kuberos-system")],
         )  # fmt: skip
         whole = BIG_FILE_KIB * 1024
@@ -626,9 +632,13 @@ class SiteChain:
         started = time.monotonic()
         result = self._play("register_robot.yml", "-e", f"@{self.lab.path('register.json')}")
         if result.returncode == 0:  # the join returns once the kubelet started; Ready comes with its CNI
-            wait_for(f"{NEW_ROBOT} Ready", lambda: nodes(self.core).get(NEW_ROBOT, {}).get("ready"), 300)
+            wait_for(f"{NEW_ROBOT} Ready", lambda: nodes(self.kube).get(NEW_ROBOT, {}).get("ready"), 300)
         self.figures["register_robot_s"] = round(time.monotonic() - started, 1)
         return result
+
+    def _nodes_within(self, seconds: float) -> list[dict]:
+        """Every node, the request bounded by ``seconds`` (an API server behind a lost virtual IP may not answer)."""
+        return Kube(self.kube.clients, read_timeout=seconds).list("Node")
 
     def lose_vip_holder(self, timeout: float = 120) -> str:
         """Cut the power of the control plane holding the virtual IP (its PID 1 killed) and wait until the API
@@ -639,7 +649,7 @@ class SiteChain:
             raise SiteLabError(f"no control plane holds the virtual IP {VIP}")
         started = time.monotonic()
         self.lab.machines.power_off(holder)
-        wait_for("the API through the virtual IP", lambda: self.core.list_node(_request_timeout=3).items, timeout, 1)
+        wait_for("the API through the virtual IP", lambda: self._nodes_within(3), timeout, 1)
         self.figures["api_back_after_losing_the_vip_holder_s"] = round(time.monotonic() - started, 1)
         return holder
 
