@@ -34,7 +34,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_deploy import machine, write_inventory, write_spec  # bench/ is on sys.path when a benchmark runs
+from bench_deploy import machine, parse_profile, write_inventory, write_spec  # bench/ is on sys.path when a benchmark runs
 
 REPO = Path(__file__).resolve().parent.parent
 BASE = "c7a050c"  # main before the rooms, the one Kubernetes access layer and the one deploy pass
@@ -58,14 +58,22 @@ def peak_rss_of(command: list[str], cwd: Path, env: dict, timeout: float) -> tup
     return os.waitstatus_to_exitcode(status), time.perf_counter() - start, usage.ru_maxrss / 1024, output.decode(errors="replace")
 
 
+MODULE_TASK = "rosdeployment"  # the profile line of the task that runs the module (its name differs by revision)
+
+
 def run_one(checkout: Path, inventory: Path, spec: Path, dest: Path, timeout: float) -> dict:
-    env = {**os.environ, "ANSIBLE_CONFIG": str(checkout / "ansible.cfg"), "ANSIBLE_NOCOLOR": "1"}
+    env = {**os.environ, "ANSIBLE_CONFIG": str(checkout / "ansible.cfg"), "ANSIBLE_NOCOLOR": "1",
+           "ANSIBLE_CALLBACKS_ENABLED": "ansible.posix.profile_tasks", "PROFILE_TASKS_SORT_ORDER": "none",
+           "PROFILE_TASKS_TASK_OUTPUT_LIMIT": "all"}  # fmt: skip
     command = [
         str(REPO / ".venv" / "bin" / "ansible-playbook"), "playbooks/deploy.yml", "-i", str(inventory),
         "-e", f"rosdeployment_file={spec}", "-e", "kuberos_apply=false", "-e", f"kuberos_render_dir={dest}",
     ]  # fmt: skip
     code, wall, rss, output = peak_rss_of(command, checkout, env, timeout)
-    return {"wall_s": round(wall, 2), "peak_rss_mib": round(rss, 1), "exit": code, "tail": output[-1500:] if code else ""}
+    # the module's task: "Validate, place, render, dry-run, apply, prune and wait" (its role's prefix included)
+    task = [s for name, s in parse_profile(output) if name.endswith("dry-run, apply, prune and wait")]
+    return {"wall_s": round(wall, 2), "module_task_s": task[0] if task else None, "peak_rss_mib": round(rss, 1), "exit": code,
+            "tail": output[-1500:] if code else ""}  # fmt: skip
 
 
 def same_manifests(one: Path, other: Path) -> list[str]:
@@ -109,16 +117,23 @@ def main(argv: list[str] | None = None) -> int:
                 run = run_one(checkout, inventory, spec, dest, args.timeout)
                 run["dest"] = str(dest)
                 runs[which].append(run)
-                print(f"{which} #{index + 1}: {run['wall_s']} s, {run['peak_rss_mib']} MiB, exit {run['exit']}", file=sys.stderr)
+                print(f"{which} #{index + 1}: {run['wall_s']} s (module task {run['module_task_s']} s), "
+                      f"{run['peak_rss_mib']} MiB, exit {run['exit']}", file=sys.stderr)  # fmt: skip
                 if run["exit"]:
                     print(run["tail"], file=sys.stderr)
                     return 1
         differ = same_manifests(Path(runs["before"][0]["dest"]), Path(runs["after"][0]["dest"]))
         summary = {}
         for which, measured in runs.items():
-            for key in ("wall_s", "peak_rss_mib"):
+            for key in ("wall_s", "module_task_s", "peak_rss_mib"):
                 summary[f"{which}_{key}_median"] = statistics.median(r[key] for r in measured)
         summary["wall_ratio_after_before"] = round(summary["after_wall_s_median"] / summary["before_wall_s_median"], 3)
+        summary["module_task_ratio_after_before"] = round(
+            summary["after_module_task_s_median"] / summary["before_module_task_s_median"], 3
+        )
+        # each repeat's two runs ran next to each other: the median of their ratios is the least noisy comparison
+        pairs = [a["module_task_s"] / b["module_task_s"] for a, b in zip(runs["after"], runs["before"], strict=True)]
+        summary["module_task_pair_ratio_median"] = round(statistics.median(pairs), 3)
         summary["rss_ratio_after_before"] = round(summary["after_peak_rss_mib_median"] / summary["before_peak_rss_mib_median"], 3)
         data = {
             "machine": started,
@@ -138,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
         print("| | before | after | after/before |\n|---|---|---|---|")
         print(f"| wall s (median of {args.repeat}) | {summary['before_wall_s_median']} | {summary['after_wall_s_median']} | "
               f"{summary['wall_ratio_after_before']} |")  # fmt: skip
+        print(f"| the module's task s (median) | {summary['before_module_task_s_median']} | "
+              f"{summary['after_module_task_s_median']} | {summary['module_task_ratio_after_before']} |")  # fmt: skip
+        print(f"| the module's task, after/before per repeat (median) | | | {summary['module_task_pair_ratio_median']} |")
         print(f"| peak RSS MiB (median) | {summary['before_peak_rss_mib_median']} | {summary['after_peak_rss_mib_median']} | "
               f"{summary['rss_ratio_after_before']} |")  # fmt: skip
         print(f"\nmanifests that differ: {len(differ)} {differ[:5]}")
