@@ -3,8 +3,9 @@
 
 On a dedicated local control plane (its own ports and state directory; one kwok node per robot plus 20 edge and 10
 cloud nodes: 130 at 100 robots, 1,030 at 1,000) it deploys a pick-and-place app to a fleet of N robots: 4 dedicated
-modules per robot, so 4·N module pods, plus the fleet's 2 discovery servers. Every repeat runs the three ways below,
-each from the same starting state: the fleet's namespace exists and holds none of the deployment's objects.
+modules per robot, so 4·N module pods, plus each robot's own discovery server (N) and the fleet's 2. Every repeat
+runs the three ways below, each from the same starting state: the fleet's namespace exists and holds none of the
+deployment's objects.
 
 (a) ``ansible-playbook playbooks/deploy.yml``, timed from the start of the process to its exit (the playbook itself
     waits until every pod is Ready). A watcher notes when every pod was first seen Ready from outside. Then, with
@@ -80,6 +81,7 @@ EDGE_NODES = 20
 CLOUD_NODES = 10
 DISCOVERY_SERVERS = 2
 MODULES_PER_ROBOT = 4
+ROBOT_SERVERS = 1  # each robot's own discovery server, on its computer (robotServers, the default)
 FIELD_MANAGER = "bench"
 DEPLOY_FIELD_MANAGER = "kuberos"  # deploy.yml's (rosdeployment_field_manager): the namespace is created as it would
 MAX_ROBOTS = 1000  # 20 edge nodes x 110 pods hold perception + coordinator of about 1,000 robots
@@ -871,7 +873,7 @@ def main(argv: list[str] | None = None) -> int:
     inventory = write_inventory(work / "inventory", args.robots)
     spec = write_spec(work / f"{SPEC_NAME}.yml")
     cluster = Cluster(inventory, work / "cluster", args.timeout)
-    expected = args.robots * MODULES_PER_ROBOT + DISCOVERY_SERVERS
+    expected = args.robots * (MODULES_PER_ROBOT + ROBOT_SERVERS) + DISCOVERY_SERVERS
     info = machine()
     data: dict = {
         "robots": args.robots,

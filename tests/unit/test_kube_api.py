@@ -10,6 +10,7 @@ from kubernetes import client
 from kubernetes.client.exceptions import ApiException
 from urllib3.exceptions import MaxRetryError
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import applied
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube import api
 
 CLIENTS = {
@@ -91,7 +92,9 @@ def test_apply_is_a_forced_server_side_apply_by_the_field_manager_with_the_write
     obj = {"kind": "NetworkPolicy", "apiVersion": "networking.k8s.io/v1", "metadata": {"name": "n", "namespace": "f"}}
     assert kube.apply(obj, dry_run=True) == {"ok": True}
     name, args, kwargs = networking.calls[0]
-    assert (name, args[:2], args[2]) == ("patch_namespaced_network_policy", ("n", "f"), obj)
+    assert (name, args[:2]) == ("patch_namespaced_network_policy", ("n", "f"))
+    # what was applied, stamped with the digest of that configuration (kuberos.applied)
+    assert args[2] == applied.stamped(obj) and args[2]["metadata"]["annotations"][applied.APPLIED] == applied.applied_hash(obj)
     assert kwargs == {
         "field_manager": "kuberos-deploy",
         "force": True,

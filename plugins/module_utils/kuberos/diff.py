@@ -19,6 +19,7 @@ import base64
 import binascii
 import hashlib
 
+from .applied import APPLIED
 from .errors import SpecError
 from .labels import VERSION
 from .manifest_yaml import dump_object
@@ -51,8 +52,8 @@ def clean_object(obj: dict) -> dict:
     """The object without what the server keeps for itself and without encoded blobs (see the module docstring)."""
     out = {k: v for k, v in obj.items() if k != "status"}
     meta = {k: v for k, v in (obj.get("metadata") or {}).items() if k not in SERVER_FIELDS}
-    if LAST_APPLIED in (meta.get("annotations") or {}):
-        meta["annotations"] = {k: v for k, v in meta["annotations"].items() if k != LAST_APPLIED}
+    if {LAST_APPLIED, APPLIED} & set(meta.get("annotations") or {}):
+        meta["annotations"] = {k: v for k, v in meta["annotations"].items() if k not in (LAST_APPLIED, APPLIED)}
         if not meta["annotations"]:
             del meta["annotations"]
     out["metadata"] = meta

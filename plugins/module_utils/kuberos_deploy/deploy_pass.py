@@ -14,6 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.applied import APPLIED, unchanged
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.batch import is_batch_document
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
@@ -158,6 +159,10 @@ class Target:
                     }
                 )
         return out
+
+
+def _applied(obj: dict) -> str | None:
+    return ((obj.get("metadata") or {}).get("annotations") or {}).get(APPLIED)
 
 
 class NotReady(KuberosError):
@@ -382,10 +387,15 @@ class DeployPass:
         """Dry-run every object of ``target`` whose namespace exists; the others are new. Returns the refusals."""
         refused = {}
 
+        manager = self.params["field_manager"]
+
         def one(obj):
             namespace = obj["metadata"].get("namespace")
             if namespace and namespace not in target.existing:
                 return obj, obj, None  # a new namespace in check mode: no dry run can be done there; the object is new
+            live = target.live.get(object_key(obj))
+            if unchanged(obj, live, manager):
+                return obj, live, None  # applied as it is rendered, and nobody changed it since: an apply changes nothing
             try:
                 return obj, target.api.apply(obj, dry_run=True), None
             except Exception as exc:
@@ -418,6 +428,8 @@ class DeployPass:
         live = target.live.get(key)
         if live is None or clean_object(live) != clean_object(target.after[key]):
             return True
+        if _applied(live) != _applied(target.after[key]):
+            return True  # the same content, applied before it carried what it was applied as (kuberos.applied)
         # The same content under another field manager: apply, so that KubeROS owns (and later prunes) its fields.
         managers = live["metadata"].get("managedFields") or []
         return not any(m.get("manager") == self.params["field_manager"] and m.get("operation") == "Apply" for m in managers)

@@ -15,6 +15,7 @@ import json
 import os
 from dataclasses import dataclass
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.applied import stamped
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FIELD_MANAGER
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import object_key
 
@@ -201,10 +202,11 @@ class Kube:
         return [{**head, **item} for item in json.loads(response.data).get("items") or []]
 
     def apply(self, obj: dict, dry_run: bool = False, manager: str | None = None) -> dict:
-        """Server-side apply of ``obj`` (its fields owned by ``manager``, conflicts forced); what the server holds."""
+        """Server-side apply of ``obj`` (its fields owned by ``manager``, conflicts forced), stamped with the digest of
+        what was applied (``kuberos.applied``); what the server holds."""
         meta = obj["metadata"]
         extra = {"dry_run": "All"} if dry_run else {}
-        body = json.loads(json.dumps(obj))  # the client serialises plain data only
+        body = stamped(json.loads(json.dumps(obj)))  # the client serialises plain data only
         response = self._method(obj["kind"], "patch")(
             *self._where(obj["kind"], meta["name"], meta.get("namespace", "")),
             body,
