@@ -1,8 +1,8 @@
 """The one way the collection talks to Kubernetes: typed clients from a kubeconfig, one table of the kinds it
-reads and writes, and get, list, apply (server-side), create and delete that answer in plain JSON, as the API
-server sent it, and treat a missing object one way: ``get`` gives None, ``list`` gives [] for a namespace that is
-gone, ``delete`` gives False for an object already gone. ``message`` turns any failure to talk to a cluster into
-one sentence.
+reads and writes, and get, list, apply (server-side, stamped with the digest of what it sent: ``kuberos.applied``),
+patch, create, replace, delete and log that answer in plain JSON, as the API server sent it, and treat a missing
+object one way: ``get`` gives None, ``list`` gives [] for a namespace that is gone, ``delete`` gives False for an
+object already gone. ``message`` turns any failure to talk to a cluster into one sentence.
 
 Used by deploy, diff, prune, rollout, batch, status (``kuberos_deploy``), the controller and the lab. The clients
 are the Kubernetes Python client's typed APIs; answers are read with ``_preload_content=False``, so no model
