@@ -13,9 +13,9 @@ description:
     made of every host of the groups C(robots), C(edge) and C(cloud) with its resource-model variables
     (C(kuberos_cpu), C(kuberos_fleet)... as listed in docs/inventory.md; site settings such as
     C(kuberos_kubeconfig) are left out).
-  - Validates it, failing with the host, the variable and the reason for each problem, unless O(validate=false):
-    for a task whose module validates it anyway (the P(kuberos.platform.rosdeployment#module) family), so that an
-    inventory is validated once per task.
+  - Validates it, failing with the host, the variable and the reason for each problem, unless O(validate=false),
+    which a task whose module validates it anyway sets (the P(kuberos.platform.rosdeployment#module) family), so
+    that an inventory is validated once per task.
 options:
   _input:
     description: The C(groups) magic variable.

@@ -309,23 +309,41 @@ def pod_network_check(kube: Kube, toolbox: str, servers: dict[str, str], clients
             raise
     wait_for("the check's old namespace is gone", lambda: CHECK_NAMESPACE not in _namespaces(kube), 120)
     kube.create(_new("Namespace", {"name": CHECK_NAMESPACE}))
-    kube.create(_new("NetworkPolicy", {"name": "servers-admit-granted", "namespace": CHECK_NAMESPACE},
-        spec={
-            "podSelector": {"matchLabels": {"app": "server"}}, "policyTypes": ["Ingress"],
-            "ingress": [{"from": [{"podSelector": {"matchLabels": {"access": "granted"}}}], "ports": [{"port": 8080}]}],
-        },
-    ))  # fmt: skip
+    kube.create(
+        _new(
+            "NetworkPolicy",
+            {"name": "servers-admit-granted", "namespace": CHECK_NAMESPACE},
+            spec={
+                "podSelector": {"matchLabels": {"app": "server"}},
+                "policyTypes": ["Ingress"],
+                "ingress": [{"from": [{"podSelector": {"matchLabels": {"access": "granted"}}}], "ports": [{"port": 8080}]}],
+            },
+        )
+    )
     toleration = [{"key": "kuberos.io/robot", "operator": "Exists", "effect": "NoSchedule"}]
     serve = (
         f"mkdir -p /www && busybox dd if=/dev/zero of=/www/big bs=1024 count={BIG_FILE_KIB} 2>/dev/null "
         "&& exec busybox httpd -f -p 8080 -h /www"
     )
     for name, node in servers.items():
-        kube.create(_new("Pod", {"name": name, "namespace": CHECK_NAMESPACE, "labels": {"app": "server"}},
-            spec={"nodeName": node, "tolerations": toleration, "containers": [{
-                "name": "httpd", "image": toolbox, "command": ["/bin/sh", "-c", serve],
-                "readinessProbe": {"tcpSocket": {"port": 8080}, "periodSeconds": 1}}]},
-        ))  # fmt: skip
+        kube.create(
+            _new(
+                "Pod",
+                {"name": name, "namespace": CHECK_NAMESPACE, "labels": {"app": "server"}},
+                spec={
+                    "nodeName": node,
+                    "tolerations": toleration,
+                    "containers": [
+                        {
+                            "name": "httpd",
+                            "image": toolbox,
+                            "command": ["/bin/sh", "-c", serve],
+                            "readinessProbe": {"tcpSocket": {"port": 8080}, "periodSeconds": 1},
+                        }
+                    ],
+                },
+            )
+        )
 
     def server_ips():
         pods = {p["metadata"]["name"]: p for p in kube.list("Pod", CHECK_NAMESPACE, selector="app=server")}
@@ -343,10 +361,18 @@ def pod_network_check(kube: Kube, toolbox: str, servers: dict[str, str], clients
             "busybox wc -c < /tmp/reply; busybox head -n 1 /tmp/reply | busybox grep -q ' 200 '"
         )
         labels = {"access": "granted" if admitted else "none", "role": "client"}
-        kube.create(_new("Pod", {"name": name, "namespace": CHECK_NAMESPACE, "labels": labels},
-            spec={"nodeName": node, "tolerations": toleration, "restartPolicy": "Never", "containers": [{
-                "name": "fetch", "image": toolbox, "command": ["/bin/sh", "-c", fetch]}]},
-        ))  # fmt: skip
+        kube.create(
+            _new(
+                "Pod",
+                {"name": name, "namespace": CHECK_NAMESPACE, "labels": labels},
+                spec={
+                    "nodeName": node,
+                    "tolerations": toleration,
+                    "restartPolicy": "Never",
+                    "containers": [{"name": "fetch", "image": toolbox, "command": ["/bin/sh", "-c", fetch]}],
+                },
+            )
+        )
 
     def ended():
         pods = kube.list("Pod", CHECK_NAMESPACE, selector="role=client")
@@ -384,11 +410,28 @@ def fleet_isolation_check(kube: Kube, toolbox: str, fleet_namespace: str, node: 
     server = "isolation-server"
     # the toolbox image has no /tmp, and its root is not the user's to write: a scratch volume
     scratch, mount = [{"name": "tmp", "emptyDir": {}}], [{"name": "tmp", "mountPath": "/tmp"}]
-    kube.create(_new("Pod", {"name": server, "namespace": fleet_namespace, "labels": {"app": "isolation-check"}},
-        spec=pod_security.harden({"nodeName": node, "tolerations": toleration, "volumes": scratch, "containers": [{
-            "name": "httpd", "image": toolbox, "command": ["/bin/sh", "-c", serve], "volumeMounts": mount,
-            "readinessProbe": {"tcpSocket": {"port": 8080}, "periodSeconds": 1}}]}),
-    ))  # fmt: skip
+    kube.create(
+        _new(
+            "Pod",
+            {"name": server, "namespace": fleet_namespace, "labels": {"app": "isolation-check"}},
+            spec=pod_security.harden(
+                {
+                    "nodeName": node,
+                    "tolerations": toleration,
+                    "volumes": scratch,
+                    "containers": [
+                        {
+                            "name": "httpd",
+                            "image": toolbox,
+                            "command": ["/bin/sh", "-c", serve],
+                            "volumeMounts": mount,
+                            "readinessProbe": {"tcpSocket": {"port": 8080}, "periodSeconds": 1},
+                        }
+                    ],
+                }
+            ),
+        )
+    )
     try:
 
         def server_ip():
@@ -403,9 +446,13 @@ def fleet_isolation_check(kube: Kube, toolbox: str, fleet_namespace: str, node: 
         for name, namespace in clients:
             fetcher = {"name": "fetch", "image": toolbox, "command": ["/bin/sh", "-c", fetch], "volumeMounts": mount}
             spec = {"nodeName": node, "tolerations": toleration, "restartPolicy": "Never", "volumes": scratch}
-            kube.create(_new("Pod", {"name": name, "namespace": namespace, "labels": {"app": "isolation-check"}},
-                spec=pod_security.harden({**spec, "containers": [fetcher]}),
-            ))  # fmt: skip
+            kube.create(
+                _new(
+                    "Pod",
+                    {"name": name, "namespace": namespace, "labels": {"app": "isolation-check"}},
+                    spec=pod_security.harden({**spec, "containers": [fetcher]}),
+                )
+            )
 
         def ended():
             pods = {name: kube.get("Pod", name, ns) for name, ns in clients}
