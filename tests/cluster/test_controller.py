@@ -593,6 +593,9 @@ def test_the_leader_killed_while_a_node_is_failing_hands_over_and_the_new_leader
     fleet.node_down(node)
     os.kill(first, signal.SIGKILL)  # inside the grace period: the dead leader has moved nothing yet
     try:
+        # The record names the failed node until the new leader moves its modules: "running where the record says"
+        # alone can hold before the node's failure is even seen, so wait for the move itself (same bound).
+        wait_for(lambda: node not in fleet.placed().values(), 90, f"the new leader moving the modules off {node}")
         fleet.converge(timeout=90)
         second = fleet.leader_pid()
         assert second != first
