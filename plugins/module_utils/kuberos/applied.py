@@ -5,7 +5,6 @@ owns, would change nothing with an apply: ``unchanged`` says so without asking t
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import json
 
@@ -25,10 +24,21 @@ def applied_hash(obj: dict) -> str:
 
 
 def stamped(obj: dict) -> dict:
-    """A copy of ``obj`` carrying the digest of its configuration (what a server-side apply sends)."""
-    out = copy.deepcopy(obj)
+    """A copy of ``obj`` as plain JSON data (what a client sends), carrying the digest of its configuration."""
+    out = json.loads(json.dumps(obj))
     out.setdefault("metadata", {}).setdefault("annotations", {})[APPLIED] = applied_hash(obj)
     return out
+
+
+def applied_of(obj: dict) -> str | None:
+    """The digest an object was last applied with (None: applied before it was stamped, or never)."""
+    return ((obj.get("metadata") or {}).get("annotations") or {}).get(APPLIED)
+
+
+def owns(live: dict, field_manager: str) -> bool:
+    """Whether ``field_manager`` holds fields of ``live`` by server-side apply."""
+    managers = (live.get("metadata") or {}).get("managedFields") or []
+    return any(m.get("manager") == field_manager and m.get("operation") == "Apply" for m in managers)
 
 
 def holds(live, config) -> bool:
@@ -45,12 +55,6 @@ def unchanged(config: dict, live: dict | None, field_manager: str) -> bool:
     """Whether a server-side apply of ``config`` by ``field_manager`` would leave ``live`` as it is: the last apply
     sent this configuration (its digest), every field of it is still there with its value, and ``field_manager`` holds
     its fields (an apply otherwise takes them over)."""
-    if live is None:
+    if live is None or applied_of(live) != applied_hash(config):
         return False
-    meta = live.get("metadata") or {}
-    if (meta.get("annotations") or {}).get(APPLIED) != applied_hash(config):
-        return False
-    managers = meta.get("managedFields") or []
-    if not any(m.get("manager") == field_manager and m.get("operation") == "Apply" for m in managers):
-        return False
-    return holds(live, config)
+    return owns(live, field_manager) and holds(live, config)

@@ -77,6 +77,11 @@ def _short(text: str, limit: int = 240) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+def is_ready(obj: dict) -> bool:
+    """Whether a node or a pod (as the API server sends it) reports its Ready condition True."""
+    return any(c.get("type") == "Ready" and c.get("status") == "True" for c in (obj.get("status") or {}).get("conditions") or [])
+
+
 def pod_note(pod: dict) -> str:
     """Why a pod is not (yet) serving, in the cluster's own words ("" when nothing says): the scheduler's reason
     for a pod it cannot place (untolerated taints, resources), the reason a pod ended (Evicted and the resource the

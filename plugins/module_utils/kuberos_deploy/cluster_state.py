@@ -12,6 +12,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import (
     IMAGE_PULL_REASONS,
     image_pull_problem,
+    is_ready,
     pod_note,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import MANAGED_KINDS, Kube, object_key
@@ -69,11 +70,7 @@ def stale_objects(live: list[dict], keep: list[dict], deployments: list[str], re
 def delete_object(clients, obj: dict) -> None:
     if obj["kind"] not in MANAGED_KINDS:
         raise ValueError(f"KubeROS does not manage {obj['kind']}")
-    kube_of(clients).delete(obj["kind"], obj["metadata"]["name"], obj["metadata"]["namespace"])
-
-
-def _ready(pod: dict) -> bool:
-    return any(c.get("type") == "Ready" and c.get("status") == "True" for c in (pod.get("status") or {}).get("conditions") or [])
+    kube_of(clients).delete_object(obj)
 
 
 # Waiting reasons the kubelet tries again (with back-off): one failed try is not yet the answer.
@@ -132,10 +129,10 @@ def running_modules(clients, fleets: list[str], deployments: list[str]) -> list[
                     "pod": meta["name"],
                     "node": (pod.get("spec") or {}).get("nodeName"),
                     "phase": (pod.get("status") or {}).get("phase"),
-                    "ready": _ready(pod),
+                    "ready": is_ready(pod),
                     "problem": problem,
                     "problem_final": final,
-                    "note": "" if _ready(pod) else pod_note(pod),
+                    "note": "" if is_ready(pod) else pod_note(pod),
                 }
             )
     return rows

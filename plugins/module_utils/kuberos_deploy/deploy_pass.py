@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.applied import APPLIED, unchanged
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.applied import applied_of, owns, unchanged
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.batch import is_batch_document
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.diff import (
@@ -54,7 +54,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api 
     RENDERED_KINDS,
     Kube,
     api_clients,
-    clients_of,
+    bearer_clients,
     refusal,
     status_of,
 )
@@ -87,21 +87,12 @@ def keep_pod_security_levels(namespaces: list[dict], objects: list[dict], live: 
 
 def remote_clients(name: str, connection: dict | None):
     """Typed clients for a third-party cluster, reached through its API server with a bearer token and its CA."""
-    from kubernetes import client
-
     connection = connection or {}
     if not connection.get("api_server") or not connection.get("token"):
         raise KuberosError(
             f"Cluster {name} needs kuberos_api_server, kuberos_token (in ansible-vault) and kuberos_ca_cert {CLUSTER_HINT}."
         )
-    configuration = client.Configuration()
-    configuration.host = connection["api_server"]
-    configuration.api_key = {"authorization": connection["token"]}
-    configuration.api_key_prefix = {"authorization": "Bearer"}
-    configuration.verify_ssl = True
-    if connection.get("ca_cert"):
-        configuration.ssl_ca_cert = connection["ca_cert"]
-    return clients_of(client.ApiClient(configuration))
+    return bearer_clients(connection["api_server"], connection["token"], connection.get("ca_cert"))
 
 
 @dataclass
@@ -159,10 +150,6 @@ class Target:
                     }
                 )
         return out
-
-
-def _applied(obj: dict) -> str | None:
-    return ((obj.get("metadata") or {}).get("annotations") or {}).get(APPLIED)
 
 
 class NotReady(KuberosError):
@@ -428,11 +415,10 @@ class DeployPass:
         live = target.live.get(key)
         if live is None or clean_object(live) != clean_object(target.after[key]):
             return True
-        if _applied(live) != _applied(target.after[key]):
+        if applied_of(live) != applied_of(target.after[key]):
             return True  # the same content, applied before it carried what it was applied as (kuberos.applied)
         # The same content under another field manager: apply, so that KubeROS owns (and later prunes) its fields.
-        managers = live["metadata"].get("managedFields") or []
-        return not any(m.get("manager") == self.params["field_manager"] and m.get("operation") == "Apply" for m in managers)
+        return not owns(live, self.params["field_manager"])
 
     def _stale(self, target: Target) -> list[dict]:
         names = [d.name for d in self.deployments]

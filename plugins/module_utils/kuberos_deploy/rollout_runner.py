@@ -26,6 +26,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout i
     gate_verdict,
     pod_failure,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import is_ready
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import RENDERED_KINDS, Kube, status_of
 
 ROLLOUT_MANAGER = "kuberos-rollout"
@@ -53,7 +54,7 @@ class Cluster:
         self._names = {
             n["metadata"]["name"]: (n["metadata"].get("labels") or {}).get(HOSTNAME, n["metadata"]["name"]) for n in items
         }
-        self._ready = {n["metadata"]["name"]: _condition(n, "Ready") for n in items}
+        self._ready = {n["metadata"]["name"]: is_ready(n) for n in items}
         self._nodes_read = time.monotonic()
 
     def inventory_name(self, node: str) -> str:
@@ -158,7 +159,7 @@ class Cluster:
                     self.inventory_name(node) if node else "",
                     status.get("phase") or "",
                     # A pod on a node that is not Ready is not serving, whatever its last reported condition.
-                    _condition(pod, "Ready") and self.node_ready(node),
+                    is_ready(pod) and self.node_ready(node),
                     sum(s.get("restartCount") or 0 for s in statuses),
                     waiting,
                     bool(meta.get("deletionTimestamp")),
@@ -228,11 +229,6 @@ def prestage_pod(namespace: str, node: str, entry: dict) -> dict:
             }
         ),
     }
-
-
-def _condition(obj: dict, kind: str) -> bool:
-    """Whether a node's or a pod's condition ``kind`` is True."""
-    return any(c.get("type") == kind and c.get("status") == "True" for c in (obj.get("status") or {}).get("conditions") or [])
 
 
 def prestage_verdict(pod: dict) -> tuple[bool, str]:

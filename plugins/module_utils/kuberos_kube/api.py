@@ -81,6 +81,20 @@ def api_clients(kubeconfig: str) -> dict:
     return clients_of(api)
 
 
+def bearer_clients(host: str, token: str, ca_cert: str | None = None) -> dict:
+    """The typed clients of the API server at ``host``, reached with a bearer token (and trusting ``ca_cert``)."""
+    from kubernetes import client
+
+    configuration = client.Configuration()
+    configuration.host = host
+    configuration.api_key = {"authorization": token}
+    configuration.api_key_prefix = {"authorization": "Bearer"}
+    configuration.verify_ssl = True
+    if ca_cert:
+        configuration.ssl_ca_cert = ca_cert
+    return clients_of(client.ApiClient(configuration))
+
+
 def clients_of(api) -> dict:
     """The typed clients over one ``kubernetes.client.ApiClient``."""
     from kubernetes import client
@@ -149,13 +163,17 @@ class Kube:
         client = self.clients.get(found.api)
         if client is None:
             raise ValueError(f"no {found.api} client for a {kind}")
-        namespaced = "namespaced_" if found.namespaced and verb != "list_all" else ""
         if verb == "list_all":
             return getattr(client, f"list_{found.method}_for_all_namespaces")
-        return getattr(client, f"{verb}_{namespaced}{found.method}")
+        return getattr(client, f"{verb}_{'namespaced_' if found.namespaced else ''}{found.method}")
 
     def _where(self, kind: str, name: str, namespace: str) -> tuple:
         return (name, namespace) if KINDS[kind].namespaced else (name,)
+
+    def _at(self, obj: dict) -> tuple:
+        """Where ``obj`` is, as the typed clients' methods take it: (name, namespace), or (name,)."""
+        kind, namespace, name = object_key(obj)
+        return self._where(kind, name, namespace)
 
     def _reads(self) -> dict:
         return {} if self.read_timeout is None else {"_request_timeout": self.read_timeout}
@@ -188,12 +206,12 @@ class Kube:
         if field_selector:
             query["field_selector"] = field_selector
         query.update(self._reads())
+        namespaced = kind in KINDS and KINDS[kind].namespaced
         try:
-            if KINDS.get(kind) and KINDS[kind].namespaced and not namespace:
+            if namespaced and not namespace:
                 response = self._method(kind, "list_all")(_preload_content=False, **query)
             else:
-                args = (namespace,) if KINDS.get(kind) and KINDS[kind].namespaced else ()
-                response = self._method(kind, "list")(*args, _preload_content=False, **query)
+                response = self._method(kind, "list")(*((namespace,) if namespaced else ()), _preload_content=False, **query)
         except Exception as exc:
             if status_of(exc) == 404:
                 return []
@@ -204,12 +222,10 @@ class Kube:
     def apply(self, obj: dict, dry_run: bool = False, manager: str | None = None) -> dict:
         """Server-side apply of ``obj`` (its fields owned by ``manager``, conflicts forced), stamped with the digest of
         what was applied (``kuberos.applied``); what the server holds."""
-        meta = obj["metadata"]
         extra = {"dry_run": "All"} if dry_run else {}
-        body = stamped(json.loads(json.dumps(obj)))  # the client serialises plain data only
         response = self._method(obj["kind"], "patch")(
-            *self._where(obj["kind"], meta["name"], meta.get("namespace", "")),
-            body,
+            *self._at(obj),
+            stamped(obj),  # plain data: the client serialises nothing else
             field_manager=manager or self.field_manager,
             force=True,
             _content_type=APPLY_TYPE,
@@ -229,10 +245,8 @@ class Kube:
 
     def replace(self, obj: dict) -> dict:
         """Replace ``obj`` as a whole (its ``resourceVersion`` makes the API server refuse a stale one: 409)."""
-        meta = obj["metadata"]
-        body = json.loads(json.dumps(obj))
         response = self._method(obj["kind"], "replace")(
-            *self._where(obj["kind"], meta["name"], meta.get("namespace", "")), body, _preload_content=False, **self._limits()
+            *self._at(obj), json.loads(json.dumps(obj)), _preload_content=False, **self._limits()
         )
         return json.loads(response.data)
 

@@ -42,6 +42,7 @@ import subprocess
 import sys
 import time
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import is_ready
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KINDS, Kube, api_clients, status_of
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines as lab_machines
@@ -258,12 +259,6 @@ def _new(kind: str, metadata: dict, **fields) -> dict:
     return {"apiVersion": KINDS[kind].api_version, "kind": kind, "metadata": metadata, **fields}
 
 
-def _ready(obj: dict) -> bool:
-    """A node's or a pod's Ready condition is True."""
-    conditions = (obj.get("status") or {}).get("conditions") or []
-    return any(c.get("type") == "Ready" and c.get("status") == "True" for c in conditions)
-
-
 def wait_for(what: str, check, timeout: float, interval: float = 2.0):
     """Call ``check`` until it returns something true; raise with ``what`` after ``timeout`` seconds."""
     deadline = time.monotonic() + timeout
@@ -288,7 +283,7 @@ def nodes(kube: Kube) -> dict[str, dict]:
         internal = [a.get("address") for a in status.get("addresses") or [] if a.get("type") == "InternalIP"]
         taints = (node.get("spec") or {}).get("taints") or []
         found[meta["name"]] = {
-            "ready": _ready(node),
+            "ready": is_ready(node),
             "internal_ip": internal[0] if internal else "",
             "labels": dict(meta.get("labels") or {}),
             "taints": [f"{t.get('key')}={t.get('value') or ''}:{t.get('effect')}" for t in taints],
@@ -350,7 +345,7 @@ def pod_network_check(kube: Kube, toolbox: str, servers: dict[str, str], clients
         ready = {
             name: (pod.get("status") or {}).get("podIP")
             for name, pod in pods.items()
-            if (pod.get("status") or {}).get("podIP") and _ready(pod)
+            if (pod.get("status") or {}).get("podIP") and is_ready(pod)
         }
         return ready if len(ready) == len(servers) else None
 
@@ -436,7 +431,7 @@ def fleet_isolation_check(kube: Kube, toolbox: str, fleet_namespace: str, node: 
 
         def server_ip():
             pod = kube.get("Pod", server, fleet_namespace)
-            return (pod.get("status") or {}).get("podIP") if pod and _ready(pod) else None
+            return (pod.get("status") or {}).get("podIP") if pod and is_ready(pod) else None
 
         address = wait_for("the isolation check's web server is Ready", server_ip, 180)
         fetch = (
