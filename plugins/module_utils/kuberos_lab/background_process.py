@@ -97,3 +97,22 @@ def tail(path: str, lines: int = 15) -> str:
             return "".join(handle.readlines()[-lines:])
     except OSError:
         return ""
+
+
+CGROUP_ROOT = "/sys/fs/cgroup"
+
+
+def cgroup_hierarchies() -> list[str]:
+    """The mounted cgroup v1 hierarchies (cpu, memory, ..., the named systemd one): where the lab's machines and real
+    nodes make their cgroups."""
+    try:
+        with open("/proc/self/mounts", encoding="utf-8") as handle:
+            mounts = handle.read()
+    except OSError:
+        return []
+    found = []
+    for line in mounts.splitlines():
+        parts = line.split()
+        if len(parts) > 2 and parts[2] == "cgroup" and parts[1].startswith(CGROUP_ROOT + "/"):
+            found.append(parts[1])
+    return sorted(set(found))

@@ -78,7 +78,7 @@ PACKAGES = (
 USER = "kuberos"
 NETWORKS = ("site", "wan", "site+wan")
 MIRROR_PORT = 5445  # the lab registry's port on the bridge (--mirror)
-CGROUP_ROOT = "/sys/fs/cgroup"
+CGROUP_ROOT = bg.CGROUP_ROOT
 # The kubelets' evictionHard in the lab (kuberos_kubelet_eviction_hard): every signal the kubelet watches by default,
 # with the disk ones at 1%, because all machines share the host's one disk and its free share is not theirs.
 LAB_EVICTION_HARD = {
@@ -376,7 +376,7 @@ class MachineLab:
             run("ip", "netns", "delete", self.netns(machine.name), check=False)
             run("ip", "link", "delete", self.veth(machine.name), check=False)
             shutil.rmtree(f"/run/systemd/nspawn/propagate/{self.machine_name(machine.name)}", ignore_errors=True)
-        for hierarchy in _hierarchies():
+        for hierarchy in bg.cgroup_hierarchies():
             with contextlib.suppress(OSError):
                 os.rmdir(os.path.join(hierarchy, f"kuberos-lab-{self.tag}"))
         run("ip", "link", "delete", self.bridge, check=False)
@@ -469,7 +469,7 @@ class MachineLab:
         self._cgroups(machine.name)
 
     def _cgroups(self, name: str) -> None:
-        for hierarchy in _hierarchies():
+        for hierarchy in bg.cgroup_hierarchies():
             path = hierarchy
             for part in self.cgroup(name).split("/"):
                 path = os.path.join(path, part)
@@ -485,7 +485,7 @@ class MachineLab:
                 run("umount", "-l", point, check=False)
 
     def _remove_cgroups(self, name: str) -> None:
-        for hierarchy in _hierarchies():
+        for hierarchy in bg.cgroup_hierarchies():
             top = os.path.join(hierarchy, self.cgroup(name))
             for _attempt in range(50):
                 pids = [pid for procs in _walk_procs(top) for pid in procs]
@@ -514,7 +514,7 @@ class MachineLab:
     def _boot(self, machine: Machine) -> None:
         if machine.leader and _alive_leader(machine.leader, machine.name):
             return
-        cgroups = [os.path.join(h, self.cgroup(machine.name), "cgroup.procs") for h in _hierarchies()]
+        cgroups = [os.path.join(h, self.cgroup(machine.name), "cgroup.procs") for h in bg.cgroup_hierarchies()]
 
         def enter_cgroups() -> None:  # in the child, before exec: the machine's subtree becomes its cgroup namespace
             os.setsid()
@@ -644,16 +644,6 @@ def _write(path: str, text: str) -> None:
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path, "w", encoding="utf-8") as handle:
         handle.write(text)
-
-
-def _hierarchies() -> list[str]:
-    """The mounted cgroup v1 hierarchies (cpu, memory, ..., the named systemd one)."""
-    found = []
-    for line in _read("/proc/self/mounts").splitlines():
-        parts = line.split()
-        if len(parts) > 2 and parts[2] == "cgroup" and parts[1].startswith(CGROUP_ROOT + "/"):
-            found.append(parts[1])
-    return sorted(set(found))
 
 
 def _walk_procs(top: str):

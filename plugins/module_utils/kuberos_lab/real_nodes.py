@@ -60,7 +60,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.regis
 )
 
 HOST_SYSCTLS = ("kernel/panic", "kernel/panic_on_oops", "vm/overcommit_memory", "net/ipv4/ip_forward")
-CGROUP_ROOT = "/sys/fs/cgroup"
+CGROUP_ROOT = bg.CGROUP_ROOT
 CNI_BIN_DIRS = ("/usr/lib/cni", "/opt/cni/bin")
 CNI_PLUGINS = ("bridge", "host-local", "loopback", "portmap")
 NODE_COMPONENTS = ("containerd", "kubelet", "kube-proxy")
@@ -627,7 +627,7 @@ class RealNodes:
 
     def _cgroups(self, net: NodeNet) -> None:
         """The kubelet's cgroup root in every v1 hierarchy (cpuset needs the parent's cpus and mems)."""
-        for hierarchy in _hierarchies():
+        for hierarchy in bg.cgroup_hierarchies():
             path = os.path.join(hierarchy, net.cgroup)
             os.makedirs(path, exist_ok=True)
             if os.path.basename(hierarchy) == "cpuset":
@@ -718,7 +718,7 @@ class RealNodes:
 
     def _cgroup_pids(self, net: NodeNet) -> set[int]:
         pids = set()
-        for hierarchy in _hierarchies():
+        for hierarchy in bg.cgroup_hierarchies():
             for procs in glob.glob(os.path.join(hierarchy, net.cgroup, "**", "cgroup.procs"), recursive=True):
                 pids.update(int(p) for p in _read(procs).split())
         return pids
@@ -753,7 +753,7 @@ class RealNodes:
 
     def _remove_cgroups(self, net: NodeNet) -> bool:
         removed = False
-        for hierarchy in _hierarchies():
+        for hierarchy in bg.cgroup_hierarchies():
             top = os.path.join(hierarchy, net.cgroup)
             if not os.path.isdir(top):
                 continue
@@ -802,16 +802,6 @@ def _all_pids() -> list[int]:
     return [int(p) for p in os.listdir("/proc") if p.isdigit()]
 
 
-def _hierarchies() -> list[str]:
-    """The mounted cgroup v1 hierarchies (cpu, memory, ..., the named systemd one)."""
-    found = []
-    for line in _read("/proc/self/mounts").splitlines():
-        parts = line.split()
-        if len(parts) > 2 and parts[2] == "cgroup" and parts[1].startswith(CGROUP_ROOT + "/"):
-            found.append(parts[1])
-    return sorted(set(found))
-
-
 def _mount_points() -> list[str]:
     points = []
     for line in _read("/proc/self/mountinfo").splitlines():
@@ -825,7 +815,10 @@ def snapshot_host() -> dict:
     """What the real nodes may change on the host, to compare before and after: network namespaces, links,
     mounts, cgroups, root namespace routes and iptables rules, sysctls, CNI state, processes of the tier."""
     cgroups = sorted(
-        os.path.join(os.path.basename(h), d) for h in _hierarchies() for d in os.listdir(h) if os.path.isdir(os.path.join(h, d))
+        os.path.join(os.path.basename(h), d)
+        for h in bg.cgroup_hierarchies()
+        for d in os.listdir(h)
+        if os.path.isdir(os.path.join(h, d))
     )
     processes = sorted(
         " ".join(bg.cmdline(pid)[:1])
