@@ -20,6 +20,15 @@ def yml(text: str) -> str:
     return textwrap.dedent(text).lstrip("\n")
 
 
+def without_module(text: str, name: str) -> str:
+    """A spec's text (examples/pick-and-place.yml's layout) without the module ``name`` and without the modules'
+    declared topics: with a module gone, the others' subscriptions of its topics would be refused (kuberos.topics)."""
+    start = text.index(f"- name: {name}\n")
+    following = text.find("\n- name: ", start + 1)
+    text = text[:start] + (text[following + 1 :] if following != -1 else "")
+    return re.sub(r"^  topics:\n(?:    .*\n)*", "", text, flags=re.M)
+
+
 # The smallest valid spec, lines 1-7: a module's extra lines start at line 8, metadata's at line 4.
 SPEC_BASE = yml(
     """

@@ -15,7 +15,7 @@ import re
 import shutil
 
 import pytest
-from helpers import ROOT, deployments_denied
+from helpers import ROOT, deployments_denied, without_module
 
 pytestmark = pytest.mark.cluster
 
@@ -102,7 +102,7 @@ def test_check_diff_shows_what_the_cluster_would_change_and_writes_nothing(clust
     # An edit: a new planner image, the task coordinator prefers the cloud now, perception is dropped.
     text = spec.read_text().replace("pnp-planner:0.1", "pnp-planner:0.2")
     text = text.replace("  preference: edge\n  strategy: shared", "  preference: cloud\n  strategy: shared")
-    text = text[: text.index("- name: perception")] + text[text.index("- name: motion-planner") :]
+    text = without_module(text, "perception")
     spec.write_text(text)
     before = live_versions(cluster)
     edited = cluster.deploy(spec, render, "--check", "--diff")

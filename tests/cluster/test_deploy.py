@@ -16,7 +16,7 @@ import shutil
 import subprocess
 
 import pytest
-from helpers import ROOT, deployments_denied, venv_tool
+from helpers import ROOT, deployments_denied, venv_tool, without_module
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import manifests
 
@@ -112,8 +112,7 @@ def test_deploy_binds_every_pod_where_kuberos_placed_it(cluster, spec, tmp_path)
 
     # Remove the perception module: its Deployments and ConfigMap are pruned, nothing else.
     text = spec.read_text()
-    start, end = text.index("- name: perception"), text.index("- name: motion-planner")
-    spec.write_text(text[:start] + text[end:])
+    spec.write_text(without_module(text, "perception"))
     pruned = cluster.deploy(spec, out)
     assert pruned.returncode == 0, pruned.stdout[-6000:]
     remaining = resource_versions(apps, core, namespace)

@@ -13,7 +13,7 @@ import shutil
 import subprocess
 
 import pytest
-from helpers import ROOT, venv_tool
+from helpers import ROOT, venv_tool, without_module
 
 pytestmark = pytest.mark.playbook
 
@@ -95,7 +95,7 @@ def test_diff_shows_what_an_edit_changes_and_prune_removes_dropped_modules(tmp_p
         in (out / "manifests/kuberos-test-fleet/configmap-pick-and-place-motion-planner-params.yaml").read_text()
     )
     # Drop the task coordinator: its Deployment file goes, the rest stays.
-    spec.write_text(text[: text.index("- name: task-coordinator")])
+    spec.write_text(without_module(text, "task-coordinator"))
     applied = deploy(spec, out)
     assert applied.returncode == 0 and applied.changed == 1
     after = manifests(out)

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 from . import quantities
 from .errors import Problem, SpecError, describe, did_you_mean
-from .schema import API_VERSION, DNS_LABEL, ENV, IMAGE, LAUNCH, PREFERENCE, REQUIREMENTS, RESOURCES, ROS_PARAMETERS, UPGRADE
+from .schema import API_VERSION, DNS_LABEL, ENV, IMAGE, LAUNCH, PREFERENCE, REQUIREMENTS, RESOURCES, ROS_PARAMETERS, TOPICS, UPGRADE
 from .semver import MAX_LENGTH, Version, parse_range, parse_version
 from .validation import (
     as_tuple,
@@ -135,6 +135,7 @@ VERSION_SCHEMA = {
             "description": "Message interfaces this version speaks, with their versions; one version per deployment.",
             "x-expected": "a mapping of interface names to whole numbers",
         },
+        "topics": TOPICS,
         "upgrade": UPGRADE,
     },
 }
@@ -208,6 +209,7 @@ class CatalogEntry:
     env: dict = field(default_factory=dict, hash=False)
     dependencies: tuple[tuple[str, str], ...] = ()
     interfaces: tuple[tuple[str, int], ...] = ()
+    topics: dict = field(default_factory=dict, hash=False)  # publishes and subscribes, as written
     upgrade: str = ""  # "" when the catalog does not say: recreate with requirements.devices, else surge
     source: str = ""
     line: int | None = None
@@ -242,6 +244,7 @@ class CatalogEntry:
             ("env", dict(self.env)),
             ("dependencies", dict(self.dependencies)),
             ("interfaces", dict(self.interfaces)),
+            ("topics", copy.deepcopy(self.topics)),
             ("upgrade", self.upgrade),
         )
         data.update((key, value) for key, value in optional if value not in (None, "", [], {}))
@@ -492,6 +495,7 @@ def _entry(raw: dict, name: str, description: str, doc: Document, parts: tuple) 
         dependencies=tuple(sorted((raw.get("dependencies") or {}).items())),
         # JSON Schema counts 2.0 as an integer; keep real ints.
         interfaces=tuple(sorted((k, int(v)) for k, v in (raw.get("interfaces") or {}).items())),
+        topics=copy.deepcopy(raw.get("topics") or {}),
         upgrade=raw.get("upgrade", ""),
         source=doc.source,
         line=doc.line_of(parts),

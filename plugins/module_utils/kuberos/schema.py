@@ -304,6 +304,105 @@ UPGRADE = {
     "x-expected": "surge or recreate",
 }
 
+# A declared topic's name: relative (in the robot's namespace: 'detections' is /fetch_1/detections) or absolute, where
+# a whole '{robot}' segment stands for the robot ('/{robot}/detections' is the same topic as 'detections').
+DECLARED_TOPIC = r"^/?(\{robot\}|[A-Za-z_][A-Za-z0-9_]*)(/(\{robot\}|[A-Za-z_][A-Za-z0-9_]*))*$"
+RELIABILITIES = ("reliable", "best_effort")
+DURABILITIES = ("volatile", "transient_local")
+MAX_TOPICS = 200  # declarations of one direction of one module
+MAX_RATE_HZ = 100000
+_RATE_HZ = {"type": "number", "exclusiveMinimum": 0, "maximum": MAX_RATE_HZ, "x-expected": f"a rate in Hz above 0 and at most {MAX_RATE_HZ}"}
+
+
+def _declared_topic(subscription: bool) -> dict:
+    properties = {
+        "name": {
+            "type": "string",
+            "pattern": DECLARED_TOPIC,
+            "maxLength": 256,
+            "description": (
+                "The topic: relative names are in the robot's namespace ('detections' is /fetch_1/detections on "
+                "fetch-1); absolute names are fleet-wide, with '{robot}' as a whole segment for the robot."
+            ),
+            "x-expected": "a ROS topic name such as 'detections', '/{robot}/detections' or '/fleet/status'",
+        },
+        "type": {
+            "type": "string",
+            "pattern": ROS_TYPE,
+            "maxLength": 256,
+            "description": "Message type, e.g. geometry_msgs/msg/PoseArray.",
+            "x-expected": "a message type such as 'std_msgs/msg/String'",
+        },
+        "qos": {
+            "type": "object",
+            "additionalProperties": False,
+            "x-expected": "a mapping with reliability, durability and depth",
+            "properties": {
+                "reliability": {
+                    "type": "string",
+                    "enum": list(RELIABILITIES),
+                    "description": "reliable (the ROS default) or best_effort.",
+                    "x-expected": "reliable or best_effort",
+                },
+                "durability": {
+                    "type": "string",
+                    "enum": list(DURABILITIES),
+                    "description": "volatile (the ROS default) or transient_local (latched).",
+                    "x-expected": "volatile or transient_local",
+                },
+                "depth": {
+                    "type": "integer",
+                    "minimum": 1,
+                    "maximum": 100000,
+                    "description": "History depth (keep last); does not decide whether endpoints match.",
+                    "x-expected": "a whole number from 1 to 100000",
+                },
+            },
+            "description": "The QoS the module's endpoint uses (defaults: reliable, volatile, depth 10).",
+        },
+        "rate": {
+            "type": "object",
+            "additionalProperties": False,
+            "minProperties": 1,
+            "x-expected": "a mapping with min and/or max, in Hz",
+            "properties": {"min": _RATE_HZ, "max": _RATE_HZ},
+            "description": "The rate the topic must have on each robot, in Hz; checked live after deploy and each rollout wave.",
+        },
+    }
+    if subscription:
+        properties["external"] = {
+            "type": "boolean",
+            "description": (
+                "Published outside this deployment (a driver on the robot): no module of the deployment need "
+                "publish it; the live check still wants a publisher."
+            ),
+            "x-expected": "true or false",
+        }
+    return {
+        "type": "array",
+        "maxItems": MAX_TOPICS,
+        "x-expected": f"a list of at most {MAX_TOPICS} topics",
+        "items": {
+            "type": "object",
+            "additionalProperties": False,
+            "required": ["name", "type"],
+            "x-expected": "a mapping with name and type",
+            "properties": properties,
+        },
+    }
+
+
+TOPICS = {
+    "type": "object",
+    "additionalProperties": False,
+    "x-expected": "a mapping with publishes and subscribes",
+    "properties": {"publishes": _declared_topic(False), "subscribes": _declared_topic(True)},
+    "description": (
+        "The module's ROS 2 interfaces: the topics it publishes and subscribes, with type, QoS and rate. Deploy "
+        "refuses declarations that cannot match; the ROS probe checks them live (docs/software.md, 'Declared topics')."
+    ),
+}
+
 SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "$id": "https://kuberos.io/schemas/rosdeployment-v1alpha1.json",
@@ -605,6 +704,7 @@ SCHEMA = {
                         "x-expected": "true or false",
                     },
                     "rosParameters": ROS_PARAMETERS,
+                    "topics": TOPICS,
                     "cluster": {
                         "type": "string",
                         "pattern": DNS_LABEL,

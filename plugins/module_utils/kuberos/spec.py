@@ -41,6 +41,7 @@ from .spec_model import (
     _problem,
 )
 from .spec_names import name_clash_problems
+from .topics import declaration_findings, declared
 from .third_party import yaml
 from .validation import (
     RESERVED_ENV,
@@ -332,6 +333,7 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
         bridge_topics=tuple(BridgeTopic(t["name"], t["type"], t["direction"]) for t in topics),
         upgrade=module.get("upgrade") or ("recreate" if requirements.get("devices") else "surge"),
         scaling=scaling,
+        topics=declared(module.get("topics")),
         **_module_extras(module, ctx, problem),
     )
 
@@ -440,8 +442,11 @@ def _parse_document(doc: Document, catalog: Catalog | None = None, read_file=Non
             unresolved.add(module["module"].partition("@")[0].strip())
             continue
         merged, entry = found
+        semantic = _semantic_module(merged, index, doc, problems, ctx)
+        own = set(module.get("topics") or ())  # the directions the spec declares; the others are the catalog's
         resolved_module = replace(
-            _semantic_module(merged, index, doc, problems, ctx),
+            semantic,
+            topics=tuple(t if t.direction in own else replace(t, origin=entry.label) for t in semantic.topics),
             version=entry.version,
             catalog_module=entry.name,
             ros_distro=entry.ros_distro,
@@ -449,6 +454,7 @@ def _parse_document(doc: Document, catalog: Catalog | None = None, read_file=Non
         modules.append(resolved_module)
         resolved.append((resolved_module, entry))
     problems.extend(_catalog_problems(doc, resolved, unresolved))
+    problems.extend(_topic_problems(doc, modules))
     problems.extend(_metadata_problems(doc, {p.path for p in problems}))
     if problems:
         raise SpecError(sorted(problems, key=lambda p: (p.line or 0, p.path)), title=f"{doc.source} is not a valid RosDeployment")
@@ -474,6 +480,21 @@ def _parse_document(doc: Document, catalog: Catalog | None = None, read_file=Non
         notes=tuple(ctx.notes) + _security_notes(modules, metadata["targetFleet"]),
         files=tuple(files),
     )
+
+
+def _topic_problems(doc: Document, modules: list[RosModule]) -> list[Problem]:
+    """The declared topics that cannot match (``kuberos.topics``), each at its declaration, or at ``module`` with the
+    catalog entry named when the catalog declares it."""
+    problems = []
+    for finding in declaration_findings(modules):
+        module, topic = finding.module, finding.topic
+        if topic.origin:
+            parts = ("rosModules", module.index, "module")
+            message = f"{finding.message} ({topic.direction} from the catalog's {topic.origin})"
+        else:
+            parts, message = ("rosModules", module.index, "topics", topic.direction, topic.position), finding.message
+        problems.append(_problem(doc, parts, message))
+    return problems
 
 
 def _security_notes(modules, fleet: str) -> tuple[str, ...]:

@@ -63,6 +63,10 @@ def _merged_module(module: dict, entry: CatalogEntry, index: int, doc: Document,
     merged["resources"] = {**entry.resources, **(module.get("resources") or {})}
     merged["rosParameters"] = _deep_merge(entry.ros_parameters, module.get("rosParameters") or {})
     merged["env"] = {**entry.env, **(module.get("env") or {})}
+    # The spec's publishes or subscribes replace the catalog's list of that direction.
+    topics = {**entry.topics, **(module.get("topics") or {})}
+    if topics:
+        merged["topics"] = copy.deepcopy(topics)
     if "upgrade" not in module and entry.upgrade:
         merged["upgrade"] = entry.upgrade
     return merged

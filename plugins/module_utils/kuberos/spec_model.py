@@ -123,6 +123,23 @@ class BridgeTopic:
 
 
 @dataclass(frozen=True)
+class DeclaredTopic:
+    """A topic a module declares it publishes or subscribes (``topics``; ``kuberos.topics`` checks them)."""
+
+    name: str  # as the spec wrote it; kuberos.topics.scoped gives the form compared across modules
+    type: str
+    direction: str  # publishes | subscribes
+    reliability: str = "reliable"
+    durability: str = "volatile"
+    depth: int = 10
+    rate_min: float | None = None  # Hz
+    rate_max: float | None = None
+    external: bool = False  # subscribes: published outside the deployment
+    position: int = 0  # its place in the module's list of that direction
+    origin: str = field(default="", compare=False)  # the catalog entry it came from ('pnp-planner 0.2.0'); '' when the spec declares it
+
+
+@dataclass(frozen=True)
 class RosModule:
     name: str
     image: str
@@ -150,6 +167,7 @@ class RosModule:
     user: int = DEFAULT_USER  # the user ID its containers run as; 0 is root (pod_security)
     workspace: str = ""  # a ROS workspace's install directory, sourced before each launch line
     shell: bool = False  # each launch line runs with /bin/bash -c as written
+    topics: tuple[DeclaredTopic, ...] = ()  # its declared ROS 2 interfaces
 
     @property
     def path(self) -> str:

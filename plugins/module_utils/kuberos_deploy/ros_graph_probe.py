@@ -21,12 +21,26 @@ node it still sees (``--absent '/{robot}/kuberos_update_lock'``: the robots that
 from __future__ import annotations
 
 import argparse
+import importlib
+import json
 import os
 import re
 import sys
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import robot_ros_name
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.topics import (
+    PROBE_NODE,
+    Endpoint,
+    Expectation,
+    Observed,
+    live_problems,
+    missing,
+    topics_to_watch,
+)
+
+UNNAMED = "_NODE_NAME_UNKNOWN_"  # what rmw reports for an endpoint whose node's name it has not heard yet
+MAX_TOPICS_TEXT = 1 << 20  # KUBEROS_TOPICS or --topics-file: at most 1 MiB of JSON
 
 _ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
 
@@ -56,52 +70,212 @@ def main(argv=None) -> int:
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--expect", action="append", help="a node name; {robot} for each robot of the wave")
     group.add_argument("--absent", action="append", help="a node name that must not be there; {robot} for each robot")
+    group.add_argument("--topics", action="store_true", help="check the declared topics of KUBEROS_TOPICS")
+    group.add_argument("--topics-file", help="check the declared topics of this JSON file")
     parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait (default 10)")
     parser.add_argument("--settle", type=float, default=3.0, help="with --absent: seconds to listen first (default 3)")
+    parser.add_argument("--window", type=float, default=3.0, help="with --topics: seconds to measure rates (default 3)")
+    parser.add_argument("--json", action="store_true", help="with --topics: print what was seen as JSON")
     args = parser.parse_args(argv)
     robots = [r for r in os.environ.get("KUBEROS_ROBOTS", "").split(",") if r]
     try:
-        wanted = expected_nodes(args.expect or args.absent, robots)
+        if args.topics or args.topics_file:
+            wanted = []
+            declared = read_topics(args.topics_file)
+        else:
+            wanted = expected_nodes(args.expect or args.absent, robots)
     except ValueError as exc:
         print(f"ros_graph_probe: {exc}", file=sys.stderr)
         return 2
-    if not 0 < args.timeout <= 600 or not 0 <= args.settle <= 60:
-        print("ros_graph_probe: --timeout must be more than 0 and at most 600 s, --settle at most 60 s", file=sys.stderr)
+    if not 0 < args.timeout <= 600 or not 0 <= args.settle <= 60 or not 0 < args.window <= 60:
+        print("ros_graph_probe: --timeout must be more than 0 and at most 600 s, --settle and --window at most 60 s",
+              file=sys.stderr)  # fmt: skip
         return 2
     if os.environ.get("ROS_DISCOVERY_SERVER"):
         os.environ.setdefault("ROS_SUPER_CLIENT", "TRUE")  # see every participant the servers know of
     import rclpy
 
     rclpy.init()
-    node = rclpy.create_node("kuberos_rollout_probe")
-    if args.absent:
-        try:
-            return _wait_absent(rclpy, node, wanted, robots, args.absent, args.timeout, args.settle)
-        finally:
-            node.destroy_node()
-            rclpy.try_shutdown()
-    seen: set[str] = set()
+    node = rclpy.create_node(PROBE_NODE)
     try:
-        deadline = time.monotonic() + args.timeout
-        while True:
-            seen = graph_names(node.get_node_names_and_namespaces())
-            missing = [n for n in wanted if n not in seen]
-            if not missing:
-                print(f"ros_graph_probe: all {len(wanted)} node(s) present: {', '.join(wanted)}")
-                return 0
-            if time.monotonic() >= deadline:
-                break
-            rclpy.spin_once(node, timeout_sec=0.2)
+        if args.topics or args.topics_file:
+            return _check_topics(rclpy, node, topics_to_watch(declared, robots), args)
+        if args.absent:
+            return _wait_absent(rclpy, node, wanted, robots, args.absent, args.timeout, args.settle)
+        return _wait_present(rclpy, node, wanted, args.timeout)
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-    others = sorted(seen - {"/kuberos_rollout_probe"})
+
+
+def _wait_present(rclpy, node, wanted: list[str], timeout: float) -> int:
+    # pylint: disable=ansible-bad-function
+    deadline = time.monotonic() + timeout
+    while True:
+        seen = graph_names(node.get_node_names_and_namespaces())
+        missing_nodes = [n for n in wanted if n not in seen]
+        if not missing_nodes:
+            print(f"ros_graph_probe: all {len(wanted)} node(s) present: {', '.join(wanted)}")
+            return 0
+        if time.monotonic() >= deadline:
+            break
+        rclpy.spin_once(node, timeout_sec=0.2)
+    others = sorted(seen - {f"/{PROBE_NODE}"})
     print(
-        f"ros_graph_probe: missing after {args.timeout:g} s: {', '.join(missing)} "
+        f"ros_graph_probe: missing after {timeout:g} s: {', '.join(missing_nodes)} "
         f"(seen: {', '.join(others[:20]) or 'no other node'})",
         file=sys.stderr,
     )
     return 1
+
+
+def read_topics(path: str | None, environ=os.environ) -> list[Expectation]:
+    """The declared topics to check: JSON (a list of ``Expectation.to_dict()``) from ``path`` or KUBEROS_TOPICS."""
+    if path:
+        try:
+            with open(path, encoding="utf-8") as handle:
+                text = handle.read(MAX_TOPICS_TEXT + 1)
+        except OSError as exc:
+            raise ValueError(f"cannot read {path}: {exc.strerror}") from None
+        where = path
+    else:
+        text, where = environ.get("KUBEROS_TOPICS", ""), "KUBEROS_TOPICS"
+    if not text.strip():
+        raise ValueError(f"{where} is empty; expected the declared topics as JSON")
+    if len(text) > MAX_TOPICS_TEXT:
+        raise ValueError(f"{where} is larger than {MAX_TOPICS_TEXT} bytes")
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        raise ValueError(f"{where} is not JSON: {exc}") from None
+    if not isinstance(data, list):
+        raise ValueError(f"{where} is not a list of declared topics")
+    wanted = []
+    for position, item in enumerate(data):
+        try:
+            wanted.append(Expectation.from_dict(item))
+        except ValueError as exc:
+            raise ValueError(f"{where}[{position}]: {exc}") from None
+    return wanted
+
+
+_POLICIES = {"RELIABLE": "reliable", "BEST_EFFORT": "best_effort", "VOLATILE": "volatile", "TRANSIENT_LOCAL": "transient_local"}
+
+
+def _policy(value) -> str:
+    name = getattr(value, "name", str(value))
+    return _POLICIES.get(name, name.lower())
+
+
+def endpoints(infos) -> list[Endpoint]:
+    """The endpoints of ``get_publishers_info_by_topic`` (or subscriptions), the probe's own left out."""
+    return [
+        Endpoint(
+            (info.node_namespace.rstrip("/") + "/" + info.node_name),
+            info.topic_type,
+            _policy(info.qos_profile.reliability),
+            _policy(info.qos_profile.durability),
+        )
+        for info in infos
+        if info.node_name != PROBE_NODE
+    ]
+
+
+def message_class(type_name: str):
+    """The Python class of ``pkg/msg/Type``, or None when its package is not installed where the probe runs."""
+    package, _msg, name = type_name.partition("/msg/")
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError):
+        return None
+
+
+class RateMeter:
+    """Messages counted on one topic: the rate between the first and the last, or over the window."""
+
+    def __init__(self):
+        self.stamps: list[float] = []
+
+    def __call__(self, _message) -> None:
+        self.stamps.append(time.monotonic())
+
+    def rate(self, window_s: float) -> float:
+        if len(self.stamps) >= 3 and self.stamps[-1] > self.stamps[0]:
+            return (len(self.stamps) - 1) / (self.stamps[-1] - self.stamps[0])
+        return len(self.stamps) / window_s
+
+
+def _observe(node, watched) -> dict[str, Observed]:
+    return {
+        name: Observed(endpoints(node.get_publishers_info_by_topic(name)), endpoints(node.get_subscriptions_info_by_topic(name)))
+        for name, _want, _robot in watched
+    }
+
+
+def _check_topics(rclpy, node, watched, args) -> int:
+    # pylint: disable=ansible-bad-function
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    started = time.monotonic()
+    deadline = started + args.timeout
+    while True:
+        observed = _observe(node, watched)
+        waiting = [line for name, want, _robot in watched for line in missing(name, want, observed[name])]
+        # A participant's node names come with its discovery info, shortly after its endpoints: wait for them too.
+        unnamed = any(UNNAMED in p.node for seen in observed.values() for p in (*seen.publishers, *seen.subscribers))
+        if not (waiting or unnamed) or time.monotonic() >= deadline:
+            break
+        rclpy.spin_once(node, timeout_sec=0.2)
+    discovered = time.monotonic() - started
+    # Rates: a best-effort, volatile subscription matches every publisher.
+    listen = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+    meters: dict[str, RateMeter] = {}
+    unknown = []
+    for name, want, _robot in watched:
+        if (want.rate_min is None and want.rate_max is None) or not observed[name].publishers:
+            continue
+        kind = message_class(want.type)
+        if kind is None:
+            unknown.append(want.type)
+            continue
+        meters[name] = RateMeter()
+        node.create_subscription(kind, name, meters[name], listen)
+    if meters:
+        end = time.monotonic() + args.window
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    for name, meter in meters.items():
+        observed[name].rate = meter.rate(args.window)
+    problems = live_problems(watched, observed, args.window)
+    problems += [f"rate not measured: {t} is not installed where the probe runs" for t in sorted(set(unknown))]
+    took = time.monotonic() - started
+    if args.json:
+        print(json.dumps(_report(watched, observed, problems, discovered, took)))
+    if problems:
+        for line in problems:
+            print(f"ros_graph_probe: {line}", file=sys.stderr)
+        return 1
+    robots = len({robot for _name, _want, robot in watched if robot})
+    print(f"ros_graph_probe: {len(watched)} topic(s) on {robots} robot(s) as declared, in {took:.1f} s")
+    return 0
+
+
+def _report(watched, observed, problems, discovered_s, took_s) -> dict:
+    def points(endpoints_seen):
+        return [vars(point) for point in endpoints_seen]
+
+    topics = [
+        {
+            "name": name,
+            "robot": robot,
+            "type": want.type,
+            "publishers": points(observed[name].publishers),
+            "subscribers": points(observed[name].subscribers),
+            "rate": observed[name].rate,
+        }
+        for name, want, robot in watched
+    ]
+    return {"topics": topics, "problems": problems, "discovery_s": round(discovered_s, 3), "seconds": round(took_s, 3)}
 
 
 def holders(patterns: list[str], robots: list[str], present: set[str]) -> list[str]:

@@ -1,0 +1,309 @@
+"""Declared topics: what each module says it publishes and subscribes, checked before anything is applied and
+against the live graph afterwards.
+
+A module (or its catalog entry) may declare ``topics``::
+
+    topics:
+      publishes:
+      - {name: detections, type: geometry_msgs/msg/PoseArray, qos: {reliability: best_effort}, rate: {min: 5}}
+      subscribes:
+      - {name: camera/rgb, type: sensor_msgs/msg/Image, external: true}
+
+A relative name is in the robot's namespace (``detections`` is ``/fetch_1/detections`` on fetch-1), the same topic
+as ``/{robot}/detections``; an absolute name without ``{robot}`` is one topic for the whole fleet.
+
+``declaration_problems`` (called by the spec's validation) refuses a graph whose declarations cannot match: a
+subscription that no module publishes (unless ``external``), a type that differs, QoS that never matches (a reliable
+subscription of a best-effort publisher, a transient-local subscription of a volatile one), a subscription that needs
+more than the publisher's declared rate. Each problem is one line naming both modules, the topic and why.
+
+``expectations`` turns the declarations into the plain data the ROS probe receives (``KUBEROS_TOPICS``);
+``live_problems`` judges what the probe saw in the graph (endpoints with their types and QoS, measured rates)
+against it. Both are pure: the probe (``kuberos_deploy/ros_graph_probe.py``) only gathers what it sees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .naming import robot_ros_name
+from .spec_model import DeclaredTopic
+
+ROBOT = "{robot}"
+DEFAULT_RELIABILITY = "reliable"
+DEFAULT_DURABILITY = "volatile"
+DEFAULT_DEPTH = 10
+DIRECTIONS = ("publishes", "subscribes")
+PROBE_NODE = "kuberos_rollout_probe"  # the probe's own node; its rate subscriptions are not the modules'
+
+
+def scoped(name: str) -> str:
+    """The form compared across modules: ``detections`` and ``/{robot}/detections`` are ``/{robot}/detections``."""
+    return name if name.startswith("/") else f"/{ROBOT}/{name}"
+
+
+def for_robot(name: str, robot: str) -> str:
+    """A scoped name on one robot: ``/{robot}/detections`` is ``/fetch_1/detections`` on fetch-1."""
+    return name.replace(ROBOT, robot_ros_name(robot))
+
+
+def declared(raw, origin: str = "") -> tuple[DeclaredTopic, ...]:
+    """The declarations of a module's validated ``topics`` mapping, publishes first."""
+    topics = []
+    for direction in DIRECTIONS:
+        for position, item in enumerate((raw or {}).get(direction) or ()):
+            qos = item.get("qos") or {}
+            rate = item.get("rate") or {}
+            topics.append(
+                DeclaredTopic(
+                    name=item["name"],
+                    type=item["type"],
+                    direction=direction,
+                    reliability=qos.get("reliability", DEFAULT_RELIABILITY),
+                    durability=qos.get("durability", DEFAULT_DURABILITY),
+                    depth=int(qos.get("depth", DEFAULT_DEPTH)),
+                    rate_min=float(rate["min"]) if "min" in rate else None,
+                    rate_max=float(rate["max"]) if "max" in rate else None,
+                    external=bool(item.get("external", False)),
+                    position=position,
+                    origin=origin,
+                )
+            )
+    return tuple(topics)
+
+
+def qos_mismatch(publisher_reliability: str, publisher_durability: str, reliability: str, durability: str) -> str:
+    """Why a publisher's QoS never serves a subscription's (ROS 2's request-offered rules), or ''."""
+    reasons = []
+    if reliability == "reliable" and publisher_reliability == "best_effort":
+        reasons.append(
+            "a reliable subscription gets nothing from a best_effort publisher (expected reliability best_effort in "
+            "the subscription, or reliable in the publisher)"
+        )
+    if durability == "transient_local" and publisher_durability == "volatile":
+        reasons.append(
+            "a transient_local subscription gets nothing from a volatile publisher (expected durability volatile in "
+            "the subscription, or transient_local in the publisher)"
+        )
+    return "; ".join(reasons)
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One declaration that cannot match: the module and declaration it is about, and the line saying why."""
+
+    module: object  # the RosModule
+    topic: DeclaredTopic
+    message: str
+
+
+def _rate(low: float | None, high: float | None) -> str:
+    if low is not None and high is not None:
+        return f"{low:g}-{high:g} Hz"
+    return f"at least {low:g} Hz" if low is not None else f"at most {high:g} Hz"
+
+
+def declaration_findings(modules) -> list[Finding]:
+    """Every declaration of ``modules`` (one deployment's) that cannot match another, or that contradicts itself."""
+    findings = []
+    publishers: dict[str, list] = {}
+    seen: dict[tuple, DeclaredTopic] = {}
+    for module in modules:
+        for topic in module.topics:
+            key = (module.name, topic.direction, scoped(topic.name))
+            if key in seen:
+                first = seen[key]
+                findings.append(
+                    Finding(module, topic, f"{module.name} already declares {topic.direction} {scoped(topic.name)} "
+                                           f"({topic.direction}[{first.position}]); expected each topic once")  # fmt: skip
+                )
+                continue
+            seen[key] = topic
+            if topic.rate_min is not None and topic.rate_max is not None and topic.rate_min > topic.rate_max:
+                findings.append(
+                    Finding(module, topic, f"rate min {topic.rate_min:g} Hz is above max {topic.rate_max:g} Hz")
+                )
+            if topic.direction == "publishes":
+                publishers.setdefault(scoped(topic.name), []).append((module, topic))
+    for module in modules:
+        for topic in module.topics:
+            if topic.direction != "subscribes" or seen.get((module.name, topic.direction, scoped(topic.name))) is not topic:
+                continue
+            name = scoped(topic.name)
+            offered = publishers.get(name, [])
+            if not offered and not topic.external:
+                findings.append(
+                    Finding(module, topic, f"{module.name} subscribes to {name}, which no module of the deployment "
+                                           "publishes; expected a module that declares it in publishes, or external: "
+                                           "true for a topic published outside the deployment")  # fmt: skip
+                )
+            for other, published in offered:
+                why = _pair_problem(published, topic)
+                if why:
+                    findings.append(
+                        Finding(module, topic, f"{module.name} subscribes to {name} but {other.name} publishes it: {why}")
+                    )
+    return findings
+
+
+def _pair_problem(published: DeclaredTopic, subscribed: DeclaredTopic) -> str:
+    if published.type != subscribed.type:
+        return f"the types differ ({subscribed.type} subscribed, {published.type} published)"
+    why = qos_mismatch(published.reliability, published.durability, subscribed.reliability, subscribed.durability)
+    if why:
+        return why
+    if subscribed.rate_min is not None and published.rate_max is not None and subscribed.rate_min > published.rate_max:
+        return (f"it needs at least {subscribed.rate_min:g} Hz and the publisher declares at most "
+                f"{published.rate_max:g} Hz")  # fmt: skip
+    return ""
+
+
+# -- the live check ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Expectation:
+    """One topic as the live check wants it on every robot (or once, for a fleet-wide name)."""
+
+    name: str  # scoped
+    type: str
+    publishers: list[str] = field(default_factory=list)  # modules that declare publishing it
+    subscribers: list[str] = field(default_factory=list)
+    rate_min: float | None = None
+    rate_max: float | None = None
+    rate_by: list[str] = field(default_factory=list)  # modules whose bounds these are
+    external: bool = False
+
+    def to_dict(self) -> dict:
+        data = {"name": self.name, "type": self.type, "publishers": self.publishers, "subscribers": self.subscribers}
+        if self.rate_min is not None:
+            data["rate_min"] = self.rate_min
+        if self.rate_max is not None:
+            data["rate_max"] = self.rate_max
+        if self.rate_by:
+            data["rate_by"] = self.rate_by
+        if self.external:
+            data["external"] = True
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Expectation:
+        if not isinstance(data, dict) or not isinstance(data.get("name"), str) or not isinstance(data.get("type"), str):
+            raise ValueError(f"{str(data)[:80]!r} is not a topic expectation; expected a mapping with name and type")
+        rate = {k: data.get(k) for k in ("rate_min", "rate_max")}
+        for key, value in rate.items():
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+                raise ValueError(f"{data['name']}: {key} {value!r} is not a number")
+        names = {k: data.get(k) or [] for k in ("publishers", "subscribers", "rate_by")}
+        if not all(isinstance(v, list) and all(isinstance(x, str) for x in v) for v in names.values()):
+            raise ValueError(f"{data['name']}: publishers, subscribers and rate_by must be lists of module names")
+        return cls(data["name"], data["type"], names["publishers"], names["subscribers"], rate["rate_min"],
+                   rate["rate_max"], names["rate_by"], bool(data.get("external", False)))  # fmt: skip
+
+    @property
+    def per_robot(self) -> bool:
+        return ROBOT in self.name
+
+
+def expectations(modules) -> list[Expectation]:
+    """What the live check wants of the declared topics of ``modules`` (sorted by name)."""
+    found: dict[str, Expectation] = {}
+    for module in modules:
+        for topic in module.topics:
+            name = scoped(topic.name)
+            want = found.setdefault(name, Expectation(name, topic.type))
+            side = want.publishers if topic.direction == "publishes" else want.subscribers
+            if module.name not in side:
+                side.append(module.name)
+            want.external = want.external or topic.external
+            if topic.rate_min is not None or topic.rate_max is not None:
+                want.rate_by.append(module.name)
+            if topic.rate_min is not None:
+                want.rate_min = max(topic.rate_min, want.rate_min or 0.0)
+            if topic.rate_max is not None:
+                want.rate_max = topic.rate_max if want.rate_max is None else min(topic.rate_max, want.rate_max)
+    return [found[name] for name in sorted(found)]
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A publisher or subscription the probe saw: its node (fully qualified), type and QoS names."""
+
+    node: str
+    type: str
+    reliability: str
+    durability: str
+
+
+@dataclass
+class Observed:
+    """One topic as the probe saw it."""
+
+    publishers: list[Endpoint] = field(default_factory=list)
+    subscribers: list[Endpoint] = field(default_factory=list)
+    rate: float | None = None  # messages per second over the probe's window; None when not measured
+
+
+def topics_to_watch(wanted: list[Expectation], robots: list[str]) -> list[tuple[str, Expectation, str]]:
+    """(topic name, its expectation, robot or '') for every robot of every per-robot expectation, and each fleet-wide
+    one once."""
+    out = []
+    for want in wanted:
+        targets = robots if want.per_robot else [""]
+        for robot in targets:
+            out.append((for_robot(want.name, robot) if robot else want.name, want, robot))
+    return out
+
+
+def missing(name: str, want: Expectation, seen: Observed) -> list[str]:
+    """What is not (yet) in the graph for ``name``: the lines of endpoints that discovery may still bring."""
+    lines = []
+    if want.subscribers and not seen.subscribers:
+        lines.append(f"{name}: no subscription in the graph ({', '.join(want.subscribers)} declares one)")
+    if (want.publishers or want.subscribers) and not seen.publishers:
+        who = f"{', '.join(want.publishers)} declares it" if want.publishers else "declared external"
+        lines.append(f"{name}: nobody publishes it ({who})")
+    return lines
+
+
+def mismatches(name: str, want: Expectation, seen: Observed) -> list[str]:
+    """What waiting does not mend: endpoints of another type, publisher-subscription pairs whose QoS never match."""
+    lines = []
+    for side, endpoints in (("publishes", seen.publishers), ("subscribes", seen.subscribers)):
+        for point in endpoints:
+            if point.type != want.type:
+                lines.append(f"{name}: {point.node} {side} {point.type}, but the declared type is {want.type}")
+    for publisher in seen.publishers:
+        for subscriber in seen.subscribers:
+            why = qos_mismatch(publisher.reliability, publisher.durability, subscriber.reliability, subscriber.durability)
+            if why:
+                lines.append(f"{name}: {subscriber.node} and {publisher.node} never match: {why}")
+    return lines
+
+
+def rate_problem(name: str, want: Expectation, seen: Observed, window_s: float) -> str:
+    """Why the measured rate is outside the declared bounds, or ''."""
+    if want.rate_min is None and want.rate_max is None:
+        return ""
+    declared_by = ", ".join(want.rate_by)
+    bounds = _rate(want.rate_min, want.rate_max)
+    if seen.rate is None:
+        return f"{name}: rate not measured (declared {bounds} by {declared_by})"
+    low = want.rate_min is not None and seen.rate < want.rate_min
+    high = want.rate_max is not None and seen.rate > want.rate_max
+    if low or high:
+        return f"{name}: {seen.rate:.1f} Hz over {window_s:g} s, outside {bounds} (declared by {declared_by})"
+    return ""
+
+
+def live_problems(watched: list[tuple[str, Expectation, str]], observed: dict[str, Observed], window_s: float) -> list[str]:
+    """Every line of what the graph lacks or gets wrong, for the topics ``topics_to_watch`` gave."""
+    lines = []
+    for name, want, _robot in watched:
+        seen = observed.get(name) or Observed()
+        absent = missing(name, want, seen)
+        lines += absent + mismatches(name, want, seen)
+        why = "" if absent else rate_problem(name, want, seen, window_s)
+        if why:
+            lines.append(why)
+    return lines
