@@ -119,7 +119,7 @@ def test_bad_declarations_are_refused_with_exit_2():
         done = subprocess.run([PYTHON, "-m", PROBE, "--topics"], env=env,
                               capture_output=True, text=True, timeout=60)  # fmt: skip
         assert done.returncode == 2, (text, done.stderr)
-        assert done.stderr.startswith("ros_graph_probe: KUBEROS_TOPICS "), done.stderr
+        assert done.stderr.startswith("ros_graph_probe: KUBEROS_TOPICS"), done.stderr
         assert "Traceback" not in done.stderr
 
 
