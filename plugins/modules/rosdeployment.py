@@ -81,6 +81,7 @@ options:
     type: path
 extends_documentation_fragment:
   - kuberos.platform.render
+  - kuberos.platform.graph_check
   - kuberos.platform.attributes
 attributes:
   check_mode:
@@ -192,6 +193,7 @@ from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.deploy_pass import DeployPass, NotReady
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import GRAPH_CHECK_ARGS
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
 
 ARGUMENT_SPEC = dict(
@@ -208,6 +210,7 @@ ARGUMENT_SPEC = dict(
     clusters=dict(type="dict", default={}, no_log=True),
     kubeconfig=dict(type="path"),
     **RENDER_ARGS,
+    **GRAPH_CHECK_ARGS,
 )
 
 

@@ -111,6 +111,7 @@ attributes:
 extends_documentation_fragment:
   - kuberos.platform.cluster
   - kuberos.platform.render
+  - kuberos.platform.graph_check
   - kuberos.platform.attributes
 author:
   - KubeROS contributors (@kuberos)
@@ -199,6 +200,7 @@ from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import GRAPH_CHECK_ARGS
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.rollout_runner import execute
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG, api_clients
@@ -223,6 +225,7 @@ ARGUMENT_SPEC = dict(
     prestage_timeout=dict(type="float", default=600.0),
     prestage_parallel=dict(type="int", default=10),
     **RENDER_ARGS,
+    **GRAPH_CHECK_ARGS,
 )
 
 

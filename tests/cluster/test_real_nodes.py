@@ -775,6 +775,105 @@ def memory_peak(real, pod) -> int:
         return int(handle.read())
 
 
+# -- declared topics, checked live -----------------------------------------------------------------------------------
+
+# A talker and a listener of std_msgs/String on <robot>/chatter, with the reliability (and rate) given as arguments.
+_NODE = (
+    "import os, sys, rclpy; from rclpy.qos import QoSProfile, ReliabilityPolicy; from std_msgs.msg import String; "
+    "rclpy.init(); node = rclpy.create_node(sys.argv[1], namespace='/' + os.environ['KUBEROS_ROBOT_NAME'].replace('-', '_')); "
+    "qos = QoSProfile(depth=10, reliability=getattr(ReliabilityPolicy, sys.argv[2])); "
+)
+TALKER = _NODE + (
+    "pub = node.create_publisher(String, 'chatter', qos); "
+    "node.create_timer(1.0 / float(sys.argv[3]), lambda: pub.publish(String(data='chat'))); "
+    "print('talking at', sys.argv[3], 'Hz', flush=True); rclpy.spin(node)"
+)
+LISTENER = _NODE + (
+    "heard = []; "
+    "node.create_subscription(String, 'chatter', lambda m: heard or (heard.append(1), print('heard', m.data, flush=True)), qos); "
+    "print('listening', flush=True); rclpy.spin(node)"
+)
+
+
+def _topic(direction, reliability, rate_min=None):
+    topic = {"name": "chatter", "type": "std_msgs/msg/String", "qos": {"reliability": reliability}}
+    return {direction: [{**topic, "rate": {"min": rate_min}} if rate_min else topic]}
+
+
+def test_declared_topics_are_checked_live_after_deploy_and_in_a_rollouts_gate(real, deployed, tmp_path):
+    """Modules that declare their topics, as real rclpy pods. A talker at 10 Hz and a listener, both best effort, as
+    declared: the deploy's live check passes. A rollout to a talker at 1 Hz under its declared 5 Hz: the canary's
+    gate fails on the rate and the canary is rolled back. A talker that declares reliable but publishes best effort
+    (the declarations match, so deploy accepts them): the live check names both nodes and why, and the deploy fails."""
+    image = ROS_IMAGE
+    catalog = {
+        "apiVersion": "kuberos.io/v1alpha1",
+        "kind": "RosModuleCatalog",
+        "modules": [{"name": "graph-talker", "versions": [
+            {"version": version, "image": image, "launch": [shlex.join(["python3", "-c", TALKER, "talker", "BEST_EFFORT", hz])],
+             "preference": ["edge"], "resources": {"cpu": "100m", "memory": "128Mi"},
+             "topics": _topic("publishes", "best_effort", 5)}
+            for version, hz in (("0.1.0", "10"), ("0.2.0", "1"))
+        ]}],
+    }  # fmt: skip
+    (tmp_path / "catalog").mkdir()
+    (tmp_path / "catalog" / "talker.yml").write_text(yaml.safe_dump(catalog), encoding="utf-8")
+    namespace = fleet_namespace(deployed)
+    listener = {"name": "listener", "image": image, "preference": ["cloud", "edge"],
+                "resources": {"cpu": "100m", "memory": "128Mi"},
+                "launch": [shlex.join(["python3", "-c", LISTENER, "listener", "BEST_EFFORT"])],
+                "topics": _topic("subscribes", "best_effort")}  # fmt: skip
+
+    def spec(name, modules, file=""):
+        path = tmp_path / f"{file or name}.yml"
+        document = {"apiVersion": "kuberos.io/v1alpha1", "kind": "RosDeployment",
+                    "metadata": {"name": name, "targetFleet": "test-fleet"}, "rosModules": modules}  # fmt: skip
+        path.write_text(yaml.safe_dump(document, width=1000), encoding="utf-8")
+        return str(path)
+
+    check = ("-e", "rosdeployment_graph_check=true", "-e", f"kuberos_catalog={tmp_path / 'catalog'}")
+    talker = {"name": "talker", "module": "graph-talker@^0.1"}
+    good = spec("graph-check", [talker, listener])
+    slow = spec("graph-check", [{**talker, "module": "graph-talker@0.2.0"}, listener], file="graph-check-0.2")
+
+    def launched():
+        pods = real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/deployment=graph-check").items
+        return sorted(shlex.join(p.spec.containers[0].args[-3:]) for p in pods if p.metadata.deletion_timestamp is None)
+
+    try:
+        started = time.monotonic()
+        done = real.deploy(good, tmp_path / "render", *check)
+        assert done.returncode == 0, done.stdout[-6000:]
+        assert re.search(r"graph-check: 1 topic\(s\) on 1 robot\(s\) as declared, in [0-9.]+ s", done.stdout), done.stdout[-3000:]
+        print(f"deploy with the live graph check: {time.monotonic() - started:.1f} s")
+        assert not real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/graph-check").items, "check pods go"
+        before = launched()
+        rolled = real.play("rollout.yml", "-e", f"rosdeployment_file={slow}", "-e", "rosdeployment_rollout_soak=2", *check)
+        assert rolled.returncode != 0, rolled.stdout[-3000:]
+        out = rolled.stdout
+        assert "stopped at the canary" in out and "the ROS graph does not connect as declared" in out, out[-4000:]
+        assert re.search(r"/robot_1/chatter: [0-9.]+ Hz over 3 s, outside at least 5 Hz \(declared by talker\)", out), out[-4000:]
+        assert "rolled back robots robot-1" in out, out[-4000:]
+        wait_for(lambda: launched() == before, 120, "the talker back at 10 Hz")
+
+        liar = dict(talker, module="graph-talker@^0.1", topics=_topic("publishes", "reliable"))
+        honest_listener = dict(listener, topics=_topic("subscribes", "reliable"),
+                               launch=[shlex.join(["python3", "-c", LISTENER, "listener", "RELIABLE"])])  # fmt: skip
+        lying = spec("graph-lie", [liar, honest_listener])
+        failed = real.deploy(lying, tmp_path / "render-lie", *check)
+        assert failed.returncode != 0, failed.stdout[-3000:]
+        caught = (
+            "the ROS graph does not connect as declared: graph-lie: /robot_1/chatter: /robot_1/listener and "
+            "/robot_1/talker never match: a reliable subscription gets nothing from a best_effort publisher"
+        )
+        assert caught in failed.stdout, failed.stdout[-4000:]
+    finally:
+        for path in (good, str(tmp_path / "graph-lie.yml")):
+            if os.path.exists(path):
+                undo = real.undeploy(path, *check)
+                assert undo.returncode == 0, undo.stdout[-3000:]
+
+
 def test_rclpy_modules_without_resources_run_a_1khz_load_under_the_defaults_without_oom(real, deployed, tmp_path):
     """Two modules with the default requests and memory limit (spec.DEFAULT_CPU, DEFAULT_MEMORY): a publisher at
     1 kHz and a subscriber, 20 s; neither restarts nor is OOM-killed, and their memory peaks are printed."""

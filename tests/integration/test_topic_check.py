@@ -11,7 +11,6 @@ import json
 import os
 import subprocess
 
-
 import pytest
 from helpers import ROOT
 from test_ros_probe import PROBE, PYTHON, graph  # noqa: F401  (the fixture: a discovery server on loopback)
@@ -121,5 +120,3 @@ def test_bad_declarations_are_refused_with_exit_2():
         assert done.returncode == 2, (text, done.stderr)
         assert done.stderr.startswith("ros_graph_probe: KUBEROS_TOPICS"), done.stderr
         assert "Traceback" not in done.stderr
-
-

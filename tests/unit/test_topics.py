@@ -163,7 +163,8 @@ def test_catalog_declarations_are_checked_and_named_and_a_spec_replaces_a_direct
     problems = _problems(text, _catalog())
     assert any(
         "rosModules[1].topics.subscribes[0]: planner subscribes to /{robot}/detections but perception publishes it: "
-        "a reliable subscription gets nothing" in p for p in problems
+        "a reliable subscription gets nothing" in p
+        for p in problems
     ), problems
     over = text.replace("module: perception@^0.2", "module: perception@^0.2\n  topics:\n    publishes:\n"
                         "    - {name: detections, type: geometry_msgs/msg/PoseArray}")  # fmt: skip
@@ -216,7 +217,8 @@ def test_the_live_check_wants_every_declared_endpoint_on_every_robot():
     assert [(name, robot) for name, _want, robot in watched] == [
         ("/fetch_1/detections", "fetch-1"), ("/r_7x/detections", "7x"), ("/fleet/status", ""),
     ]  # fmt: skip
-    observed = {"/fetch_1/detections": _seen(), "/fleet/status": Observed([Endpoint("/m", "std_msgs/msg/String", "reliable", "volatile")])}
+    status = Observed([Endpoint("/m", "std_msgs/msg/String", "reliable", "volatile")])
+    observed = {"/fetch_1/detections": _seen(), "/fleet/status": status}
     assert live_problems(watched, observed, 3.0) == [
         "/r_7x/detections: no subscription in the graph (planner declares one)",
         "/r_7x/detections: nobody publishes it (perception declares it)",

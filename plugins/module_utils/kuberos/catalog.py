@@ -32,7 +32,19 @@ from dataclasses import dataclass, field, replace
 
 from . import quantities
 from .errors import Problem, SpecError, describe, did_you_mean
-from .schema import API_VERSION, DNS_LABEL, ENV, IMAGE, LAUNCH, PREFERENCE, REQUIREMENTS, RESOURCES, ROS_PARAMETERS, TOPICS, UPGRADE
+from .schema import (
+    API_VERSION,
+    DNS_LABEL,
+    ENV,
+    IMAGE,
+    LAUNCH,
+    PREFERENCE,
+    REQUIREMENTS,
+    RESOURCES,
+    ROS_PARAMETERS,
+    TOPICS,
+    UPGRADE,
+)
 from .semver import MAX_LENGTH, Version, parse_range, parse_version
 from .validation import (
     as_tuple,

@@ -311,7 +311,12 @@ RELIABILITIES = ("reliable", "best_effort")
 DURABILITIES = ("volatile", "transient_local")
 MAX_TOPICS = 200  # declarations of one direction of one module
 MAX_RATE_HZ = 100000
-_RATE_HZ = {"type": "number", "exclusiveMinimum": 0, "maximum": MAX_RATE_HZ, "x-expected": f"a rate in Hz above 0 and at most {MAX_RATE_HZ}"}
+_RATE_HZ = {
+    "type": "number",
+    "exclusiveMinimum": 0,
+    "maximum": MAX_RATE_HZ,
+    "x-expected": f"a rate in Hz above 0 and at most {MAX_RATE_HZ}",
+}
 
 
 def _declared_topic(subscription: bool) -> dict:

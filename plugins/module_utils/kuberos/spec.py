@@ -41,8 +41,8 @@ from .spec_model import (
     _problem,
 )
 from .spec_names import name_clash_problems
-from .topics import declaration_findings, declared
 from .third_party import yaml
+from .topics import declaration_findings, declared
 from .validation import (
     RESERVED_ENV,
     as_tuple,

@@ -136,7 +136,8 @@ class DeclaredTopic:
     rate_max: float | None = None
     external: bool = False  # subscribes: published outside the deployment
     position: int = 0  # its place in the module's list of that direction
-    origin: str = field(default="", compare=False)  # the catalog entry it came from ('pnp-planner 0.2.0'); '' when the spec declares it
+    # the catalog entry it came from ('pnp-planner 0.2.0'); '' when the spec declares it
+    origin: str = field(default="", compare=False)
 
 
 @dataclass(frozen=True)

@@ -114,15 +114,17 @@ def declaration_findings(modules) -> list[Finding]:
             if key in seen:
                 first = seen[key]
                 findings.append(
-                    Finding(module, topic, f"{module.name} already declares {topic.direction} {scoped(topic.name)} "
-                                           f"({topic.direction}[{first.position}]); expected each topic once")  # fmt: skip
+                    Finding(
+                        module,
+                        topic,
+                        f"{module.name} already declares {topic.direction} {scoped(topic.name)} "
+                        f"({topic.direction}[{first.position}]); expected each topic once",
+                    )
                 )
                 continue
             seen[key] = topic
             if topic.rate_min is not None and topic.rate_max is not None and topic.rate_min > topic.rate_max:
-                findings.append(
-                    Finding(module, topic, f"rate min {topic.rate_min:g} Hz is above max {topic.rate_max:g} Hz")
-                )
+                findings.append(Finding(module, topic, f"rate min {topic.rate_min:g} Hz is above max {topic.rate_max:g} Hz"))
             if topic.direction == "publishes":
                 publishers.setdefault(scoped(topic.name), []).append((module, topic))
     for module in modules:
@@ -133,9 +135,13 @@ def declaration_findings(modules) -> list[Finding]:
             offered = publishers.get(name, [])
             if not offered and not topic.external:
                 findings.append(
-                    Finding(module, topic, f"{module.name} subscribes to {name}, which no module of the deployment "
-                                           "publishes; expected a module that declares it in publishes, or external: "
-                                           "true for a topic published outside the deployment")  # fmt: skip
+                    Finding(
+                        module,
+                        topic,
+                        f"{module.name} subscribes to {name}, which no module of the deployment "
+                        "publishes; expected a module that declares it in publishes, or external: "
+                        "true for a topic published outside the deployment",
+                    )
                 )
             for other, published in offered:
                 why = _pair_problem(published, topic)

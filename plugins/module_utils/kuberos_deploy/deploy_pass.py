@@ -28,7 +28,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import COMPONENT, DEPLOYMENT, MANAGED_BY, MODULE
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import bridge_secret_name
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import object_key, object_label
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace, object_key, object_label
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement import Placement
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantities import parse_cpu, parse_memory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name, record_placement
@@ -46,6 +46,11 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cl
     running_modules,
     stale_objects,
     unavailable_nodes,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import (
+    GraphCheck,
+    declares_topics,
+    graph_check_problem,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_dir import RenderDirError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_pass import render_to_dir
@@ -183,6 +188,9 @@ class DeployPass:
 
     def run(self) -> dict:
         """Deploy (or undeploy, or render only) the spec file, or run the batch job it holds; the module's result."""
+        why = graph_check_problem(self.params) if self.params.get("graph_check") else ""
+        if why:
+            raise KuberosError(why)
         self.load()
         if self.batch:
             return self._batch()
@@ -245,7 +253,25 @@ class DeployPass:
                 stuck = [f"{r['robot']}/{r['module']}" for r in waited["rows"] if r["problem"] and not r["ready"]]
                 msg = f"{', '.join(stuck[:10])} cannot start: {'; '.join(waited['problems'][:5])}. Not Ready: "
             raise NotReady(msg + "; ".join(waiting[:10]), {**result, "timings": self.timings})
+        checked = [d for d in self.deployments if declares_topics(d)] if self.params.get("graph_check") else []
+        if checked:
+            verdicts = self.check_graph(checked)
+            result["graph"] = {name: verdict.to_dict() for name, verdict in verdicts.items()}
+            failed = [f"{name}: {line}" for name, verdict in verdicts.items() for line in verdict.problems]
+            if failed:
+                shown = "; ".join(failed[:8]) + (f"; and {len(failed) - 8} more" if len(failed) > 8 else "")
+                raise NotReady(f"the ROS graph does not connect as declared: {shown}", {**result, "timings": self.timings})
         return result
+
+    def check_graph(self, deployments) -> dict:
+        """The live graph check of each deployment that declares topics, on the robots it was placed for."""
+        check = GraphCheck.from_params(Kube(self.clients, self.params["field_manager"]), self.params)
+        verdicts = {}
+        for dep in deployments:
+            robots = sorted({r for inst in self.placement.instances if inst.deployment == dep.name for r in inst.robots})
+            verdicts[dep.name] = check.run(dep, fleet_namespace(dep.fleet), robots)
+        self._lap("graph_check")
+        return verdicts
 
     def _batch(self) -> dict:
         """A batch job given to the deploy: run it (or, with apply false, render it) as playbooks/batch.yml does."""

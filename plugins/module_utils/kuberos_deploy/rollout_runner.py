@@ -27,6 +27,11 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout i
     pod_failure,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import is_ready
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import (
+    GraphCheck,
+    declares_topics,
+    graph_check_problem,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import RENDERED_KINDS, Kube, status_of
 
 ROLLOUT_MANAGER = "kuberos-rollout"
@@ -260,7 +265,8 @@ class Rollout:
 
     def __init__(self, cluster: Cluster, namespace: str, gate_timeout: float, soak_s: float, poll_s: float = 0.2,
                  ros_probe: list[str] | None = None, progress=None, update_lock: list[str] | None = None,
-                 update_lock_wait: float = 120.0):  # fmt: skip
+                 update_lock_wait: float = 120.0, graph_check=None):  # fmt: skip
+        self.graph_check = graph_check  # robots -> graph_check.Verdict: the declared topics, live
         self.update_lock = update_lock or []
         self.update_lock_wait = update_lock_wait
         self.locked: dict[str, str] = {}  # robot -> why it was left pending (its update lock held, or not checkable)
@@ -339,6 +345,11 @@ class Rollout:
             time.sleep(self.poll_s)
         if self.ros_probe:
             self._probe(wave, sorted(wanted))
+        if self.graph_check is not None:
+            verdict = self.graph_check(sorted(wave.robots))
+            if not verdict.ok:
+                more = f"; and {len(verdict.problems) - 5} more" if len(verdict.problems) > 5 else ""
+                raise GateFailed(f"the ROS graph does not connect as declared: {'; '.join(verdict.problems[:5])}{more}")
         return time.monotonic() - start
 
     @staticmethod
@@ -540,6 +551,14 @@ def _target(clients, params: dict, namespace_of):
     return dep, text, params["src"], used, "rollout"
 
 
+def _graph_check(clients, params: dict, dep, namespace: str, field_manager: str, progress):
+    """The gate's live graph check of ``dep`` (robots -> Verdict), or None when it declares no topics or is told not to."""
+    if not params.get("graph_check", True) or not declares_topics(dep):
+        return None
+    check = GraphCheck.from_params(Kube(clients, field_manager), params, progress)
+    return lambda robots: check.run(dep, namespace, robots)
+
+
 def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     """Plan a rollout of one deployment to a new state, and (unless check mode) carry it out; see the module."""
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
@@ -558,6 +577,9 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cluster_state import FLEET_COMPONENTS
 
     started = time.monotonic()
+    why = graph_check_problem(params) if params.get("graph_check", True) else ""
+    if why:
+        raise KuberosError(why)
     dep, text, source, catalog, cause = _target(clients, params, fleet_namespace)
     namespace = fleet_namespace(dep.fleet)
     record, _configmap = read_record(clients, namespace, dep.name)
@@ -622,6 +644,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     runner = Rollout(
         cluster, namespace, params["gate_timeout"], params["soak"], ros_probe=params.get("ros_probe"), progress=progress,
         update_lock=params.get("update_lock"), update_lock_wait=params.get("update_lock_wait", 120.0),
+        graph_check=_graph_check(clients, params, dep, namespace, record.field_manager, progress),
     )  # fmt: skip
     try:
         if prestage and params.get("prestage", True):
