@@ -286,10 +286,19 @@ class Kube:
         )
         return json.loads(response.data).get("items") or []
 
-    def log(self, pod: str, namespace: str, container: str = "", tail_lines: int | None = None) -> str:
-        """What a pod's container printed (the kubelet's log; the API server's refusal is raised)."""
+    def log(self, pod: str, namespace: str, container: str = "", tail_lines: int | None = None, since_seconds: int | None = None,
+            timestamps: bool = False, previous: bool = False) -> str:  # fmt: skip
+        """What a pod's container printed (the kubelet's log; the API server's refusal is raised): the last
+        ``tail_lines``, those of the last ``since_seconds``, each after its RFC 3339 time with ``timestamps``, the
+        previous container's (before its last restart) with ``previous``."""
         extra = {"container": container} if container else {}
         if tail_lines is not None:
             extra["tail_lines"] = tail_lines
+        if since_seconds is not None:
+            extra["since_seconds"] = max(1, int(since_seconds))
+        if timestamps:
+            extra["timestamps"] = True
+        if previous:
+            extra["previous"] = True
         response = self.clients["core"].read_namespaced_pod_log(pod, namespace, _preload_content=False, **extra)
         return response.data.decode("utf-8", errors="replace")
