@@ -847,6 +847,11 @@ def test_declared_topics_are_checked_live_after_deploy_and_in_a_rollouts_gate(re
         assert re.search(r"graph-check: 1 topic\(s\) on 1 robot\(s\) as declared, in [0-9.]+ s", done.stdout), done.stdout[-3000:]
         print(f"deploy with the live graph check: {time.monotonic() - started:.1f} s")
         assert not real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/graph-check").items, "check pods go"
+        # What the listener printed, read back as a developer does, without kubectl.
+        heard = real.play("logs.yml", "-e", "deployment=graph-check", "-e", "module=listener", "-e", "robot=robot-1")
+        assert heard.returncode == 0, heard.stdout[-3000:]
+        assert "robot-1/listener: pod graph-check-listener-robot-1-" in heard.stdout, heard.stdout[-3000:]
+        assert "listening" in heard.stdout and "heard chat" in heard.stdout, heard.stdout[-3000:]
         before = launched()
         rolled = real.play("rollout.yml", "-e", f"rosdeployment_file={slow}", "-e", "rosdeployment_rollout_soak=2", *check)
         assert rolled.returncode != 0, rolled.stdout[-3000:]
@@ -939,6 +944,45 @@ print(json.dumps(answers))
 """
 
 
+# Polls the dashboard's last lines of an instance that prints "tick <epoch>" every 0.25 s, from a node (the same
+# kernel's clock as the pods'): for each line that appears after the first answer, when it appeared minus when printed.
+IN_NODE_LOGS = """
+import http.client, json, socket, ssl, sys, time
+address, name, ca, token, instance = sys.argv[1:6]
+context = ssl.create_default_context(cafile=ca)
+
+
+def ask(bearer):
+    connection = http.client.HTTPSConnection(name, 8611, context=context, timeout=10)
+    connection.sock = context.wrap_socket(socket.create_connection((address, 8611), timeout=10), server_hostname=name)
+    connection.request("GET", "/api/logs?lines=20&instance=" + instance, headers={"Authorization": "Bearer " + bearer})
+    response = connection.getresponse()
+    body = response.read()
+    connection.close()
+    return response.status, body
+
+
+refused = ask("")[0]
+first, delays, answers = None, [], 0
+end = time.monotonic() + 20
+while time.monotonic() < end:
+    status, body = ask(token)
+    now = time.time()
+    if status == 200:
+        answers += 1
+        ticks = [line for line in json.loads(body).get("lines", []) if line.startswith("tick ")]
+        if first is None:
+            first = set(ticks)
+        for line in ticks:
+            if line not in first:
+                first.add(line)
+                delays.append(round(now - float(line.split()[1]), 3))
+    time.sleep(0.1)
+print(json.dumps({"refused": refused, "answers": answers, "delays": delays}))
+"""
+TICKER = "import time\nwhile True:\n    print('tick', repr(time.time()), flush=True)\n    time.sleep(0.25)"
+
+
 def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_and_a_killed_leader_hands_over(
     real, deployed, tmp_path
 ):
@@ -999,6 +1043,28 @@ def test_the_controller_runs_as_pods_on_the_edge_servers_behind_tls_and_tokens_a
         assert answers["/metrics True"][0] == 200 and "kuberos_" in answers["/metrics True"][1], answers["/metrics True"][1][:500]
         assert answers["/metrics False"][0] == 401, "no token, no metrics"
         assert answers["/healthz False"][0] == 200
+
+        # The dashboard's last lines of a module, live, behind the same tokens: the time from a line printed in a pod
+        # to the dashboard's answer (polled every 0.1 s; the page asks every 2 s while its log panel is open).
+        ticker = tmp_path / "ticker.yml"
+        module = {"name": "ticker", "image": ROS_IMAGE, "launch": [shlex.join(["python3", "-c", TICKER])],
+                  "preference": ["edge"], "resources": {"cpu": "50m", "memory": "64Mi"}}  # fmt: skip
+        metadata = {"name": "ticker", "targetFleet": "test-fleet"}
+        document = {"apiVersion": "kuberos.io/v1alpha1", "kind": "RosDeployment", "metadata": metadata, "rosModules": [module]}
+        ticker.write_text(yaml.safe_dump(document), encoding="utf-8")
+        assert real.deploy(str(ticker), tmp_path / "render-ticker").returncode == 0
+        try:
+            command = ["ip", "netns", "exec", netns, sys.executable, "-c", IN_NODE_LOGS, address, name, str(tmp_path / "ca.crt"),
+                       token, "ticker-ticker-robot-1"]  # fmt: skip
+            polled = json.loads(subprocess.run(command, capture_output=True, text=True, timeout=120, check=True).stdout)
+            assert polled["refused"] == 401, "no token, no logs"
+            assert len(polled["delays"]) >= 20, polled
+            delays = sorted(polled["delays"])
+            p95 = delays[int(0.95 * (len(delays) - 1))]
+            print(f"dashboard logs: {len(delays)} lines, printed -> answered median {statistics.median(delays):.2f} s, "
+                  f"p95 {p95:.2f} s, max {delays[-1]:.2f} s over {polled['answers']} answers")  # fmt: skip
+        finally:
+            real.undeploy(str(ticker))
 
         # A Prometheus in the cluster (Debian's, no Operator) scrapes both replicas, found by DNS through the headless
         # Service, over TLS with its own ServiceAccount's token: the scrape job the ServiceMonitor stands for.

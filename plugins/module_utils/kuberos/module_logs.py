@@ -53,6 +53,12 @@ def robots_of(deployments: list[dict], deployment: str, module: str) -> list[str
     return sorted(robots)
 
 
+def newest_pod(pods: list[dict]) -> dict | None:
+    """The newest of an instance's pods that is not being deleted (a rollout's surge runs two for a while)."""
+    alive = [p for p in pods if not p["metadata"].get("deletionTimestamp")]
+    return max(alive, key=lambda p: p["metadata"].get("creationTimestamp", "")) if alive else None
+
+
 def secret_refs(pod_spec: dict) -> list[tuple[str, str]]:
     """(Secret, key) pairs the pod's containers can read; key '' for all of a Secret's keys."""
     refs = set()

@@ -33,6 +33,10 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
     METRICS_PATH,
     KubernetesAuth,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.dashboard_logs import (
+    DASHBOARD_LINES,
+    instance_log,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.metrics import ControllerMetrics
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import (
     Snapshot,
@@ -288,6 +292,7 @@ class Dashboard:
         app.router.add_get("/api/software", self.software)
         app.router.add_get("/api/placement.svg", self.placement)
         app.router.add_get("/api/stream", self.stream)
+        app.router.add_get("/api/logs", self.logs)
         for name in LISTS:
             app.router.add_get(f"/api/{name}", self.listing)
         return app
@@ -464,6 +469,27 @@ class Dashboard:
         svg = await asyncio.get_running_loop().run_in_executor(None, render_placement_svg, part)
         shown = f"{min(len(chosen), limit)}/{len(robots)}"
         return web.Response(text=svg, content_type="image/svg+xml", headers={"X-KubeROS-Robots": shown})
+
+    async def logs(self, request):
+        """The last lines of one module instance (``?instance=``), read when asked: the page asks every 2 s while
+        its log panel is open."""
+        from aiohttp import web
+
+        await self._fresh()
+        instance = request.query.get("instance", "")
+        row = next((r for r in self.view.modules if r.get("instance") == instance and r.get("namespace")), None)
+        if row is None:
+            raise web.HTTPNotFound(text=f"no module instance {instance!r}")
+        lines = request.query.get("lines", DASHBOARD_LINES)
+        try:
+            found = await asyncio.get_running_loop().run_in_executor(
+                None, instance_log, self.controller.kube, row["namespace"], instance, int(lines)
+            )
+        except ValueError:
+            raise web.HTTPBadRequest(text="lines must be a whole number") from None
+        except Exception as exc:  # the API server's refusal or an unreachable cluster: said, not raised
+            found = {"instance": instance, "missing": f"the log could not be read: {exc.__class__.__name__}"}
+        return self._json({**found, "robot": row.get("robot", ""), "module": row.get("module", "")})
 
     async def stream(self, request):
         from aiohttp import web

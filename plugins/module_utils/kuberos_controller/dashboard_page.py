@@ -45,6 +45,11 @@ HTML = """<!doctype html>
     <table id="modules"><thead><tr>
       <th>Deployment</th><th>Robot</th><th>Module</th><th>Node</th><th>Tier</th><th>Phase</th><th>Version</th>
       <th>RTT / max</th><th>Why here</th><th>Last move</th></tr></thead><tbody></tbody></table>
+    <section id="log-panel" hidden>
+      <div class="toolbar"><b id="log-title"></b><span id="log-note" class="muted"></span>
+        <button id="log-close" type="button">close</button></div>
+      <pre id="log-lines"></pre>
+    </section>
   </section>
   <section id="view-resources" class="view" hidden>
     <div class="toolbar" data-list="resources">
@@ -133,6 +138,10 @@ td.move { color: var(--muted); }
 #events time { color: var(--muted); margin-right: 8px; font-variant-numeric: tabular-nums; }
 .progress { width: 240px; height: 12px; background: #e8eaed; border-radius: 3px; overflow: hidden; display: inline-block; }
 .progress span { display: block; height: 100%; background: #5c6bc0; }
+#modules tbody tr { cursor: pointer; } #modules tbody tr.chosen { background: #e3ecf7; }
+#log-panel { margin-top: 10px; background: #fff; border: 1px solid var(--line); padding: 6px 10px; }
+#log-panel .toolbar { margin: 0 0 6px; } #log-close { margin-left: auto; }
+#log-lines { margin: 0; max-height: 40vh; overflow: auto; font: 12px/1.35 ui-monospace, monospace; white-space: pre-wrap; }
 #map-frame { background: #fff; border: 1px solid var(--line); overflow: auto; max-height: 80vh; }
 form.login { max-width: 520px; margin: 60px auto; background: #fff; padding: 20px; border: 1px solid var(--line); }
 form.login textarea { width: 100%; height: 120px; font-family: monospace; }
@@ -141,7 +150,7 @@ form.login textarea { width: 100%; height: 120px; font-family: monospace; }
 SCRIPT = r"""
 'use strict';
 const state = { tab: 'deployments', filters: { modules: {}, resources: {}, events: {} }, pages: { modules: 0, resources: 0, events: 0 },
-                generation: 0, shown: -1, summary: null };
+                generation: 0, shown: -1, summary: null, log: null };
 const $ = (sel, root) => (root || document).querySelector(sel);
 const $$ = (sel, root) => Array.from((root || document).querySelectorAll(sel));
 
@@ -252,7 +261,42 @@ function renderModules(data) {
       el('td', { class: 'why', title: r.note || r.reason, text: r.note ? 'stranded: ' + r.note : r.reason }),
       el('td', { class: 'move', title: move, text: moveShort }));
   });
+  for (const row of rows) {
+    row.classList.toggle('chosen', row.dataset.instance === state.log);
+    row.onclick = () => openLog(row.dataset.instance, `${row.dataset.robot} / ${row.dataset.module}`);
+  }
   $('#modules tbody').replaceChildren(...rows);
+}
+
+// The last lines of the instance whose row was clicked, asked for every 2 s while the panel is open.
+let logTimer = null;
+async function showLog() {
+  if (!state.log) return;
+  try {
+    const data = await get('/api/logs?' + new URLSearchParams({ instance: state.log }).toString());
+    $('#log-note').textContent = data.refused || data.missing ||
+      ` · pod ${data.pod} on ${data.node} · ${data.lines.length} lines · ${new Date().toLocaleTimeString()}`;
+    const pre = $('#log-lines');
+    const atEnd = pre.scrollTop + pre.clientHeight >= pre.scrollHeight - 4;
+    pre.textContent = (data.lines || []).join('\n');
+    if (atEnd) pre.scrollTop = pre.scrollHeight;
+    document.body.dataset.logLines = String((data.lines || []).length);
+  } catch (error) {
+    $('#log-note').textContent = 'error: ' + error.message;
+  }
+}
+function openLog(instance, title) {
+  state.log = instance;
+  $('#log-title').textContent = title + ' (' + instance + ')';
+  $('#log-panel').hidden = false;
+  for (const row of $$('#modules tbody tr')) row.classList.toggle('chosen', row.dataset.instance === instance);
+  clearInterval(logTimer);
+  showLog();
+  logTimer = setInterval(showLog, 2000);
+}
+function closeLog() {
+  state.log = null; clearInterval(logTimer); $('#log-panel').hidden = true;
+  for (const row of $$('#modules tbody tr')) row.classList.remove('chosen');
 }
 
 function renderResources(data) {
@@ -381,6 +425,7 @@ document.addEventListener('DOMContentLoaded', () => {
       input.addEventListener(input.tagName === 'SELECT' ? 'change' : 'input', () => { clearTimeout(timer); timer = setTimeout(apply, 200); });
     }
   }
+  $('#log-close').onclick = closeLog;
   $('#map-deployment').onchange = schedule;
   let mapTimer = null;
   $('#map-q').oninput = () => { clearTimeout(mapTimer); mapTimer = setTimeout(schedule, 300); };

@@ -54,6 +54,7 @@ TLS_DIR = "/etc/kuberos/dashboard-tls"
 FLEET_RULES = [
     {"apiGroups": [""], "resources": ["configmaps"], "verbs": ["get", "create", "patch"]},
     {"apiGroups": [""], "resources": ["pods"], "verbs": ["delete"]},
+    {"apiGroups": [""], "resources": ["pods/log"], "verbs": ["get"]},  # the dashboard's last lines of each instance
     {"apiGroups": [""], "resources": ["events"], "verbs": ["create"]},
     # patch: re-pinning; create and delete: instances added and removed by scaling (docs/scaling.md)
     {"apiGroups": ["apps"], "resources": ["deployments"], "verbs": ["create", "patch", "delete"]},

@@ -13,6 +13,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.module_logs import (
     instance_for,
     labelled,
+    newest_pod,
     redact,
     robots_of,
     secret_refs,
@@ -51,11 +52,10 @@ def find_pod(kube: Kube, deployment: str, module: str, robot: str, fleet: str = 
         served = robots_of(found, deployment, module)
         raise LogNotFound(f"module {module} of {deployment} runs for no robot {robot}; it runs for: {', '.join(served)}")
     name = instance["metadata"]["name"]
-    pods = kube.list("Pod", namespace, selector=f"{labels.INSTANCE}={name}")
-    pods = [p for p in pods if not p["metadata"].get("deletionTimestamp")]
-    if not pods:
+    pod = newest_pod(kube.list("Pod", namespace, selector=f"{labels.INSTANCE}={name}"))
+    if pod is None:
         raise LogNotFound(f"{robot}/{module} ({name}) has no pod yet")
-    return instance, max(pods, key=lambda p: p["metadata"].get("creationTimestamp", ""))
+    return instance, pod
 
 
 def secrets_of(kube: Kube, pod: dict) -> dict[str, str]:
