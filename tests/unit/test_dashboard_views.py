@@ -482,3 +482,39 @@ def test_with_a_certificate_it_serves_https_only(deployed, tmp_path):
     finally:
         controller.stop_event.set()
         dashboard.stop()
+
+
+class LogKube:
+    """The two reads the dashboard's log panel makes: the instance's pods, and a container's log."""
+
+    def __init__(self, volumes=()):
+        self.volumes, self.asked = list(volumes), []
+
+    def list(self, kind, namespace, selector=""):
+        assert kind == "Pod" and selector.startswith("kuberos.io/instance=")
+        instance = selector.split("=", 1)[1]
+        spec = {"nodeName": "edge-1", "containers": [{"name": "main"}, {"name": "side"}], "volumes": self.volumes}
+        return [{"metadata": {"name": f"{instance}-abc", "creationTimestamp": "2026-11-28T10:00:00Z"}, "spec": spec}]
+
+    def log(self, pod, namespace, container="", tail_lines=None):
+        self.asked.append((pod, namespace, container, tail_lines))
+        return f"{container} says hello\nAuthorization: Bearer abcdefghijklmnop\n"
+
+
+def test_the_log_panel_reads_an_instances_last_lines_labelled_and_never_a_secret(served):
+    controller, dashboard, base = served
+    wait_for_view(dashboard)
+    row = json.loads(fetch(base + "/api/modules")[2])["rows"][0]
+    controller.kube = LogKube()
+    status, headers, body = fetch(f"{base}/api/logs?instance={row['instance']}&lines=5")
+    assert status == 200 and headers["X-Content-Type-Options"] == "nosniff"
+    found = json.loads(body)
+    assert found["lines"] == ["[main] main says hello", "[main] Authorization: Bearer [redacted: token]",
+                              "[side] side says hello", "[side] Authorization: Bearer [redacted: token]"]  # fmt: skip
+    assert found["robot"] == row["robot"] and found["node"] == "edge-1"
+    assert controller.kube.asked[0] == (f"{row['instance']}-abc", row["namespace"], "main", 5)
+    controller.kube = LogKube(volumes=[{"name": "tls", "secret": {"secretName": "bridge-tls"}}])
+    refused = json.loads(fetch(f"{base}/api/logs?instance={row['instance']}")[2])
+    assert "can read Secret bridge-tls" in refused["refused"] and "lines" not in refused and not controller.kube.asked
+    assert fetch(f"{base}/api/logs?instance=nothing-here")[0] == 404
+    assert fetch(f"{base}/api/logs?instance={row['instance']}&lines=many")[0] == 400
