@@ -181,6 +181,14 @@ files:
   description: The files of the render directory C(created), C(updated) and C(removed).
   returned: when state is present
   type: dict
+left_out:
+  description: Per production deployment, the robots it left out because the robot pool holds them, and why.
+  returned: when state is present
+  type: dict
+graph:
+  description: Per deployment whose modules declare topics, the live graph check's verdict (C(ok), C(problems), C(seconds)).
+  returned: when the graph check ran
+  type: dict
 timings:
   description: Seconds each step took (validate, read the cluster, place, render, read the objects, dry run, apply, ...).
   returned: always

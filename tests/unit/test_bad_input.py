@@ -172,7 +172,7 @@ SPEC_CASES = [
         "unknown-metadata-targetFleet-typo",
         BASE.replace("targetFleet:", "targetFlet:"),
         "metadata.targetFlet",
-        ["unknown field; did you mean 'targetFleet'?", "allowed here: labels, name, robotSelector, targetFleet"],
+        ["unknown field; did you mean 'targetFleet'?", "allowed here: developer, labels, name, robotSelector, targetFleet"],
         3,
     ),
     case(

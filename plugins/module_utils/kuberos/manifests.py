@@ -22,6 +22,7 @@ from .labels import (
     CLUSTER_ANNOTATION,
     COMPONENT,
     DEPLOYMENT,
+    DEVELOPER_ANNOTATION,
     DISCOVERY_ID,
     INSTANCE,
     MANAGED_BY,
@@ -737,6 +738,7 @@ def _module_deployment(
                 ROBOTS_ANNOTATION: ",".join(inst.robots),
                 TIER_ANNOTATION: inst.tier,
                 REASON_ANNOTATION: inst.reason,
+                **({DEVELOPER_ANNOTATION: dep.developer} if dep.developer else {}),
             },
         },
         "spec": {

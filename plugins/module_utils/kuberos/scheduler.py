@@ -16,7 +16,7 @@ account of why each candidate was rejected.
 
 from __future__ import annotations
 
-from . import naming
+from . import naming, pool
 from .catalog import catalog_problems_against_inventory
 from .errors import PlacementError, Problem, SpecError, did_you_mean
 from .inventory import Inventory, Node
@@ -571,14 +571,22 @@ def place_modules(
     allocated: dict | None = None,
     unavailable: dict[str, str] | None = None,
     previous: Placement | None = None,
+    reserved: dict | None = None,
 ) -> Placement:
     """Place every module instance of every deployment; see the module docstring. Nodes in ``unavailable``
     (node name -> why, e.g. NotReady in the cluster) take nothing; the reason shows in a failure's account.
+
+    ``reserved`` (robot -> ``pool.Reservation``, the ones that hold now): production deployments leave those robots
+    out (each deployment's ``left_out`` says why); a development deployment's robots must be its developer's. None
+    (a render without a cluster): the pool is not known and not checked.
 
     ``previous`` is what runs now (the deployments' records and the fleets' live discovery servers): what still
     fits where it runs stays there (see ``_keep_previous``), and a fleet's discovery servers are the fleet's, kept
     on their nodes and never fewer than run now. ``allocated`` must then leave out what ``previous`` holds."""
     problems = check_against_inventory(deployments, inventory)
+    if reserved is not None:  # the pool is known (a render without a cluster knows none)
+        problems += pool.development_problems(deployments, reserved)
+    reserved = reserved or {}
     running = {f: s[0].port for f, s in (previous.discovery.items() if previous else ()) if s}
     for dep in deployments:
         if dep.fleet in running and dep.discovery_port != running[dep.fleet]:
@@ -592,13 +600,15 @@ def place_modules(
                 )
             )
     if problems:
-        raise SpecError(problems, title="the RosDeployment does not match the inventory")
+        raise SpecError(problems, title="the RosDeployment does not match the inventory or the robot pool")
     scheduler = Scheduler(inventory, allocated, unavailable)
     placement = Placement()
     fleets: dict[str, list[RosDeployment]] = {}
     for dep in deployments:
         fleets.setdefault(dep.fleet, []).append(dep)
     targets = {dep.name: (tuple(sorted(dep.robots)) if dep.robots else inventory.fleets[dep.fleet]) for dep in deployments}
+    left_out = {dep.name: pool.left_out(dep, targets[dep.name], reserved) for dep in deployments}
+    targets = {name: tuple(r for r in robots if r not in left_out[name]) for name, robots in targets.items()}
     kept_servers = {fleet: _kept_discovery(scheduler, previous, fleet) for fleet in sorted(fleets)}
     if previous is not None:
         _keep_previous(scheduler, deployments, targets, previous)
@@ -622,6 +632,8 @@ def place_modules(
                 "namespace": naming.fleet_namespace(dep.fleet),
                 "robots": list(robots),
                 "source": dep.source,
+                **({"left_out": left_out[dep.name]} if left_out[dep.name] else {}),
+                **({"developer": dep.developer} if dep.developer else {}),
             }
         )
         for module in dep.modules:

@@ -39,6 +39,7 @@ MAP_NAME = r"^[a-z0-9]([-a-z0-9_.]*[a-z0-9])?$"
 LAUNCH_ARGUMENT = r"^[A-Za-z_][A-Za-z0-9_.-]*$"
 ABSOLUTE_PATH = r"^/[^\x00]*$"
 # A catalog module: its name, then optionally '@' and a version range (docs/software.md).
+DEVELOPER = r"^[A-Za-z0-9]([-A-Za-z0-9_.@]*[A-Za-z0-9])?$"  # who holds robots of the pool: 'alice', 'alice@example.com'
 MODULE_REF = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(@.*\S.*)?$"
 
 _ONE_OR_MORE_STRINGS = {
@@ -439,6 +440,17 @@ SCHEMA = {
                     "maxLength": 63,
                     "description": "The fleet (from the inventory) whose robots this deployment serves.",
                     "x-expected": "the name of a fleet in the inventory (lowercase letters, digits, '-' and '.')",
+                },
+                "developer": {
+                    "type": "string",
+                    "pattern": DEVELOPER,
+                    "maxLength": 63,
+                    "description": (
+                        "A development deployment: the developer who holds its robots in the robot pool "
+                        "(playbooks/pool.yml). It runs only on the robots of robotSelector, each reserved by this "
+                        "developer; production deployments leave reserved robots out."
+                    ),
+                    "x-expected": "the name the robots were reserved with, such as 'alice'",
                 },
                 "robotSelector": {
                     "type": "object",

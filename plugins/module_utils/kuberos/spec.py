@@ -384,6 +384,19 @@ def _metadata_problems(doc: Document, broken: set[str]) -> list[Problem]:
         why = naming.reserved_name_problem(name)
         if why:
             problems.append(_problem(doc, ("metadata", "name"), why))
+    if (
+        metadata.get("developer")
+        and "metadata.developer" not in broken
+        and not (metadata.get("robotSelector") or {}).get("robot")
+    ):
+        problems.append(
+            _problem(
+                doc,
+                ("metadata", "developer"),
+                "needs metadata.robotSelector.robot: the robots the developer holds in "
+                "the robot pool, which this development deployment runs on",
+            )
+        )
     labels = metadata.get("labels")
     for key in labels if isinstance(labels, dict) else ():
         why = label_key_problem(key)
@@ -472,6 +485,7 @@ def _parse_document(doc: Document, catalog: Catalog | None = None, read_file=Non
         discovery_port=int(discovery.get("port", 11811)),
         robot_servers=bool(discovery.get("robotServers", True)),
         labels=tuple(sorted((metadata.get("labels") or {}).items())),
+        developer=metadata.get("developer", ""),
         source=doc.source,
         lines={format_path(k): v for k, v in doc.lines.items()},
         rmw=data.get("rmw", "fastdds"),

@@ -191,6 +191,7 @@ class RosDeployment:
     discovery_port: int = 11811
     robot_servers: bool = True  # a discovery server on each robot computer that runs its onboard modules
     labels: tuple[tuple[str, str], ...] = ()
+    developer: str = ""  # a development deployment: it runs on robots this developer holds in the pool
     source: str = "<spec>"
     lines: dict = field(default_factory=dict, compare=False, repr=False)
     rmw: str = "fastdds"  # fastdds | cyclonedds

@@ -9,11 +9,13 @@ kind and namespace), dry-run once and, only when the dry run says the cluster wo
 
 from __future__ import annotations
 
+import datetime
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import naming, pod_security
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pool as robot_pool
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.applied import applied_of, owns, unchanged
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.batch import is_batch_document
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.catalog import load_catalog
@@ -208,8 +210,10 @@ class DeployPass:
                 result["diff"] = self.rendered["plan"].diff()
         else:
             result = self._apply()
+        left_out = {d["name"]: d["left_out"] for d in self.placement.deployments if d.get("left_out")}
         return {
             **result,
+            "left_out": left_out,
             "notes": [note for dep in self.deployments for note in dep.notes],
             "placement": self.placement.to_dict(),
             "dest": self.rendered["dest"],
@@ -327,6 +331,7 @@ class DeployPass:
             entry["pods"] = int(entry["pods"]) + int(extra.get("pods", 0))
         self.allocated = allocated
         self._check_names(self.local)
+        self.cluster_read = True
         self._lap("read the cluster")
 
     def pin_images(self) -> None:
@@ -343,6 +348,15 @@ class DeployPass:
         self.params = {**self.params, "image_digests": digests}
         self._lap("pin images")
 
+    def reservations(self) -> dict:
+        """The robot pool's reservations that hold now, from the fleets' objects read (robot -> Reservation); None
+        when no cluster was read (a render only)."""
+        if not getattr(self, "cluster_read", False):
+            return None
+        found = [robot_pool.reservation_of(obj) for (kind, _ns, _name), obj in self.local.live.items()
+                 if kind == "ConfigMap" and (obj["metadata"].get("labels") or {}).get(robot_pool.LABEL) == "true"]  # fmt: skip
+        return robot_pool.held([r for r in found if r is not None], datetime.datetime.now(datetime.UTC))
+
     def place(self) -> None:
         previous = self.previous if (self.previous.get("instances") or self.previous.get("discovery")) else None
         self.placement = place_modules(
@@ -351,6 +365,7 @@ class DeployPass:
             self.allocated,
             self.unavailable,
             Placement.from_dict(previous) if previous else None,
+            reserved=self.reservations(),
         )
         self._lap("place")
 

@@ -10,6 +10,7 @@ previous objects back, and the objects created for the rollout are removed.
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
 import subprocess
@@ -551,6 +552,16 @@ def _target(clients, params: dict, namespace_of):
     return dep, text, params["src"], used, "rollout"
 
 
+def _reserved(clients, fleet: str) -> dict:
+    """The robot pool's reservations of ``fleet`` that hold now (robot -> Reservation)."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pool as robot_pool
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+
+    found = Kube(clients).list("ConfigMap", fleet_namespace(fleet), selector=f"{robot_pool.LABEL}=true")
+    now = datetime.datetime.now(datetime.UTC)
+    return robot_pool.held([r for r in map(robot_pool.reservation_of, found) if r is not None], now)
+
+
 def _graph_check(clients, params: dict, dep, namespace: str, field_manager: str, progress):
     """The gate's live graph check of ``dep`` (robots -> Verdict), or None when it declares no topics or is told not to."""
     if not params.get("graph_check", True) or not declares_topics(dep):
@@ -591,7 +602,11 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     inventory = load_inventory(params["inventory"])
     allocated = cluster_state.node_allocations(clients, [dep.name], [dep.fleet])
     unavailable = cluster_state.unavailable_nodes(clients, list(inventory.nodes))
-    placement = place_modules([dep], inventory, allocated, unavailable, record.placement)
+    reserved = _reserved(clients, dep.fleet)
+    placement = place_modules([dep], inventory, allocated, unavailable, record.placement, reserved=reserved)
+    left_out = placement.deployments[0].get("left_out") or {}
+    if left_out:
+        progress("left out, reserved in the robot pool: " + "; ".join(f"{r} ({why})" for r, why in sorted(left_out.items())))
     options = pinned_options(clients, params, dep, namespace, bool(placement.bridges))
     # What runs: the record's state, except the modules of robots an earlier rollout left pending while they were
     # offline (they still run the older image); robots offline now are left pending in turn.
@@ -619,6 +634,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
         "plan": plan.to_dict(),
         "per_robot": plan.per_robot(),
         "pending_robots": list(plan.pending_robots),
+        "left_out": left_out,
         "changed": plan.changed or revision != record.revision,
     }
     if plan.pending_robots:
