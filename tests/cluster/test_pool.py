@@ -1,0 +1,120 @@
+"""The robot pool against the real local control plane (kwok nodes), through the playbooks a developer runs.
+
+alice reserves fetch-2 (playbooks/pool.yml, check mode first); the production deployment's next deploy leaves
+fetch-2 out and stops what it ran there, while fetch-1's objects and the fleet's discovery servers are not touched
+(same resourceVersions); alice's development deployment runs on fetch-2, bob's is refused, and bob cannot take or
+release alice's robot; alice gives fetch-2 back and the production deployment's next deploy returns to it, fetch-1
+still untouched.
+"""
+
+from __future__ import annotations
+
+import pytest
+from helpers import playbook
+
+pytestmark = pytest.mark.cluster
+
+PRODUCTION = """\
+apiVersion: kuberos.io/v1alpha1
+kind: RosDeployment
+metadata: {name: pool-app, targetFleet: test-fleet}
+rosModules:
+- name: driver
+  image: reg/driver:1
+  launch: drive
+  requirements: {onboard: true}
+  resources: {cpu: 50m, memory: 64Mi}
+- name: planner
+  image: reg/planner:1
+  launch: plan
+  preference: edge
+  resources: {cpu: 50m, memory: 64Mi}
+"""
+DEVELOPMENT = PRODUCTION.replace(
+    "metadata: {name: pool-app, targetFleet: test-fleet}",
+    "metadata: {name: pool-dev, targetFleet: test-fleet, developer: DEV, robotSelector: {robot: [fetch-2]}}",
+)
+
+
+def _versions(apps, core, namespace, names):
+    objects = [*apps.list_namespaced_deployment(namespace).items, *core.list_namespaced_service(namespace).items]
+    return {
+        (o.kind or type(o).__name__, o.metadata.name): o.metadata.resource_version for o in objects if o.metadata.name in names
+    }
+
+
+def test_a_reserved_robot_is_left_out_of_production_given_to_its_developer_and_given_back(cluster, tmp_path):
+    core, apps, _ = cluster.clients()
+    namespace = "kuberos-test-fleet"
+    production, development = tmp_path / "pool-app.yml", tmp_path / "pool-dev.yml"
+    production.write_text(PRODUCTION, encoding="utf-8")
+
+    def pool(*extra):
+        return playbook("pool.yml", "-e", f"kuberos_kubeconfig={cluster.kubeconfig}", *extra, timeout=300)
+
+    def instances(deployment):
+        found = apps.list_namespaced_deployment(namespace, label_selector=f"kuberos.io/deployment={deployment}").items
+        return sorted(d.metadata.name for d in found if d.metadata.labels.get("kuberos.io/component") == "ros-module")
+
+    first = cluster.deploy(production, tmp_path / "render")
+    assert first.returncode == 0, first.stdout[-5000:]
+    assert instances("pool-app") == ["pool-app-driver-fetch-1", "pool-app-driver-fetch-2", "pool-app-planner-fetch-1",
+                                     "pool-app-planner-fetch-2"]  # fmt: skip
+    untouched = ["pool-app-driver-fetch-1", "pool-app-planner-fetch-1", "kuberos-robot-discovery-pool-app-fetch-1",
+                 "kuberos-discovery-0", "kuberos-discovery-1"]  # fmt: skip
+    before = _versions(apps, core, namespace, untouched)
+    assert sorted({name for _kind, name in before}) == sorted(untouched) and len(before) == 7, before
+    try:
+        checked = pool(
+            "-e", "robot=fetch-2", "-e", "owner=alice", "-e", "reason=grasp tests", "-e", "until=2h", "--check", "--diff"
+        )
+        assert checked.returncode == 0 and checked.changed == 1, checked.stdout[-3000:]
+        assert "+owner: alice" in checked.stdout and "no robot is reserved" in checked.stdout, checked.stdout[-3000:]
+        reserved = pool("-e", "robot=fetch-2", "-e", "owner=alice", "-e", "reason=grasp tests", "-e", "until=2h")
+        assert reserved.returncode == 0 and reserved.changed == 1, reserved.stdout[-3000:]
+        assert "fetch-2 (fleet test-fleet) is reserved by alice until" in reserved.stdout
+        assert "still running for production: pool-app (their next deploy stops it there)" in reserved.stdout
+        assert "fetch-2 (test-fleet): alice until" in reserved.stdout and ": grasp tests" in reserved.stdout
+        again = pool("-e", "robot=fetch-2", "-e", "owner=alice", "-e", "reason=grasp tests", "-e", "until=2h")
+        assert again.returncode == 0, again.stdout[-3000:]
+        taken = pool("-e", "robot=fetch-2", "-e", "owner=bob")
+        assert taken.returncode != 0 and "robot fetch-2 is reserved by alice until" in taken.stdout, taken.stdout[-3000:]
+        assert "ask alice to release it, or wait" in taken.stdout
+
+        left = cluster.deploy(production, tmp_path / "render")
+        assert left.returncode == 0, left.stdout[-5000:]
+        assert "pool-app leaves out 1 reserved robot(s): fetch-2 (reserved by alice until" in left.stdout, left.stdout[-4000:]
+        assert instances("pool-app") == ["pool-app-driver-fetch-1", "pool-app-planner-fetch-1"]
+        assert _versions(apps, core, namespace, untouched) == before, "fetch-1 and the fleet's servers did not move"
+
+        development.write_text(DEVELOPMENT.replace("DEV", "bob"), encoding="utf-8")
+        refused = cluster.deploy(development, tmp_path / "render-dev")
+        assert refused.returncode != 0
+        assert "robot fetch-2 is reserved by alice until" in refused.stdout, refused.stdout[-4000:]
+        assert "the development deployment of bob runs only on robots bob holds" in refused.stdout
+        assert instances("pool-dev") == [], "nothing applied"
+        development.write_text(DEVELOPMENT.replace("DEV", "alice"), encoding="utf-8")
+        dev = cluster.deploy(development, tmp_path / "render-dev")
+        assert dev.returncode == 0, dev.stdout[-5000:]
+        assert instances("pool-dev") == ["pool-dev-driver-fetch-2", "pool-dev-planner-fetch-2"]
+        assert _versions(apps, core, namespace, untouched) == before
+
+        stolen = pool("-e", "robot=fetch-2", "-e", "owner=bob", "-e", "state=absent")
+        assert stolen.returncode != 0 and "only alice releases it (or force: true)" in stolen.stdout, stolen.stdout[-3000:]
+        assert cluster.undeploy(development).returncode == 0
+        released = pool("-e", "robot=fetch-2", "-e", "owner=alice", "-e", "state=absent")
+        assert released.returncode == 0 and released.changed == 1, released.stdout[-3000:]
+        assert "the fleet's deployments return to it on their next pass" in released.stdout
+        assert "no robot is reserved" in released.stdout
+
+        back = cluster.deploy(production, tmp_path / "render")
+        assert back.returncode == 0, back.stdout[-5000:]
+        assert "leaves out" not in back.stdout
+        assert instances("pool-app") == ["pool-app-driver-fetch-1", "pool-app-driver-fetch-2", "pool-app-planner-fetch-1",
+                                         "pool-app-planner-fetch-2"]  # fmt: skip
+        assert _versions(apps, core, namespace, untouched) == before, "given back: fetch-1 still untouched"
+    finally:
+        pool("-e", "robot=fetch-2", "-e", "owner=alice", "-e", "state=absent", "-e", "force=true")
+        if development.exists():
+            cluster.undeploy(development)
+        cluster.undeploy(production)
