@@ -23,6 +23,7 @@ import threading
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pool as robot_pool
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.placement_map import render_placement_svg
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import CATALOG_LABEL, STATUS_LABEL, parse_record
@@ -98,6 +99,7 @@ class Dashboard:
                 Store("statuses", configmaps, quiet, label_selector=f"{STATUS_LABEL}=true"),
                 Store("catalogs", configmaps, quiet, label_selector=f"{CATALOG_LABEL}=true"),
                 Store("events", events, quiet, field_selector=f"source={EVENT_SOURCE}"),
+                Store("reservations", configmaps, quiet, label_selector=f"{robot_pool.LABEL}=true"),
             )
         self.loop: asyncio.AbstractEventLoop | None = None
         self.thread: threading.Thread | None = None
@@ -179,6 +181,7 @@ class Dashboard:
             statuses=self.extra[0].snapshot() if self.extra else [],
             catalogs=self.extra[1].snapshot() if self.extra else [],
             events=self.extra[2].snapshot() if self.extra else [],
+            reservations=self.extra[3].snapshot() if self.extra else [],
             node_log=list(self.node_log),
             leader=self._holder(),
             controller={"identity": c.identity, "leading": bool(c.leading), "passes": c.passes, "moves": c.moves},

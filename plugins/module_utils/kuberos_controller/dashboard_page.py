@@ -330,6 +330,8 @@ function renderFleets(data) {
         el('td', { text: `${s.name} (id ${s.id})` }), el('td', { class: 'node', text: s.node }), el('td', { text: s.tier }),
         el('td', { text: String(s.port) }), el('td', null, phase(s.phase)))))),
     f.bridges.length ? el('p', { text: 'Bridges: ' + f.bridges.map(b => `${b.name} → ${b.cluster} on ${b.node}:${b.port}`).join(', ') }) : null,
+    (f.reservations || []).length ? el('p', { class: 'reserved', text: 'Reserved in the robot pool (production leaves them out): ' +
+      f.reservations.map(r => `${r.robot} by ${r.owner} until ${r.until}${r.active ? '' : ' (ended)'}${r.reason ? ': ' + r.reason : ''}`).join('; ') }) : null,
     el('details', null, el('summary', { text: 'robots' }), el('p', { class: 'muted', text: f.robots.join(', ') }))));
   $('#fleets').replaceChildren(...cards);
 }

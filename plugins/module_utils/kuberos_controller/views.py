@@ -17,10 +17,13 @@ from the pods, last moves and strandings from the status ConfigMaps.
 
 from __future__ import annotations
 
+import datetime
 import json
+import time
 from dataclasses import dataclass, field
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels as node_labels
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pool as robot_pool
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import quantities
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import INSTANCE
@@ -115,6 +118,7 @@ class Snapshot:
     statuses: list[dict] = field(default_factory=list)
     catalogs: list[dict] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
+    reservations: list[dict] = field(default_factory=list)  # the robot pool's ConfigMaps
     node_log: list[dict] = field(default_factory=list)  # node Ready transitions this process saw
     leader: str = ""
     controller: dict = field(default_factory=dict)  # passes, moves, identity, leading
@@ -281,8 +285,21 @@ def _module_rows(record: Record, view: ClusterView, images: dict[str, str], stat
     return modules
 
 
-def _fleet_rows(snapshot: Snapshot, usable: list[Record], view: ClusterView, nodes: dict[str, dict]) -> list[dict]:
+def _reservations(snapshot: Snapshot, built_at: float) -> dict[str, list[dict]]:
+    """The robot pool's reservations by fleet, each with ``active`` (false once its time has passed)."""
+    now = datetime.datetime.fromtimestamp(built_at or time.time(), datetime.UTC)
+    found: dict[str, list[dict]] = {}
+    for reservation in filter(None, map(robot_pool.reservation_of, snapshot.reservations)):
+        found.setdefault(reservation.fleet, []).append(reservation.to_dict(now))
+    return {fleet: sorted(rows, key=lambda r: r["robot"]) for fleet, rows in found.items()}
+
+
+def _fleet_rows(snapshot: Snapshot, usable: list[Record], view: ClusterView, nodes: dict[str, dict],
+                built_at: float = 0.0) -> list[dict]:  # fmt: skip
     fleets: dict[str, dict] = {}
+    reservations = _reservations(snapshot, built_at)
+    for fleet in reservations:
+        fleets.setdefault(fleet, {"fleet": fleet, "robots": set(), "nodes": set()})
     for row in nodes.values():
         if row["fleet"]:
             entry = fleets.setdefault(row["fleet"], {"fleet": row["fleet"], "robots": set(), "nodes": set()})
@@ -339,6 +356,7 @@ def _fleet_rows(snapshot: Snapshot, usable: list[Record], view: ClusterView, nod
                 "deployments": sorted(entry.get("deployments", ())),
                 "discovery": sorted((s for s in servers.values() if s["fleet"] == name), key=lambda s: s["id"]),
                 "bridges": sorted((b for b in bridges.values() if b["fleet"] == name), key=lambda b: b["name"]),
+                "reservations": reservations.get(name, []),
             }
         )
     return rows
@@ -521,7 +539,7 @@ def build_view(snapshot: Snapshot, generation: int = 0, built_at: float = 0.0) -
         summary=summary,
         resources=resources,
         modules=modules,
-        fleets=_fleet_rows(snapshot, usable, view, by_name),
+        fleets=_fleet_rows(snapshot, usable, view, by_name, built_at),
         software=_software(snapshot, usable, modules, started),
         events=_events(snapshot, usable, resources),
         placements=placements,
