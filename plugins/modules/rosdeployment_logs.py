@@ -14,7 +14,7 @@ description:
     serves the robot) and returns the last O(lines) lines of each of its containers; with several containers each
     line starts with C([container]).
   - With O(follow), keeps reading what the module prints for that many seconds before returning (an Ansible task
-    returns once: follow is a window, not a stream).
+    returns once, so follow is a window and not a stream).
   - The values of the Secrets the pod's containers can read (environment and volumes) never appear in the lines, nor
     what looks like a private key or a bearer token; a Secret that cannot be read fails the task rather than show
     its values.

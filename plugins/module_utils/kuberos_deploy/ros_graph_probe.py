@@ -129,7 +129,7 @@ def _wait_present(rclpy, node, wanted: list[str], timeout: float) -> int:
     return 1
 
 
-def read_topics(path: str | None, environ=os.environ) -> list[Expectation]:
+def read_topics(path: str | None, environ=None) -> list[Expectation]:
     """The declared topics to check: JSON (a list of ``Expectation.to_dict()``) from ``path`` or KUBEROS_TOPICS."""
     if path:
         try:
@@ -139,7 +139,7 @@ def read_topics(path: str | None, environ=os.environ) -> list[Expectation]:
             raise ValueError(f"cannot read {path}: {exc.strerror}") from None
         where = path
     else:
-        text, where = environ.get("KUBEROS_TOPICS", ""), "KUBEROS_TOPICS"
+        text, where = (os.environ if environ is None else environ).get("KUBEROS_TOPICS", ""), "KUBEROS_TOPICS"
     if not text.strip():
         raise ValueError(f"{where} is empty; expected the declared topics as JSON")
     if len(text) > MAX_TOPICS_TEXT:
