@@ -518,3 +518,33 @@ def test_the_log_panel_reads_an_instances_last_lines_labelled_and_never_a_secret
     assert "can read Secret bridge-tls" in refused["refused"] and "lines" not in refused and not controller.kube.asked
     assert fetch(f"{base}/api/logs?instance=nothing-here")[0] == 404
     assert fetch(f"{base}/api/logs?instance={row['instance']}&lines=many")[0] == 400
+
+
+def test_the_ros_graph_view_shows_each_robots_last_check_and_a_reservation_shows_in_its_fleet(served):
+    import dataclasses
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.views import Snapshot, build_view
+
+    topic = {"name": "/fetch_1/a", "type": "t", "publishers": [], "subscribers": ["/fetch_1/b"], "rate": None}
+    graph = {"deployment": "pnp", "robots": {
+        "fetch-1": {"at": "2026-11-28T10:00:00Z", "ok": False, "problems": ["/fetch_1/a: nobody publishes it"],
+                    "topics": [topic]},
+        "fetch-2": {"at": "2026-11-28T10:00:00Z", "ok": True, "problems": [], "topics": []},
+    }}  # fmt: skip
+    configmap = {"metadata": {"name": "kuberos-graph-pnp", "namespace": "kuberos-f"}, "data": {"graph.json": json.dumps(graph)}}
+    broken = {"metadata": {"name": "kuberos-graph-x", "namespace": "kuberos-f"}, "data": {"graph.json": "{"}}
+    reservation = {"metadata": {"name": "kuberos-reservation-fetch-2"}, "data": {
+        "robot": "fetch-2", "fleet": "f", "owner": "alice", "reason": "tests", "until": "2099-01-01T00:00:00Z",
+        "since": "2026-11-28T10:00:00Z"}}  # fmt: skip
+    view = build_view(Snapshot(nodes=[], pods=[], records=[], graphs=[configmap, broken], reservations=[reservation]))
+    assert view.graphs == {"kuberos-f/pnp": graph["robots"]}
+    (fleet,) = view.fleets
+    assert fleet["fleet"] == "f" and fleet["reservations"][0]["owner"] == "alice" and fleet["reservations"][0]["active"]
+
+    _controller, dashboard, base = served
+    wait_for_view(dashboard)
+    dashboard.view = dataclasses.replace(dashboard.view, graphs=view.graphs)
+    found = json.loads(fetch(base + "/api/graph?q=1")[2])
+    assert found["deployment"] == "kuberos-f/pnp" and found["total"] == 2 and list(found["robots"]) == ["fetch-1"]
+    assert found["robots"]["fetch-1"]["problems"] == ["/fetch_1/a: nobody publishes it"]
+    assert b"renderGraph" in fetch(base + "/static/app.js")[2] and b'data-tab="graph"' in fetch(base + "/")[2]

@@ -75,6 +75,8 @@ class FakeKube:
     def __init__(self, deployments, exit_code, log, waiting=None):
         self.deployments, self.exit_code, self.log_text, self.waiting = deployments, exit_code, log, waiting
         self.created, self.deleted = [], []
+        record = {"metadata": {"name": "kuberos-record-pick-and-place", "uid": "u-1"}}
+        self.configmaps = {"kuberos-record-pick-and-place": record}
 
     def list(self, kind, namespace, selector=""):
         assert (kind, selector) == ("Deployment", "kuberos.io/deployment=pick-and-place")
@@ -85,8 +87,14 @@ class FakeKube:
         return obj
 
     def get(self, kind, name, namespace):
+        if kind == "ConfigMap":
+            return self.configmaps.get(name)
         state = {"waiting": self.waiting} if self.waiting else {"terminated": {"exitCode": self.exit_code}}
         return {"status": {"containerStatuses": [{"state": state}]}}
+
+    def apply(self, obj):
+        self.configmaps[obj["metadata"]["name"]] = obj
+        return obj
 
     def log(self, name, namespace, container=""):
         return self.log_text
@@ -98,9 +106,19 @@ class FakeKube:
 
 def test_a_check_creates_its_pod_reads_its_verdict_and_always_deletes_it(local_inventory):
     dep, deployments = _example(local_inventory)
-    kube = FakeKube(deployments, 1, '{"topics": [], "problems": ["/fetch_1/execute: nobody publishes it"]}\n')
+    topic = {"name": "/fetch_1/execute", "robot": "fetch-1", "type": "t", "publishers": [], "rate": None,
+             "subscribers": [{"node": "/fetch_1/controller"}]}  # fmt: skip
+    report = {"topics": [topic], "problems": ["/fetch_1/execute: nobody publishes it"]}
+    kube = FakeKube(deployments, 1, json.dumps(report) + "\n")
     verdict = GraphCheck(kube, "reg/bridge:1", timeout=5, window=1, poll=0.01).run(dep, "kuberos-test-fleet", ["fetch-1"])
     assert not verdict.ok and verdict.problems == ["/fetch_1/execute: nobody publishes it"]
+    kept = kube.configmaps["kuberos-graph-pick-and-place"]
+    assert kept["metadata"]["ownerReferences"][0]["uid"] == "u-1", "an undeploy removes it with the record"
+    assert kept["metadata"]["labels"]["kuberos.io/graph"] == "true" and "kuberos.io/deployment" not in kept["metadata"]["labels"]
+    graph = json.loads(kept["data"]["graph.json"])["robots"]["fetch-1"]
+    assert graph["ok"] is False and graph["problems"] == report["problems"]
+    assert graph["topics"] == [{"name": "/fetch_1/execute", "type": "t", "publishers": [], "subscribers": ["/fetch_1/controller"],
+                                "rate": None}]  # fmt: skip
     (pod,) = kube.created
     assert kube.deleted == [("Pod", pod["metadata"]["name"], "kuberos-test-fleet")]
     wanted = json.loads(next(e["value"] for e in pod["spec"]["containers"][0]["env"] if e["name"] == "KUBEROS_TOPICS"))

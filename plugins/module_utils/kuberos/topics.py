@@ -313,3 +313,27 @@ def live_problems(watched: list[tuple[str, Expectation, str]], observed: dict[st
         if why:
             lines.append(why)
     return lines
+
+
+def by_robot(topics: list[dict], problems: list[str], robots: list[str]) -> dict[str, dict]:
+    """A probe report split per robot (``''`` for the fleet-wide topics): each robot's topics (name, type, publishing
+    and subscribing nodes, rate) and the problem lines about its topics, ``ok`` when it has none."""
+    split: dict[str, dict] = {robot: {"ok": True, "topics": [], "problems": []} for robot in robots}
+    prefixes = {f"/{robot_ros_name(r)}/": r for r in robots}
+    for topic in topics:
+        entry = split.setdefault(topic.get("robot") or "", {"ok": True, "topics": [], "problems": []})
+        entry["topics"].append(
+            {
+                "name": topic.get("name", ""),
+                "type": topic.get("type", ""),
+                "publishers": sorted({p.get("node", "") for p in topic.get("publishers") or ()}),
+                "subscribers": sorted({p.get("node", "") for p in topic.get("subscribers") or ()}),
+                "rate": topic.get("rate"),
+            }
+        )
+    for line in problems:
+        robot = next((r for prefix, r in prefixes.items() if line.startswith(prefix)), "")
+        entry = split.setdefault(robot, {"ok": True, "topics": [], "problems": []})
+        entry["problems"].append(line)
+        entry["ok"] = False
+    return split

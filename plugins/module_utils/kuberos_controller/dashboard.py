@@ -100,6 +100,7 @@ class Dashboard:
                 Store("catalogs", configmaps, quiet, label_selector=f"{CATALOG_LABEL}=true"),
                 Store("events", events, quiet, field_selector=f"source={EVENT_SOURCE}"),
                 Store("reservations", configmaps, quiet, label_selector=f"{robot_pool.LABEL}=true"),
+                Store("graphs", configmaps, quiet, label_selector=f"{node_labels.GRAPH}=true"),
             )
         self.loop: asyncio.AbstractEventLoop | None = None
         self.thread: threading.Thread | None = None
@@ -182,6 +183,7 @@ class Dashboard:
             catalogs=self.extra[1].snapshot() if self.extra else [],
             events=self.extra[2].snapshot() if self.extra else [],
             reservations=self.extra[3].snapshot() if self.extra else [],
+            graphs=self.extra[4].snapshot() if self.extra else [],
             node_log=list(self.node_log),
             leader=self._holder(),
             controller={"identity": c.identity, "leading": bool(c.leading), "passes": c.passes, "moves": c.moves},
@@ -296,6 +298,7 @@ class Dashboard:
         app.router.add_get("/api/placement.svg", self.placement)
         app.router.add_get("/api/stream", self.stream)
         app.router.add_get("/api/logs", self.logs)
+        app.router.add_get("/api/graph", self.graph)
         for name in LISTS:
             app.router.add_get(f"/api/{name}", self.listing)
         return app
@@ -493,6 +496,23 @@ class Dashboard:
         except Exception as exc:  # the API server's refusal or an unreachable cluster: said, not raised
             found = {"instance": instance, "missing": f"the log could not be read: {exc.__class__.__name__}"}
         return self._json({**found, "robot": row.get("robot", ""), "module": row.get("module", "")})
+
+    async def graph(self, request):
+        """One deployment's ROS graph per robot, as its last check saw it (``?deployment=namespace/name``; ``q``:
+        the robots whose names contain it, at most ``robots``, default 12)."""
+        await self._fresh()
+        graphs = self.view.graphs
+        key = request.query.get("deployment", "") or next(iter(sorted(graphs)), "")
+        robots = graphs.get(key, {})
+        text = request.query.get("q", "").strip().lower()
+        try:
+            limit = max(1, min(int(request.query.get("robots", MAP_ROBOTS)), 200))
+        except ValueError:
+            limit = MAP_ROBOTS
+        chosen = sorted(r for r in robots if text in r.lower())
+        return self._json({"generation": self.view.generation, "deployment": key, "deployments": sorted(graphs),
+                           "robots": {r: robots[r] for r in chosen[:limit]}, "shown": min(len(chosen), limit),
+                           "total": len(robots)})  # fmt: skip
 
     async def stream(self, request):
         from aiohttp import web

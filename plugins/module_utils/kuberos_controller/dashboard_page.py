@@ -27,6 +27,7 @@ HTML = """<!doctype html>
     <button data-tab="software">Software</button>
     <button data-tab="events">Events</button>
     <button data-tab="map">Placement map</button>
+    <button data-tab="graph">ROS graph</button>
   </nav>
   <div id="live" title="updates arrive without reloading"><span class="dot"></span><span id="live-text">connecting</span></div>
 </header>
@@ -89,6 +90,14 @@ HTML = """<!doctype html>
     </div>
     <div id="map-frame"><img id="map" alt="placement map"></div>
   </section>
+  <section id="view-graph" class="view" hidden>
+    <div class="toolbar">
+      <select id="graph-deployment"></select>
+      <input type="search" id="graph-q" placeholder="robots whose name contains">
+      <span id="graph-note" class="muted"></span>
+    </div>
+    <div id="graph"></div>
+  </section>
 </main>
 </body>
 </html>
@@ -142,6 +151,9 @@ td.move { color: var(--muted); }
 #log-panel { margin-top: 10px; background: #fff; border: 1px solid var(--line); padding: 6px 10px; }
 #log-panel .toolbar { margin: 0 0 6px; } #log-close { margin-left: auto; }
 #log-lines { margin: 0; max-height: 40vh; overflow: auto; font: 12px/1.35 ui-monospace, monospace; white-space: pre-wrap; }
+.robot-graph { background: #fff; border: 1px solid var(--line); margin: 0 0 10px; padding: 6px 10px; }
+.robot-graph.bad { border-color: var(--bad); } .robot-graph h3 { margin: 2px 0 6px; font-size: 14px; }
+.robot-graph ul { color: var(--bad); margin: 4px 0; } td.unmatched { color: var(--bad); font-weight: 600; }
 #map-frame { background: #fff; border: 1px solid var(--line); overflow: auto; max-height: 80vh; }
 form.login { max-width: 520px; margin: 60px auto; background: #fff; padding: 20px; border: 1px solid var(--line); }
 form.login textarea { width: 100%; height: 120px; font-family: monospace; }
@@ -376,6 +388,30 @@ async function renderMap() {
   $('#map-note').textContent = options.length ? 'the robots whose names match, at most 12 (type to choose others)' : 'nothing deployed';
 }
 
+// The ROS graph per robot, as the deployment's last live check saw it (after a deploy, after each rollout wave).
+async function renderGraph() {
+  const params = new URLSearchParams({ deployment: $('#graph-deployment').value, q: $('#graph-q').value });
+  const data = await get('/api/graph?' + params.toString());
+  const select = $('#graph-deployment');
+  if (select.options.length !== data.deployments.length) {
+    select.replaceChildren(...data.deployments.map(d => el('option', { value: d, text: d })));
+    select.value = data.deployment;
+  }
+  $('#graph-note').textContent = data.deployments.length
+    ? `${data.shown} of ${data.total} robots (type to choose others)` : 'no deployment declares topics, or none was checked yet';
+  const endpoints = nodes => nodes.length ? nodes.join(', ') : 'none';
+  const cards = Object.entries(data.robots).map(([robot, g]) => el('div', { class: 'robot-graph' + (g.ok ? '' : ' bad'), 'data-robot': robot },
+    el('h3', { text: `${robot || 'fleet-wide topics'} · ${g.ok ? 'connected as declared' : 'NOT as declared'} · checked ${g.at}` }),
+    g.problems.length ? el('ul', null, ...g.problems.map(p => el('li', { text: p }))) : null,
+    el('table', null, el('thead', null, el('tr', null, ...['Topic', 'Type', 'Publishers', 'Subscribers', 'Rate'].map(t => el('th', { text: t })))),
+      el('tbody', null, ...g.topics.map(t => el('tr', null,
+        el('td', { text: t.name }), el('td', { text: t.type }),
+        el('td', { class: t.publishers.length ? '' : 'unmatched', text: endpoints(t.publishers) }),
+        el('td', { class: t.subscribers.length ? '' : 'unmatched', text: endpoints(t.subscribers) }),
+        el('td', { text: t.rate === null || t.rate === undefined ? '' : `${fmtNum(t.rate)} Hz` })))))));
+  $('#graph').replaceChildren(...cards);
+}
+
 async function refresh() {
   try {
     const s = await get('/api/summary');
@@ -386,6 +422,7 @@ async function refresh() {
     else if (state.tab === 'software') renderSoftware(await get('/api/software'));
     else if (state.tab === 'events') renderEvents(await get('/api/events?' + query('events')));
     else if (state.tab === 'map') await renderMap();
+    else if (state.tab === 'graph') await renderGraph();
     state.shown = s.generation;
     if (!document.body.dataset.firstPaintMs) document.body.dataset.firstPaintMs = String(Math.round(performance.now()));
     document.body.dataset.generation = String(s.generation);
@@ -429,6 +466,9 @@ document.addEventListener('DOMContentLoaded', () => {
   }
   $('#log-close').onclick = closeLog;
   $('#map-deployment').onchange = schedule;
+  $('#graph-deployment').onchange = schedule;
+  let graphTimer = null;
+  $('#graph-q').oninput = () => { clearTimeout(graphTimer); graphTimer = setTimeout(schedule, 300); };
   let mapTimer = null;
   $('#map-q').oninput = () => { clearTimeout(mapTimer); mapTimer = setTimeout(schedule, 300); };
   const fromHash = () => {

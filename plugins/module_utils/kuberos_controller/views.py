@@ -57,6 +57,7 @@ class View:
     events: list[dict] = field(default_factory=list)
     placements: dict[str, Placement] = field(default_factory=dict)  # "namespace/deployment" -> its placement
     max_latency: list[dict] = field(default_factory=list)  # per deployment and module that has one
+    graphs: dict[str, dict] = field(default_factory=dict)  # "namespace/deployment" -> {robot: its last graph check}
 
 
 def _ready(node: dict) -> tuple[bool, str, str]:
@@ -119,6 +120,7 @@ class Snapshot:
     catalogs: list[dict] = field(default_factory=list)
     events: list[dict] = field(default_factory=list)
     reservations: list[dict] = field(default_factory=list)  # the robot pool's ConfigMaps
+    graphs: list[dict] = field(default_factory=list)  # each deployment's last graph check, per robot
     node_log: list[dict] = field(default_factory=list)  # node Ready transitions this process saw
     leader: str = ""
     controller: dict = field(default_factory=dict)  # passes, moves, identity, leading
@@ -283,6 +285,21 @@ def _module_rows(record: Record, view: ClusterView, images: dict[str, str], stat
                 }
             )
     return modules
+
+
+def _graphs(snapshot: Snapshot) -> dict[str, dict]:
+    """Each deployment's last live graph check per robot (kuberos_deploy.graph_check writes them), by
+    "namespace/deployment"; a ConfigMap that cannot be read shows nothing."""
+    found = {}
+    for configmap in snapshot.graphs:
+        meta = configmap.get("metadata") or {}
+        try:
+            data = json.loads((configmap.get("data") or {}).get("graph.json", ""))
+        except ValueError:
+            continue
+        if isinstance(data, dict) and isinstance(data.get("robots"), dict):
+            found[f"{meta.get('namespace', '')}/{data.get('deployment', '')}"] = data["robots"]
+    return found
 
 
 def _reservations(snapshot: Snapshot, built_at: float) -> dict[str, list[dict]]:
@@ -543,6 +560,7 @@ def build_view(snapshot: Snapshot, generation: int = 0, built_at: float = 0.0) -
         software=_software(snapshot, usable, modules, started),
         events=_events(snapshot, usable, resources),
         placements=placements,
+        graphs=_graphs(snapshot),
         max_latency=limits,
     )
 

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import dns_label
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.topics import expectations
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import record_name
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.topics import by_robot, expectations
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, message
 
 PROBE_MODULE = "ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.ros_graph_probe"
@@ -52,6 +53,10 @@ class Verdict:
         if self.report:
             data["topics"] = len(self.report.get("topics") or [])
         return data
+
+
+def graph_configmap_name(deployment: str) -> str:
+    return dns_label("kuberos-graph", deployment)
 
 
 def declares_topics(dep) -> bool:
@@ -188,7 +193,9 @@ class GraphCheck:
             if exit_code is None:
                 return Verdict(False, [why], None, time.monotonic() - started)
             log = self.kube.log(name, namespace, container=CONTAINER)
-            return read_verdict(log, exit_code, time.monotonic() - started)
+            verdict = read_verdict(log, exit_code, time.monotonic() - started)
+            self.keep(dep, namespace, robots, verdict)
+            return verdict
         except Exception as exc:  # the API server's refusal or an unreachable cluster: the check did not run
             return Verdict(False, [f"the check pod {name} could not be read: {message(exc)}"], None, time.monotonic() - started)
         finally:
@@ -196,6 +203,39 @@ class GraphCheck:
                 self.kube.delete("Pod", name, namespace, grace_seconds=0)
             except Exception:  # pylint: disable=broad-except
                 pass  # a pod left behind ends on its own (restartPolicy Never); the next check has another name
+
+    def keep(self, dep, namespace: str, robots: list[str], verdict: Verdict) -> None:
+        """Write what the check saw, per robot, into the deployment's graph ConfigMap (the robots not checked now keep
+        their last picture); owned by the deployment's record, so that an undeploy removes it with the record."""
+        record = self.kube.get("ConfigMap", record_name(dep.name), namespace)
+        name = graph_configmap_name(dep.name)
+        found = self.kube.get("ConfigMap", name, namespace)
+        try:
+            kept = json.loads(((found or {}).get("data") or {}).get("graph.json", "{}"))
+        except ValueError:
+            kept = {}
+        robots_seen = kept.get("robots") if isinstance(kept.get("robots"), dict) else {}
+        at = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        topics = (verdict.report or {}).get("topics") or []
+        for robot, part in by_robot(topics, verdict.problems, robots).items():
+            robots_seen[robot] = {"at": at, **part}
+        data = {"deployment": dep.name, "robots": robots_seen}
+        obj = {
+            "apiVersion": "v1",
+            "kind": "ConfigMap",
+            "metadata": {
+                "name": name,
+                "namespace": namespace,
+                "labels": {labels.MANAGED_BY: "kuberos", labels.GRAPH: "true", labels.FLEET: dep.fleet},
+                "annotations": {labels.DEPLOYMENT: dep.name},
+            },
+            "data": {"graph.json": json.dumps(data, separators=(",", ":"))},
+        }
+        if record is not None:
+            obj["metadata"]["ownerReferences"] = [
+                {"apiVersion": "v1", "kind": "ConfigMap", "name": record["metadata"]["name"], "uid": record["metadata"]["uid"]}
+            ]
+        self.kube.apply(obj)
 
     def _wait(self, name: str, namespace: str) -> tuple[int | None, str]:
         """The probe's exit code once its container ended, or None and why it did not run."""
