@@ -465,6 +465,7 @@ FORBIDDEN = [
     ("delete", "", "pods", "kube-system"),
     ("patch", "apps", "deployments", "default"),
     ("create", "", "pods/exec", "kuberos-test-fleet"),
+    ("get", "", "pods/log", "kube-system"),
     ("patch", "", "nodes/status", ""),
     ("update", "coordination.k8s.io", "leases", "kube-system"),
     ("update", "coordination.k8s.io", "leases", "kube-node-lease"),
@@ -482,6 +483,7 @@ ALLOWED = [
     ("delete", "apps", "deployments", "kuberos-test-fleet"),  # drained instances removed
     ("list", "metrics.k8s.io", "pods", "kuberos-test-fleet"),  # the cpu signal
     ("delete", "", "pods", "kuberos-test-fleet"),
+    ("get", "", "pods/log", "kuberos-test-fleet"),  # the dashboard's last lines of each instance
     ("create", "", "configmaps", "kuberos-test-fleet"),
     ("create", "", "events", "kuberos-test-fleet"),
     ("watch", "", "events", ""),  # the dashboard's timeline
