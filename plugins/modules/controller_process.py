@@ -107,6 +107,16 @@ options:
     description: Seconds between passes when nothing changes.
     type: float
     default: 30.0
+  graph_every:
+    description:
+      - Seconds between the leader's rounds of live graph checks of the deployments whose modules declare topics (a
+        check pod beside their modules; the dashboard's ROS graph view shows the results); 0 turns them off.
+    type: float
+    default: 0
+  graph_image:
+    description: The graph check pod's image (rclpy and the collection; the bridge's).
+    type: str
+    default: ghcr.io/kuberos/bridge:0.2.0
   log_level:
     description: Log level.
     type: str
@@ -186,6 +196,8 @@ ARGUMENT_SPEC = dict(
     restart_threshold=dict(type="int", default=3),
     node_probe_interval=dict(type="float", default=1.0),
     resync=dict(type="float", default=30.0),
+    graph_every=dict(type="float", default=0.0),
+    graph_image=dict(type="str", default="ghcr.io/kuberos/bridge:0.2.0"),
     log_level=dict(type="str", choices=["DEBUG", "INFO", "WARNING", "ERROR"], default="INFO"),
     replicas=dict(type="int", default=2),
     lease_duration=dict(type="int", default=6),
@@ -211,6 +223,8 @@ def command(params: dict, index: int = 1) -> list[str]:
         "--grace", f"{params['grace']:g}", "--cooldown", f"{params['cooldown']:g}",
         "--restart-threshold", str(params["restart_threshold"]), "--resync", f"{params['resync']:g}",
         "--node-probe-interval", f"{params['node_probe_interval']:g}",
+        "--graph-every", f"{params.get('graph_every', 0.0):g}",
+        "--graph-image", params.get("graph_image") or "ghcr.io/kuberos/bridge:0.2.0",
         "--log-level", params["log_level"], "--lease-duration", str(params["lease_duration"]),
         "--renew-deadline", f"{params['renew_deadline']:g}", "--retry-period", f"{params['retry_period']:g}",
         "--dashboard-port", str(params["dashboard_port"] + index - 1 if params["dashboard_port"] else 0),

@@ -201,8 +201,8 @@ from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.deploy_pass import DeployPass, NotReady
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import GRAPH_CHECK_ARGS
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ros.graph_check import GRAPH_CHECK_ARGS
 
 ARGUMENT_SPEC = dict(
     src=dict(type="path", required=True),

@@ -200,10 +200,10 @@ from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import GRAPH_CHECK_ARGS
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.rollout_runner import execute
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG, api_clients
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ros.graph_check import GRAPH_CHECK_ARGS
 
 ARGUMENT_SPEC = dict(
     **KUBECONFIG_ARG,

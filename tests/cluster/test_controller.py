@@ -458,7 +458,7 @@ FORBIDDEN = [
     ("list", "", "secrets", ""),
     ("patch", "", "nodes", ""),
     ("delete", "", "nodes", ""),
-    ("create", "", "pods", "kuberos-test-fleet"),
+    ("create", "", "pods", "default"),
     ("create", "apps", "deployments", "default"),
     ("delete", "apps", "deployments", "kube-system"),
     ("patch", "", "configmaps", "kube-system"),
@@ -484,6 +484,7 @@ ALLOWED = [
     ("list", "metrics.k8s.io", "pods", "kuberos-test-fleet"),  # the cpu signal
     ("delete", "", "pods", "kuberos-test-fleet"),
     ("get", "", "pods/log", "kuberos-test-fleet"),  # the dashboard's last lines of each instance
+    ("create", "", "pods", "kuberos-test-fleet"),  # the live graph check's pod (--graph-every)
     ("create", "", "configmaps", "kuberos-test-fleet"),
     ("create", "", "events", "kuberos-test-fleet"),
     ("watch", "", "events", ""),  # the dashboard's timeline

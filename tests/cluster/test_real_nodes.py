@@ -847,6 +847,25 @@ def test_declared_topics_are_checked_live_after_deploy_and_in_a_rollouts_gate(re
         assert re.search(r"graph-check: 1 topic\(s\) on 1 robot\(s\) as declared, in [0-9.]+ s", done.stdout), done.stdout[-3000:]
         print(f"deploy with the live graph check: {time.monotonic() - started:.1f} s")
         assert not real.core.list_namespaced_pod(namespace, label_selector="kuberos.io/graph-check").items, "check pods go"
+
+        # The controller keeps the dashboard's ROS graph current: its next check rewrites the graph ConfigMap.
+        def graph():
+            found = real.core.read_namespaced_config_map("kuberos-graph-graph-check", namespace)
+            return json.loads(found.data["graph.json"])["robots"]["robot-1"]
+
+        first = graph()
+        assert first["ok"] and [t["name"] for t in first["topics"]] == ["/robot_1/chatter"], first
+        assert first["topics"][0]["publishers"] == ["/robot_1/talker"] and first["topics"][0]["rate"] > 5, first
+        state = str(tmp_path / "controller-graph")
+        extra = {"controller_kubeconfig": real.kubeconfig, "controller_state_dir": state, "controller_graph_every": 2,
+                 "controller_replicas": 1, "controller_graph_image": image}  # fmt: skip
+        assert real.play("controller.yml", "-e", json.dumps(extra)).returncode == 0
+        try:
+            wait_for(lambda: graph()["at"] != first["at"], 120, "the controller's graph check")
+            assert graph()["ok"], graph()
+        finally:
+            extra["controller_state"] = "stopped"
+            real.play("controller.yml", "-e", json.dumps(extra))
         # What the listener printed, read back as a developer does, without kubectl.
         heard = real.play("logs.yml", "-e", "deployment=graph-check", "-e", "module=listener", "-e", "robot=robot-1")
         assert heard.returncode == 0, heard.stdout[-3000:]

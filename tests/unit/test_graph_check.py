@@ -3,13 +3,14 @@ the pod copies a module's node and ROS environment, runs the probe, and its log 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.manifests import RenderOptions, render_deployment
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scheduler import place_modules
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.spec import load_rosdeployment_file
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import (
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ros.graph_check import (
     CHECK_LABEL,
     GraphCheck,
     check_pod,
@@ -129,3 +130,44 @@ def test_a_check_creates_its_pod_reads_its_verdict_and_always_deletes_it(local_i
     assert not verdict.ok and "did not finish within" in verdict.problems[0]
     assert "ErrImagePull: no such image" in verdict.problems[0]
     assert len(stuck.deleted) == 1
+
+
+def test_the_controller_checks_each_declaring_deployment_on_its_robots_while_it_leads(local_inventory, monkeypatch):
+    import threading
+    from types import SimpleNamespace
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import graph_refresh
+
+    dep, _deployments = _example(local_inventory)
+    quiet = dataclasses.replace(dep, name="quiet", modules=tuple(dataclasses.replace(m, topics=()) for m in dep.modules))
+    placement = place_modules([dep], local_inventory)
+    records = {
+        "a": SimpleNamespace(spec=dep, namespace="kuberos-test-fleet", deployment=dep.name, placement=placement),
+        "b": SimpleNamespace(spec=quiet, namespace="kuberos-test-fleet", deployment="quiet", placement=placement),
+    }
+
+    def parse(configmap):
+        if configmap["name"] == "broken":
+            raise KuberosError("unreadable")
+        return records[configmap["name"]]
+
+    monkeypatch.setattr(graph_refresh, "parse_record", parse)
+    runs = []
+
+    class Check:
+        def run(self, spec, namespace, robots):
+            runs.append((spec.name, namespace, robots))
+            if len(runs) == 1:
+                raise RuntimeError("the fence refused")
+            return SimpleNamespace(ok=True, summary="fine", problems=[])
+
+    store = SimpleNamespace(snapshot=lambda: [{"name": "a"}, {"name": "b"}, {"name": "broken"}])
+    controller = SimpleNamespace(records=store, leading=True, kube=None)
+    refresh = graph_refresh.GraphRefresh(controller, "reg/bridge:1", 60, check=Check())
+    stop = threading.Event()
+    assert refresh.once(stop) == 0, "a refused check is tried again next round"
+    assert refresh.once(stop) == 1
+    assert runs == [("pick-and-place", "kuberos-test-fleet", ["fetch-1", "fetch-2"])] * 2, "only the declaring deployment"
+    controller.leading = False
+    assert refresh.once(stop) == 0 and len(runs) == 2, "a replica that does not lead checks nothing"

@@ -65,6 +65,7 @@ ANSIBLE = "kuberos_ansible"  # what the collection's modules share: their Python
 CONTROLLER = "kuberos_controller"  # the controller program
 BRIDGE = "kuberos_bridge"  # the bridge program
 LAB = "kuberos_lab"  # the local lab: control plane, real nodes, images, delay fabric, registry, lab machines
+ROS = "kuberos_ros"  # the ROS-level checks run in the cluster: the live graph check's pod
 # Which packages of module_utils each may import (besides itself). Nothing but the lab's own modules, the lab's
 # two modules (local_cluster, controller_process), the simulator, the benchmarks and the tests import the lab.
 MAY_IMPORT = {
@@ -73,8 +74,9 @@ MAY_IMPORT = {
     SITE: {CORE},
     KUBE: {CORE},
     ANSIBLE: {CORE, KUBE},
-    DEPLOY: {CORE, SITE, KUBE},  # bridge certificates come from the one PKI
-    CONTROLLER: {CORE, KUBE},
+    DEPLOY: {CORE, SITE, KUBE, ROS},  # bridge certificates come from the one PKI; the graph check after deploy
+    CONTROLLER: {CORE, KUBE, ROS},  # the controller keeps the dashboard's ROS graph current
+    ROS: {CORE, KUBE},
     BRIDGE: {SITE},  # its certificates: the one PKI
     LAB: {CORE, CLUSTER, DEPLOY, SITE, KUBE},  # the lab checks what deploy renders; its registry client builds on deploy's
 }

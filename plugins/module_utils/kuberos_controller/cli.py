@@ -22,6 +22,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
     LEASE_NAMESPACE,
     Controller,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.graph_refresh import GraphRefresh
 
 DEFAULT_PORT = 8611
 
@@ -118,6 +119,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--node-name", default=os.environ.get("KUBEROS_NODE_NAME", ""),
         help="the node this replica runs on ($KUBEROS_NODE_NAME); while it is NotReady the replica does not lead",
     )  # fmt: skip
+    graph = parser.add_argument_group(
+        "ROS graph", "the leader checks the live ROS graph of the deployments that declare topics (the dashboard shows it)"
+    )
+    graph.add_argument("--graph-every", type=float, default=0.0, help="seconds between rounds of checks; 0: off (default)")
+    graph.add_argument(
+        "--graph-image", default="ghcr.io/kuberos/bridge:0.2.0", help="the check pod's image (rclpy and the collection)"
+    )
+    graph.add_argument("--graph-timeout", type=float, default=30.0, help="seconds a check waits for the declared endpoints")
+    graph.add_argument("--graph-window", type=float, default=3.0, help="seconds a check measures rates over")
     view = parser.add_argument_group(
         "dashboard and /metrics", "a read-only live dashboard and Prometheus metrics (docs/dashboard.md)"
     )
@@ -144,6 +154,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         args.dashboard_auth = "none" if args.kubeconfig else "kubernetes"
     if args.dashboard_port and args.dashboard_auth == "none" and not is_loopback(args.dashboard_host):
         parser.error(f"--dashboard-host {args.dashboard_host} is not a loopback address: it needs --dashboard-auth kubernetes")
+    if not 0 <= args.graph_every <= 86400 or not 0 < args.graph_timeout <= 600 or not 0 < args.graph_window <= 60:
+        parser.error("--graph-every is 0 to 86400 s, --graph-timeout more than 0 and at most 600, --graph-window at most 60")
     if not 0 <= args.dashboard_port <= 65535:
         parser.error(f"--dashboard-port {args.dashboard_port} is not a port (0 to 65535)")
     return args
@@ -214,6 +226,9 @@ def main(argv=None) -> int:
     if args.burst_command:
         controller.burst = Burst(shlex.split(args.burst_command), args.burst_release_after)
         threading.Thread(target=controller.burst.run, args=(controller.stop_event,), name="burst", daemon=True).start()
+    if args.graph_every > 0:
+        refresh = GraphRefresh(controller, args.graph_image, args.graph_every, args.graph_timeout, args.graph_window)
+        threading.Thread(target=refresh.run, args=(controller.stop_event,), name="graph", daemon=True).start()
     dashboard = start_dashboard(controller, args, api_client)
     signal.signal(signal.SIGTERM, lambda *_: (controller.stop_event.set(), controller.changed.set()))
     signal.signal(signal.SIGINT, lambda *_: (controller.stop_event.set(), controller.changed.set()))

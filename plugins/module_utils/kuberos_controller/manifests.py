@@ -53,8 +53,10 @@ PODS_SERVICE = f"{NAME}-pods"  # the headless Service: one DNS address per Ready
 TLS_DIR = "/etc/kuberos/dashboard-tls"
 FLEET_RULES = [
     {"apiGroups": [""], "resources": ["configmaps"], "verbs": ["get", "create", "patch"]},
-    {"apiGroups": [""], "resources": ["pods"], "verbs": ["delete"]},
-    {"apiGroups": [""], "resources": ["pods/log"], "verbs": ["get"]},  # the dashboard's last lines of each instance
+    # delete: a pod that fails on its node; create and get: the live graph check's pod (--graph-every)
+    {"apiGroups": [""], "resources": ["pods"], "verbs": ["create", "get", "delete"]},
+    # the dashboard's last lines of each instance; the graph check's verdict
+    {"apiGroups": [""], "resources": ["pods/log"], "verbs": ["get"]},
     {"apiGroups": [""], "resources": ["events"], "verbs": ["create"]},
     # patch: re-pinning; create and delete: instances added and removed by scaling (docs/scaling.md)
     {"apiGroups": ["apps"], "resources": ["deployments"], "verbs": ["create", "patch", "delete"]},

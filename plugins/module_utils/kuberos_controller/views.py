@@ -288,7 +288,7 @@ def _module_rows(record: Record, view: ClusterView, images: dict[str, str], stat
 
 
 def _graphs(snapshot: Snapshot) -> dict[str, dict]:
-    """Each deployment's last live graph check per robot (kuberos_deploy.graph_check writes them), by
+    """Each deployment's last live graph check per robot (kuberos_ros.graph_check writes them), by
     "namespace/deployment"; a ConfigMap that cannot be read shows nothing."""
     found = {}
     for configmap in snapshot.graphs:

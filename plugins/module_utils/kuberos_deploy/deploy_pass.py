@@ -49,11 +49,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.cl
     stale_objects,
     unavailable_nodes,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import (
-    GraphCheck,
-    declares_topics,
-    graph_check_problem,
-)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_dir import RenderDirError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_pass import render_to_dir
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import (
@@ -64,6 +59,11 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api 
     bearer_clients,
     refusal,
     status_of,
+)
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ros.graph_check import (
+    GraphCheck,
+    declares_topics,
+    graph_check_problem,
 )
 
 CLUSTER_HINT = 'in the inventory (docs/inventory.md, "Third-party clusters")'

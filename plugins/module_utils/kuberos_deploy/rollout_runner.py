@@ -28,12 +28,12 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout i
     pod_failure,
 )
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.status import is_ready
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.graph_check import (
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import RENDERED_KINDS, Kube, status_of
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ros.graph_check import (
     GraphCheck,
     declares_topics,
     graph_check_problem,
 )
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import RENDERED_KINDS, Kube, status_of
 
 ROLLOUT_MANAGER = "kuberos-rollout"
 
