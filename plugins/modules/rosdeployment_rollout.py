@@ -164,6 +164,10 @@ max_module_downtime_s:
   description: The longest of RV(downtime_s).
   returned: when not in check mode
   type: float
+left_out:
+  description: The robots the rollout left out because the robot pool holds them, and why.
+  returned: always
+  type: dict
 summary:
   description: What changed (or would change), per robot and per wave, as lines of text.
   returned: always
@@ -254,6 +258,9 @@ def summary_of(result: dict, check_mode: bool) -> str:
     offline = [r for r in result.get("pending_robots", []) if r not in locked]
     if offline:
         lines.append(f"pending, offline (the next rollout run finishes them): {', '.join(offline)}")
+    if result.get("left_out"):
+        reserved = "; ".join(f"{r} ({why})" for r, why in sorted(result["left_out"].items()))
+        lines.append(f"left out, reserved in the robot pool: {reserved}")
     if locked:
         lines.append(
             "pending, update lock (the next rollout run finishes them): " + ", ".join(f"{r} ({why})" for r, why in locked.items())

@@ -94,6 +94,18 @@ def test_a_reserved_robot_is_left_out_of_production_given_to_its_developer_and_g
         assert instances("pool-app") == ["pool-app-driver-fetch-1", "pool-app-planner-fetch-1"]
         assert _versions(apps, core, namespace, untouched) == before, "fetch-1 and the fleet's servers did not move"
 
+        # A rollout of a new planner leaves the reserved robot out too: fetch-1's planner alone is upgraded.
+        production.write_text(PRODUCTION.replace("reg/planner:1", "reg/planner:2"), encoding="utf-8")
+        rolled = playbook("rollout.yml", "-e", f"kuberos_kubeconfig={cluster.kubeconfig}", "-e",
+                          f"rosdeployment_file={production}", "-e", "rosdeployment_rollout_soak=1", timeout=600)  # fmt: skip
+        assert rolled.returncode == 0, rolled.stdout[-5000:]
+        assert "left out, reserved in the robot pool: fetch-2 (reserved by alice until" in said(rolled), rolled.stdout[-4000:]
+        images = {
+            d.metadata.name: d.spec.template.spec.containers[0].image for d in apps.list_namespaced_deployment(namespace).items
+        }
+        assert images["pool-app-planner-fetch-1"].startswith("reg/planner:2") and "pool-app-planner-fetch-2" not in images
+        before = _versions(apps, core, namespace, untouched)
+
         development.write_text(DEVELOPMENT.replace("DEV", "bob"), encoding="utf-8")
         refused = cluster.deploy(development, tmp_path / "render-dev")
         assert refused.returncode != 0
