@@ -76,10 +76,14 @@ class FakeKube:
     def __init__(self, deployments, exit_code, log, waiting=None):
         self.deployments, self.exit_code, self.log_text, self.waiting = deployments, exit_code, log, waiting
         self.created, self.deleted = [], []
+        self.node_annotations = {}
         record = {"metadata": {"name": "kuberos-record-pick-and-place", "uid": "u-1"}}
         self.configmaps = {"kuberos-record-pick-and-place": record}
 
-    def list(self, kind, namespace, selector=""):
+    def list(self, kind, namespace="", selector=""):
+        if kind == "Node":
+            assert selector.startswith("device.kuberos.io/hostname=")
+            return [{"metadata": {"name": selector.split("=")[1], "annotations": self.node_annotations}}]
         assert (kind, selector) == ("Deployment", "kuberos.io/deployment=pick-and-place")
         return self.deployments
 
@@ -130,6 +134,10 @@ def test_a_check_creates_its_pod_reads_its_verdict_and_always_deletes_it(local_i
     assert not verdict.ok and "did not finish within" in verdict.problems[0]
     assert "ErrImagePull: no such image" in verdict.problems[0]
     assert len(stuck.deleted) == 1
+    kwok = FakeKube(deployments, 0, "")
+    kwok.node_annotations = {"kwok.x-k8s.io/node": "fake"}
+    verdict = GraphCheck(kwok, "reg/bridge:1", poll=0.01).run(dep, "kuberos-test-fleet", ["fetch-1"])
+    assert verdict.ok and verdict.summary == "not checked: edge-1 is a kwok node, which runs no container" and not kwok.created
 
 
 def test_the_controller_checks_each_declaring_deployment_on_its_robots_while_it_leads(local_inventory, monkeypatch):

@@ -34,6 +34,7 @@ ROBOTS_ANNOTATION = "kuberos.io/robots"
 REASON_ANNOTATION = "kuberos.io/placement-reason"
 TIER_ANNOTATION = "kuberos.io/tier"
 CLUSTER_ANNOTATION = "kuberos.io/cluster"
+KWOK_NODE = "kwok.x-k8s.io/node"  # a node kwok simulates: it runs no container
 GRAPH = "kuberos.io/graph"  # a deployment's last live graph check per robot (a ConfigMap the dashboard shows)
 DEVELOPER_ANNOTATION = "kuberos.io/developer"  # a development deployment's instances: whose robots they run on
 VERSION = "kuberos.io/version"  # a catalog module's resolved version

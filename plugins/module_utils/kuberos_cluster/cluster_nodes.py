@@ -10,7 +10,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.quantitie
 
 from .link_delays import link_losses, link_rates_bps, one_way_delays_ms
 
-KWOK_ANNOTATION = "kwok.x-k8s.io/node"
+KWOK_ANNOTATION = labels.KWOK_NODE
 
 
 def node_label_patch(node: Node) -> dict:

@@ -184,6 +184,9 @@ class GraphCheck:
         template = template_of(self.kube.list("Deployment", namespace, selector=selector))
         if template is None:
             return Verdict(False, [f"no module Deployment of {dep.name} in {namespace} to run the check beside"])
+        simulated = self._simulated(template)
+        if simulated:
+            return Verdict(True, [], None, 0.0, f"not checked: {simulated} is a kwok node, which runs no container")
         name = dns_label("kuberos-graph-check", dep.name, f"{int(time.time() * 1000) % 100000:05d}")
         pod = check_pod(template, name, self.image, robots, wanted, self.timeout, self.window)
         self.progress(f"checking the ROS graph of {dep.name}: {len(wanted)} declared topic(s) on {len(robots)} robot(s)")
@@ -236,6 +239,12 @@ class GraphCheck:
                 {"apiVersion": "v1", "kind": "ConfigMap", "name": record["metadata"]["name"], "uid": record["metadata"]["uid"]}
             ]
         self.kube.apply(obj)
+
+    def _simulated(self, template: dict) -> str:
+        """The node the check would run on when kwok simulates it (no container runs there), else ''."""
+        where = (template["spec"]["template"]["spec"].get("nodeSelector") or {}).get(labels.HOSTNAME, "")
+        nodes = self.kube.list("Node", selector=f"{labels.HOSTNAME}={where}") if where else []
+        return where if nodes and all(labels.KWOK_NODE in (n["metadata"].get("annotations") or {}) for n in nodes) else ""
 
     def _wait(self, name: str, namespace: str) -> tuple[int | None, str]:
         """The probe's exit code once its container ended, or None and why it did not run."""
