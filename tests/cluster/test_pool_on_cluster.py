@@ -77,11 +77,10 @@ def test_a_reserved_robot_is_left_out_of_production_given_to_its_developer_and_g
         reserved = pool(*alice)
         assert reserved.returncode == 0 and reserved.changed == 1, reserved.stdout[-3000:]
         assert "fetch-2 (fleet test-fleet) is reserved by alice until" in said(reserved), reserved.stdout[-3000:]
-        assert "still running for production: pool-app (their next deploy stops it there)" in reserved.stdout, reserved.stdout[
-            -3000:
-        ]
-        assert "fetch-2 (test-fleet): alice until" in reserved.stdout, reserved.stdout[-3000:]
-        assert ": grasp tests" in reserved.stdout, reserved.stdout[-3000:]
+        still = "still running for production: pool-app (their next deploy stops it there)"
+        assert still in said(reserved), reserved.stdout[-3000:]
+        assert "fetch-2 (test-fleet): alice until" in said(reserved), reserved.stdout[-3000:]
+        assert ": grasp tests" in said(reserved), reserved.stdout[-3000:]
         again = pool(*alice)
         assert again.returncode == 0, again.stdout[-3000:]
         taken = pool("-e", "robot=fetch-2", "-e", "owner=bob")
