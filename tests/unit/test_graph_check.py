@@ -45,7 +45,7 @@ def test_the_check_runs_beside_an_edge_module_with_its_ros_environment_and_no_mo
     assert container["args"] == ["--topics", "--json", "--timeout", "20", "--window", "3"]
     assert container["securityContext"]["runAsNonRoot"] and container["securityContext"]["capabilities"] == {"drop": ["ALL"]}
     assert pod["metadata"]["labels"][CHECK_LABEL] == "pick-and-place"
-    assert "kuberos.io/component" not in pod["metadata"]["labels"], "the controller and status do not take it for a module"
+    assert set(pod["metadata"]["labels"]) == {CHECK_LABEL, "fleet.kuberos.io/name"}, "status and the wait do not count it"
     modules = [d for d in deployments if d["metadata"]["labels"]["kuberos.io/component"] == "ros-module"]
     onboard = [d for d in modules if d["metadata"]["annotations"].get("kuberos.io/tier") == "onboard"]
     assert template_of(onboard)["metadata"]["name"] == min(d["metadata"]["name"] for d in onboard)

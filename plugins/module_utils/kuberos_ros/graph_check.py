@@ -114,7 +114,8 @@ def check_pod(template: dict, name: str, image: str, robots: list[str], wanted: 
         if pod.get(key):
             spec[key] = pod[key]
     template_labels = meta.get("labels") or {}
-    keep = (labels.MANAGED_BY, labels.FLEET, labels.DEPLOYMENT)
+    # Not the deployment's or KubeROS's managed labels: status, the wait and the controller count those pods as modules.
+    keep = (labels.FLEET,)
     return {
         "apiVersion": "v1",
         "kind": "Pod",
