@@ -19,11 +19,11 @@ import datetime
 import re
 from dataclasses import dataclass
 
+from . import labels
 from .errors import Problem
 from .naming import dns_label, fleet_namespace
 
 LABEL = "kuberos.io/reservation"
-ROBOT_LABEL = "robot.kuberos.io/name"
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(m|min|h|d)\s*$")
 _UNITS = {"m": 60, "min": 60, "h": 3600, "d": 86400}
 MAX_HOLD = datetime.timedelta(days=90)
@@ -89,7 +89,7 @@ def reservation_configmap(reservation: Reservation) -> dict:
         "metadata": {
             "name": configmap_name(reservation.robot),
             "namespace": fleet_namespace(reservation.fleet),
-            "labels": {LABEL: "true", ROBOT_LABEL: dns_label(reservation.robot), "app.kubernetes.io/managed-by": "kuberos"},
+            "labels": {LABEL: "true", labels.ROBOT: dns_label(reservation.robot), labels.MANAGED_BY: "kuberos"},
         },
         "data": {k: v for k, v in reservation.to_dict().items() if k != "active"},
     }
@@ -103,6 +103,11 @@ def reservation_of(configmap: dict) -> Reservation | None:
                            parse_time(data["until"]), parse_time(data.get("since") or data["until"]))  # fmt: skip
     except (KeyError, ValueError, TypeError):
         return None
+
+
+def readable(configmaps) -> list[Reservation]:
+    """The reservations of the pool's ConfigMaps that can be read (the others hold nothing)."""
+    return [r for r in map(reservation_of, configmaps) if r is not None]
 
 
 def held(reservations, now: datetime.datetime) -> dict[str, Reservation]:

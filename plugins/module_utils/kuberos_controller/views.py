@@ -306,7 +306,7 @@ def _reservations(snapshot: Snapshot, built_at: float) -> dict[str, list[dict]]:
     """The robot pool's reservations by fleet, each with ``active`` (false once its time has passed)."""
     now = datetime.datetime.fromtimestamp(built_at or time.time(), datetime.UTC)
     found: dict[str, list[dict]] = {}
-    for reservation in filter(None, map(robot_pool.reservation_of, snapshot.reservations)):
+    for reservation in robot_pool.readable(snapshot.reservations):
         found.setdefault(reservation.fleet, []).append(reservation.to_dict(now))
     return {fleet: sorted(rows, key=lambda r: r["robot"]) for fleet, rows in found.items()}
 

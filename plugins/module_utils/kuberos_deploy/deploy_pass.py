@@ -353,9 +353,9 @@ class DeployPass:
         when no cluster was read (a render only)."""
         if not getattr(self, "cluster_read", False):
             return None
-        found = [robot_pool.reservation_of(obj) for (kind, _ns, _name), obj in self.local.live.items()
+        found = [obj for (kind, _ns, _name), obj in self.local.live.items()
                  if kind == "ConfigMap" and (obj["metadata"].get("labels") or {}).get(robot_pool.LABEL) == "true"]  # fmt: skip
-        return robot_pool.held([r for r in found if r is not None], datetime.datetime.now(datetime.UTC))
+        return robot_pool.held(robot_pool.readable(found), datetime.datetime.now(datetime.UTC))
 
     def place(self) -> None:
         previous = self.previous if (self.previous.get("instances") or self.previous.get("discovery")) else None

@@ -25,7 +25,7 @@ def now() -> datetime.datetime:
 def reservations(kube: Kube, fleet: str = "") -> list[robot_pool.Reservation]:
     """Every reservation of ``fleet`` (every fleet's when ''), expired ones included."""
     found = kube.list("ConfigMap", fleet_namespace(fleet) if fleet else "", selector=f"{robot_pool.LABEL}=true")
-    return sorted((r for r in map(robot_pool.reservation_of, found) if r is not None), key=lambda r: (r.fleet, r.robot))
+    return sorted(robot_pool.readable(found), key=lambda r: (r.fleet, r.robot))
 
 
 def current(kube: Kube, fleet: str, robot: str) -> robot_pool.Reservation | None:

@@ -10,7 +10,6 @@ previous objects back, and the objects created for the rollout are removed.
 
 from __future__ import annotations
 
-import datetime
 import json
 import os
 import subprocess
@@ -555,11 +554,9 @@ def _target(clients, params: dict, namespace_of):
 def _reserved(clients, fleet: str) -> dict:
     """The robot pool's reservations of ``fleet`` that hold now (robot -> Reservation)."""
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pool as robot_pool
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.robot_pool import now, reservations
 
-    found = Kube(clients).list("ConfigMap", fleet_namespace(fleet), selector=f"{robot_pool.LABEL}=true")
-    now = datetime.datetime.now(datetime.UTC)
-    return robot_pool.held([r for r in map(robot_pool.reservation_of, found) if r is not None], now)
+    return robot_pool.held(reservations(Kube(clients), fleet), now())
 
 
 def _graph_check(clients, params: dict, dep, namespace: str, field_manager: str, progress):

@@ -115,18 +115,13 @@ def check_pod(template: dict, name: str, image: str, robots: list[str], wanted: 
             spec[key] = pod[key]
     template_labels = meta.get("labels") or {}
     # Not the deployment's or KubeROS's managed labels: status, the wait and the controller count those pods as modules.
-    keep = (labels.FLEET,)
+    pod_labels = {CHECK_LABEL: template_labels.get(labels.DEPLOYMENT, "")}
+    if labels.FLEET in template_labels:
+        pod_labels[labels.FLEET] = template_labels[labels.FLEET]
     return {
         "apiVersion": "v1",
         "kind": "Pod",
-        "metadata": {
-            "name": name,
-            "namespace": meta["namespace"],
-            "labels": {
-                **{k: template_labels[k] for k in keep if k in template_labels},
-                CHECK_LABEL: template_labels.get(labels.DEPLOYMENT, ""),
-            },
-        },
+        "metadata": {"name": name, "namespace": meta["namespace"], "labels": pod_labels},
         "spec": spec,
     }
 
