@@ -214,3 +214,75 @@ def test_any_text_is_a_deployment_or_a_spec_error(text):
         load_rosdeployments(text, "fuzz.yml")
     except SpecError as exc:
         assert exc.problems and str(exc).startswith("fuzz.yml")
+
+
+topic_keys = st.sampled_from(
+    ["publishes", "subscribes", "name", "type", "qos", "reliability", "durability", "depth", "rate", "min", "max", "external"]
+)
+topicish = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-3, 2000)
+    | st.floats()
+    | st.sampled_from(
+        [
+            "chatter",
+            "/{robot}/scan",
+            "{robot}",
+            "/a//b",
+            "std_msgs/msg/String",
+            "reliable",
+            "best_effort",
+            "transient_local",
+            "volatile",
+            "",
+            "x y",
+        ]
+    ),
+    lambda children: st.lists(children, max_size=3) | st.dictionaries(topic_keys, children, max_size=4),
+    max_leaves=30,
+)
+
+
+odd = st.none() | st.booleans() | st.integers(-3, 2000) | st.floats() | st.text(max_size=6)
+declared = st.fixed_dictionaries(
+    {"name": st.sampled_from(["chatter", "/{robot}/chatter", "/chatter"]), "type": st.sampled_from(["std_msgs/msg/String",
+                                                                                                  "std_msgs/msg/Int32"])},
+    optional={
+        "qos": st.fixed_dictionaries(
+            {},
+            optional={
+                "reliability": st.sampled_from(["reliable", "best_effort"]) | odd,
+                "durability": st.sampled_from(["volatile", "transient_local"]) | odd,
+                "depth": st.integers(-1, 5000) | odd,
+            },
+        ),
+        "rate": st.fixed_dictionaries({}, optional={"min": st.floats(0, 100) | odd, "max": st.floats(0, 100) | odd}),
+        "external": st.booleans() | odd,
+    },
+)  # fmt: skip
+graphs = st.fixed_dictionaries({}, optional={"publishes": st.lists(declared, max_size=3),
+                                            "subscribes": st.lists(declared, max_size=3)})  # fmt: skip
+
+
+@settings(max_examples=400, deadline=None)
+@given(talker=st.one_of(topicish, graphs), listener=st.one_of(topicish, graphs))
+def test_any_declared_topics_are_a_deployment_or_a_located_spec_error(talker, listener):
+    """Whatever two modules declare as their topics, the spec loads or every problem names its file and field."""
+    data = {
+        "apiVersion": "kuberos.io/v1alpha1",
+        "kind": "RosDeployment",
+        "metadata": {"name": "graph", "targetFleet": "f"},
+        "rosModules": [
+            {"name": "talker", "image": "reg/talker:1", "launch": "talker", "topics": talker},
+            {"name": "listener", "image": "reg/listener:1", "launch": "listener", "topics": listener},
+        ],
+    }
+    try:
+        parse_rosdeployment(data, "fuzz.yml")
+    except SpecError as exc:
+        event("refused")
+        assert exc.problems and all(p.source == "fuzz.yml" for p in exc.problems)
+        assert all(p.path.startswith("rosModules[") for p in exc.problems), [str(p) for p in exc.problems]
+    else:
+        event("loaded")
