@@ -19,6 +19,9 @@ description:
     modules for it. A development deployment (C(metadata.developer) of the owner) may run on it.
   - With O(state=absent), gives the robot back (only its holder, unless O(force)); the fleet's production deployments
     return to it on their next pass.
+  - C(passes) names the production deployments whose pass changes what runs for the robot now (their records say
+    so), with their current revision; P(kuberos.platform.rosdeployment_rollout#module) at that revision is the pass,
+    and C(playbooks/pool.yml) runs it at once.
   - Robots are the inventory's; the fleet is the robot's fleet there.
 options:
   robot:
@@ -99,6 +102,14 @@ production:
   returned: always
   type: list
   elements: str
+passes:
+  description:
+    - The production deployments whose pass stops what they run for the robot (reserved) or returns to it (given
+      back), from their records - C(deployment), C(fleet), C(revision) (their current one) each.
+    - In check mode, those a pass would change after the task.
+  returned: always
+  type: list
+  elements: dict
 message:
   description: One line saying what holds now.
   returned: always
@@ -156,7 +167,7 @@ def main():
     if after is not None:
         message = f"{p['robot']} (fleet {fleet}) is {after.describe()}"
         if done["production"]:
-            message += f"; still running for production: {', '.join(done['production'])} (their next deploy stops it there)"
+            message += f"; still running for production: {', '.join(done['production'])} (their next pass stops it there)"
     else:
         message = f"{p['robot']} (fleet {fleet}) is in the pool; the fleet's deployments return to it on their next pass"
     result = {
@@ -164,6 +175,7 @@ def main():
         "reservation": after.to_dict() if after else {},
         "previous": before.to_dict(now) if before else {},
         "production": done["production"],
+        "passes": done["passes"],
         "message": message,
     }
     if module._diff:

@@ -78,6 +78,20 @@ def test_production_deployments_leave_a_reserved_robot_out_and_nothing_else_move
     assert sorted(i.name for i in back.instances) == sorted(i.name for i in before.instances), "given back: it returns"
 
 
+def test_the_pass_a_reservation_or_a_release_needs_is_read_from_the_placements(local_inventory):
+    (dep,) = load_rosdeployments(SPEC, "app.yml")
+    (dev,) = load_rosdeployments(DEV, "dev.yml")
+    before = place_modules([dep], local_inventory, reserved={}).deployments
+    during = place_modules([dep], local_inventory, reserved=_held()).deployments
+    developing = place_modules([dev], local_inventory, reserved=_held()).deployments
+    assert pool.passes(before, "fetch-2", reserving=True) == ["app"], "it runs there: its pass stops it"
+    assert pool.passes(during, "fetch-2", reserving=True) == [], "already left out: nothing to stop"
+    assert pool.passes(developing, "fetch-2", reserving=True) == [], "the developer's own deployment stays"
+    assert pool.passes(during, "fetch-2", reserving=False) == ["app"], "left out for the reservation: it returns"
+    assert pool.passes(before, "fetch-2", reserving=False) == [], "never left out: nothing to return"
+    assert pool.passes(during, "fetch-1", reserving=False) == [] and pool.passes(during, "fetch-1", reserving=True) == ["app"]
+
+
 def test_a_development_deployment_runs_only_on_robots_its_developer_holds(local_inventory):
     (dev,) = load_rosdeployments(DEV, "dev.yml")
     assert dev.developer == "alice" and dev.robots == ("fetch-2",)

@@ -5,12 +5,14 @@ A reservation is a ConfigMap in the fleet's namespace, one per robot (``kuberos-
 
 - production deployments (no ``metadata.developer``) leave the robot out: nothing of theirs is placed for it, and
   what ran there for them is stopped by their next deploy or rollout (it is no longer rendered); ``left_out`` says
-  which robots each one left out, and why;
+  which robots each one left out, and why. The pool's playbook runs that pass at once (a rollout of each one at its
+  current revision), for the deployments ``passes`` names;
 - a development deployment (``metadata.developer: alice``) runs only on robots of its ``robotSelector`` that alice
   holds (``development_problems`` refuses any other, naming the robot and who holds it).
 
 A reservation past its ``until`` no longer holds: production deployments return to the robot on their next pass,
-as after a release. Pure: the pool module (``robot_pool``) and the deploy read and write the ConfigMaps.
+as after a release (the pool's playbook runs that pass at once on a release). Pure: the pool module
+(``robot_pool``) and the deploy read and write the ConfigMaps.
 """
 
 from __future__ import annotations
@@ -120,6 +122,19 @@ def left_out(dep, robots, holding: dict[str, Reservation]) -> dict[str, str]:
     if dep.developer:
         return {}
     return {robot: holding[robot].describe() for robot in robots if robot in holding}
+
+
+def passes(placed: list[dict], robot: str, reserving: bool) -> list[str]:
+    """The production deployments of a placement's ``deployments`` entries whose pass changes what runs for
+    ``robot`` now: when it is reserved, those that place modules for it (the pass stops them); when it is given
+    back, those that left it out for a reservation (the pass returns to it)."""
+    names = []
+    for entry in placed:
+        if entry.get("developer"):
+            continue
+        if robot in (entry.get("robots") or ()) if reserving else robot in (entry.get("left_out") or {}):
+            names.append(entry["name"])
+    return names
 
 
 def development_problems(deployments, holding: dict[str, Reservation]) -> list[Problem]:

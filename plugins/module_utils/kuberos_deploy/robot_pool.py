@@ -7,8 +7,9 @@ import datetime
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pool as robot_pool
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import fleet_namespace
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.record import RECORD_LABEL, parse_record
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube
 
 MANAGER = "kuberos-pool"
@@ -40,6 +41,21 @@ def production_on(kube: Kube, fleet: str, robot: str) -> list[str]:
     return sorted({d["metadata"]["labels"].get(labels.DEPLOYMENT, "") for d in production})
 
 
+def passes(kube: Kube, fleet: str, robot: str, reserving: bool) -> list[dict]:
+    """The fleet's production deployments whose pass (a rollout at their current revision) stops what they run for
+    ``robot`` now it is reserved, or returns to it now it is given back: deployment, fleet and revision each. A
+    record that cannot be read is left to its deployment's own next deploy, which says what is wrong with it."""
+    found = []
+    for configmap in kube.list("ConfigMap", fleet_namespace(fleet), selector=f"{RECORD_LABEL}=true"):
+        try:
+            record = parse_record(configmap)
+        except SpecError:
+            continue
+        if record.deployment in robot_pool.passes(record.placement.deployments, robot, reserving):
+            found.append({"deployment": record.deployment, "fleet": fleet, "revision": record.revision})
+    return sorted(found, key=lambda p: p["deployment"])
+
+
 def reserve(kube: Kube, fleet: str, robot: str, owner: str, reason: str, until: str, check_mode: bool) -> dict:
     """Reserve ``robot`` for ``owner`` (or renew the owner's reservation); refused while another holds it."""
     moment = now()
@@ -60,16 +76,17 @@ def reserve(kube: Kube, fleet: str, robot: str, owner: str, reason: str, until: 
                         "metadata": {"name": namespace, "labels": {labels.MANAGED_BY: "kuberos", labels.FLEET: fleet}}},
                        manager=MANAGER)  # fmt: skip
         kube.apply(robot_pool.reservation_configmap(after), manager=MANAGER)
-    return {"changed": changed, "before": before, "after": after, "production": production_on(kube, fleet, robot)}
+    return {"changed": changed, "before": before, "after": after, "production": production_on(kube, fleet, robot),
+            "passes": passes(kube, fleet, robot, reserving=True)}  # fmt: skip
 
 
 def release(kube: Kube, fleet: str, robot: str, owner: str, force: bool, check_mode: bool) -> dict:
     """Give ``robot`` back; only its holder may, unless ``force`` (or the reservation has ended)."""
     before = current(kube, fleet, robot)
     if before is None:
-        return {"changed": False, "before": None, "after": None, "production": []}
+        return {"changed": False, "before": None, "after": None, "production": [], "passes": passes(kube, fleet, robot, False)}
     if before.active(now()) and before.owner != owner and not force:
         raise PoolRefused(f"robot {robot} is {before.describe()}; only {before.owner} releases it (or force: true)")
     if not check_mode:
         kube.delete("ConfigMap", robot_pool.configmap_name(robot), fleet_namespace(fleet))
-    return {"changed": True, "before": before, "after": None, "production": []}
+    return {"changed": True, "before": before, "after": None, "production": [], "passes": passes(kube, fleet, robot, False)}
