@@ -75,6 +75,10 @@ def test_a_reserved_robot_is_left_out_of_production_given_to_its_developer_and_g
     assert sorted({name for _kind, name in before}) == sorted(untouched) and len(before) == 7, before
     try:
         alice = ("-e", "robot=fetch-2", "-e", "owner=alice", "-e", '{"reason": "grasp tests"}', "-e", "hold=2h")
+        named = pool("-e", "robot=fetch-2", "-e", '{"owner": "Alice Smith"}')
+        assert named.returncode != 0, named.stdout[-3000:]
+        assert "owner: 'Alice Smith' cannot be a RosDeployment's metadata.developer" in said(named), named.stdout[-3000:]
+        assert core.list_namespaced_config_map(namespace, label_selector="kuberos.io/reservation=true").items == []
         checked = pool(*alice, "--check", "--diff")
         assert checked.returncode == 0 and checked.changed == 1, checked.stdout[-3000:]
         assert "+owner: alice" in checked.stdout and "no robot is reserved" in checked.stdout, checked.stdout[-3000:]

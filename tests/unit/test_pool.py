@@ -115,3 +115,20 @@ def test_a_development_deployment_names_its_robots():
         load_rosdeployments(SPEC.replace("targetFleet: test-fleet", "targetFleet: test-fleet, developer: alice"), "x.yml")
     with pytest.raises(SpecError, match=r"metadata.developer: .* does not match|expected the name the robots"):
         load_rosdeployments(DEV.replace("developer: alice", "developer: '-bad name'"), "x.yml")
+
+
+@pytest.mark.parametrize(
+    ("owner", "reason", "why"),
+    [
+        ("alice@example.com", "grasp tests: the new planner", ""),
+        ("", "", "is empty"),
+        ("Alice Smith", "", "cannot be a RosDeployment's metadata.developer"),
+        ("a" * 64, "", "at most 63 characters"),
+        ("alice", "line one\nline two", "control character U+000A"),
+        ("alice", "\x1b[31mred", "control character U+001B (ESC)"),
+        ("alice", "x" * 201, "has 201 characters; expected at most 200"),
+    ],
+)
+def test_who_holds_a_robot_and_why_are_checked_before_anything_is_written(owner, reason, why):
+    found = pool.owner_problem(owner) or pool.reason_problem(reason)
+    assert (why in found) if why else found == "", found

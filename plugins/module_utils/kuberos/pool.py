@@ -24,6 +24,8 @@ from dataclasses import dataclass
 from . import labels
 from .errors import Problem
 from .naming import dns_label, fleet_namespace
+from .schema import DEVELOPER
+from .yaml_source import control_character_reason
 
 LABEL = "kuberos.io/reservation"
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(m|min|h|d)\s*$")
@@ -52,6 +54,32 @@ class Reservation:
         if now is not None:
             data["active"] = self.active(now)
         return data
+
+
+MAX_REASON = 200  # a line in status, the pool's list and the dashboard
+
+
+def owner_problem(owner: str) -> str:
+    """Why ``owner`` cannot hold robots ('' when it can): the name a development deployment gives in
+    ``metadata.developer``, so the spec's own rule."""
+    if not isinstance(owner, str) or not owner:
+        return "is empty; expected who holds the robot, such as 'alice'"
+    if len(owner) > 63 or not re.match(DEVELOPER, owner):
+        return (f"{owner[:70]!r} cannot be a RosDeployment's metadata.developer; expected letters and digits, with "
+                "'-', '_', '.' and '@' inside, at most 63 characters (such as 'alice' or 'alice@example.com')")  # fmt: skip
+    return ""
+
+
+def reason_problem(reason: str) -> str:
+    """Why ``reason`` cannot be shown to the others ('' when it can): one printable line, at most ``MAX_REASON``."""
+    if not isinstance(reason, str):
+        return "is not text"
+    if len(reason) > MAX_REASON:
+        return f"has {len(reason)} characters; expected at most {MAX_REASON} (one line, for the pool's list)"
+    for character in reason:
+        if not character.isprintable():
+            return control_character_reason(character)
+    return ""
 
 
 def stamp(moment: datetime.datetime) -> str:

@@ -63,6 +63,9 @@ def reserve(kube: Kube, fleet: str, robot: str, owner: str, reason: str, until: 
         ends = robot_pool.parse_until(until, moment)
     except ValueError as exc:
         raise KuberosError(f"until: {exc}") from None
+    for field, why in (("owner", robot_pool.owner_problem(owner)), ("reason", robot_pool.reason_problem(reason))):
+        if why:
+            raise KuberosError(f"{field}: {why}")
     before = current(kube, fleet, robot)
     if before is not None and before.active(moment) and before.owner != owner:
         raise PoolRefused(f"robot {robot} is {before.describe()}; ask {before.owner} to release it, or wait")
