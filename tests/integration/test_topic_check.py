@@ -30,18 +30,19 @@ rosModules:
   launch: perceive
   topics:
     publishes:
-    - {name: detections, type: std_msgs/msg/String, qos: {reliability: RELIABILITY}, rate: {min: 5, max: 40}}
+    - {name: detections, type: std_msgs/msg/String, qos: {reliability: RELIABILITY QOS}, rate: {min: 5, max: 40}}
 - name: planner
   image: reg/planner:1
   launch: plan
   topics:
     subscribes:
-    - {name: detections, type: std_msgs/msg/String, qos: {reliability: RELIABILITY}}
+    - {name: detections, type: std_msgs/msg/String, qos: {reliability: RELIABILITY QOS}}
 """
 
 
-def _declared(reliability: str) -> str:
-    (deployment,) = load_rosdeployments(SPEC.replace("RELIABILITY", reliability), "spec.yml")
+def _declared(reliability: str, qos: str = "") -> str:
+    text = SPEC.replace("RELIABILITY", reliability).replace(" QOS", f", {qos}" if qos else "")
+    (deployment,) = load_rosdeployments(text, "spec.yml")
     return json.dumps([e.to_dict() for e in expectations(deployment.modules)])
 
 
@@ -82,6 +83,8 @@ def test_declared_topics_that_really_connect_pass_with_their_measured_rate(modul
     assert topic["name"] == "/fetch_1/detections" and 15 <= topic["rate"] <= 25, topic
     assert [p["node"] for p in topic["publishers"]] == ["/fetch_1/perception"]
     assert [s["node"] for s in topic["subscribers"]] == ["/fetch_1/planner"], "the probe's own subscription left out"
+    (publisher,) = topic["publishers"]
+    assert (publisher["deadline_ms"], publisher["liveliness"], publisher["lease_ms"]) == (None, "automatic", None), publisher
 
 
 @pytest.mark.ros
@@ -97,6 +100,30 @@ def test_a_module_that_lies_about_its_qos_is_caught_live(modules):
         "ros_graph_probe: /fetch_1/detections: /fetch_1/planner and /fetch_1/perception never match: a reliable "
         "subscription gets nothing from a best_effort publisher"
     ) in done.stderr, done.stderr
+
+
+@pytest.mark.ros
+def test_a_module_that_lies_about_its_deadline_is_caught_live(modules):
+    """Both declare a 100 ms deadline (deploy accepts them). A perception that offers 50 ms keeps its word and
+    passes; a second one that really offers 500 ms never serves the planner's request for 100 ms and is named."""
+    env, start = modules
+    declared = _declared("best_effort", "deadline: 100 ms")
+    start("planner", "--sub", "detections:best_effort:100")
+    start("perception", "--pub", "detections:best_effort:20:50")
+    kept = _probe(env, declared)
+    assert kept.returncode == 0, kept.stdout + kept.stderr
+    (topic,) = json.loads(kept.stdout.splitlines()[0])["topics"]
+    assert [(p["node"], p["deadline_ms"]) for p in topic["publishers"]] == [("/fetch_1/perception", 50.0)], topic
+    assert [s["deadline_ms"] for s in topic["subscribers"]] == [100.0], topic
+    start("perception_spare", "--pub", "detections:best_effort:2:500")  # the two together stay within 5-40 Hz
+    done = _probe(env, declared)
+    assert done.returncode == 1, done.stdout + done.stderr
+    problems = [line for line in done.stderr.splitlines() if line.startswith("ros_graph_probe: ")]
+    assert problems == [
+        "ros_graph_probe: /fetch_1/detections: /fetch_1/planner and /fetch_1/perception_spare never match: a "
+        "subscription requesting a deadline of 100 ms gets nothing from a publisher offering 500 ms (expected the "
+        "publisher's deadline at most the subscription's)"
+    ], done.stderr
 
 
 @pytest.mark.ros

@@ -217,7 +217,23 @@ def test_any_text_is_a_deployment_or_a_spec_error(text):
 
 
 topic_keys = st.sampled_from(
-    ["publishes", "subscribes", "name", "type", "qos", "reliability", "durability", "depth", "rate", "min", "max", "external"]
+    [
+        "publishes",
+        "subscribes",
+        "name",
+        "type",
+        "qos",
+        "reliability",
+        "durability",
+        "depth",
+        "rate",
+        "min",
+        "max",
+        "external",
+        "deadline",
+        "liveliness",
+        "lease_duration",
+    ]
 )
 topicish = st.recursive(
     st.none()
@@ -255,6 +271,9 @@ declared = st.fixed_dictionaries(
                 "reliability": st.sampled_from(["reliable", "best_effort"]) | odd,
                 "durability": st.sampled_from(["volatile", "transient_local"]) | odd,
                 "depth": st.integers(-1, 5000) | odd,
+                "deadline": st.sampled_from([0, 50, "100 ms", "0.2 s", "-1 ms", "fast"]) | odd,
+                "liveliness": st.sampled_from(["automatic", "manual_by_topic"]) | odd,
+                "lease_duration": st.sampled_from([0, 1000, "1 s", "2 s"]) | odd,
             },
         ),
         "rate": st.fixed_dictionaries({}, optional={"min": st.floats(0, 100) | odd, "max": st.floats(0, 100) | odd}),

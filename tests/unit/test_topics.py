@@ -236,6 +236,10 @@ def test_the_live_check_wants_every_declared_endpoint_on_every_robot():
         (_seen(rate=2.0), "/fetch_1/detections: 2.0 Hz over 3 s, outside 5-50 Hz (declared by planner)"),
         (_seen(rate=80.0), "/fetch_1/detections: 80.0 Hz over 3 s, outside 5-50 Hz (declared by planner)"),
         (_seen(rate=None), "/fetch_1/detections: rate not measured (declared 5-50 Hz by planner)"),
+        (Observed([Endpoint("/fetch_1/perception", "geometry_msgs/msg/PoseArray", "reliable", "volatile", 250.0)],
+                  [Endpoint("/fetch_1/planner", "geometry_msgs/msg/PoseArray", "reliable", "volatile", 100.0)], 10.0),
+         "/fetch_1/detections: /fetch_1/planner and /fetch_1/perception never match: a subscription requesting a "
+         "deadline of 100 ms gets nothing from a publisher offering 250 ms"),
     ],
 )  # fmt: skip
 def test_the_live_check_catches_a_lie_about_qos_a_wrong_type_and_a_rate_out_of_bounds(seen, line):
@@ -251,8 +255,57 @@ def test_expectations_travel_as_plain_data_and_hostile_data_is_refused():
             Expectation.from_dict(bad)
 
 
+def _point(reliability="reliable", durability="volatile", deadline=None, liveliness="automatic", lease=None):
+    return Endpoint("/n", "std_msgs/msg/Bool", reliability, durability, deadline, liveliness, lease)
+
+
 def test_qos_rules_are_the_request_offered_rules_of_ros_2():
-    assert qos_mismatch("reliable", "transient_local", "best_effort", "volatile") == ""
-    assert qos_mismatch("reliable", "volatile", "reliable", "volatile") == ""
-    assert "best_effort publisher" in qos_mismatch("best_effort", "volatile", "reliable", "volatile")
-    assert "volatile publisher" in qos_mismatch("reliable", "volatile", "reliable", "transient_local")
+    assert qos_mismatch(_point(durability="transient_local"), _point(reliability="best_effort")) == ""
+    assert qos_mismatch(_point(), _point()) == ""
+    assert "best_effort publisher" in qos_mismatch(_point(reliability="best_effort"), _point())
+    assert "volatile publisher" in qos_mismatch(_point(), _point(durability="transient_local"))
+    # deadline and lease: the publisher offers at most what the subscription requests; none is infinite
+    assert qos_mismatch(_point(deadline=100.0), _point(deadline=200.0)) == ""
+    assert qos_mismatch(_point(deadline=100.0), _point()) == "", "a subscription without a deadline takes any"
+    assert qos_mismatch(_point(deadline=200.0), _point(deadline=100.0)) == (
+        "a subscription requesting a deadline of 100 ms gets nothing from a publisher offering 200 ms (expected the "
+        "publisher's deadline at most the subscription's)"
+    )
+    assert "publisher offering none" in qos_mismatch(_point(), _point(deadline=100.0))
+    assert "manual_by_topic subscription gets nothing from an automatic publisher" in qos_mismatch(
+        _point(), _point(liveliness="manual_by_topic")
+    )
+    assert qos_mismatch(_point(liveliness="manual_by_topic"), _point()) == ""
+    assert "liveliness lease of 1000 ms gets nothing from a publisher offering 2000 ms" in qos_mismatch(
+        _point(lease=2000.0), _point(lease=1000.0)
+    )
+    assert qos_mismatch(_point(lease=500.0), _point(lease=1000.0)) == ""
+
+
+@pytest.mark.parametrize(
+    ("published", "subscribed", "why"),
+    [
+        ("deadline: 200 ms", "deadline: 0.1 s",
+         "a subscription requesting a deadline of 100 ms gets nothing from a publisher offering 200 ms"),
+        ("{}", "deadline: 100",
+         "a subscription requesting a deadline of 100 ms gets nothing from a publisher offering none"),
+        ("liveliness: automatic", "liveliness: manual_by_topic",
+         "a manual_by_topic subscription gets nothing from an automatic publisher"),
+        ("lease_duration: 2 s", "lease_duration: 1 s",
+         "a subscription requesting a liveliness lease of 1000 ms gets nothing from a publisher offering 2000 ms"),
+        ("{deadline: 50 ms, liveliness: manual_by_topic, lease_duration: 1 s}",
+         "{deadline: 100 ms, liveliness: manual_by_topic, lease_duration: 1 s}", None),
+    ],
+)  # fmt: skip
+def test_deadline_and_liveliness_are_checked_before_anything_is_applied(published, subscribed, why):
+    def qos(text):
+        return text if text.startswith("{") else "{" + text + "}"
+
+    pub = f"publishes:\n- {{name: beat, type: std_msgs/msg/Bool, qos: {qos(published)}}}"
+    sub = f"subscribes:\n- {{name: beat, type: std_msgs/msg/Bool, qos: {qos(subscribed)}}}"
+    if why is None:
+        (deployment,) = load_rosdeployments(_spec(pub, sub), "spec.yml")
+        assert deployment.modules[0].topics[0].deadline_ms == 50.0 and deployment.modules[1].topics[0].lease_ms == 1000.0
+        return
+    (line,) = _problems(_spec(pub, sub))
+    assert "planner subscribes to /{robot}/beat but perception publishes it: " + why in line, line

@@ -310,6 +310,7 @@ UPGRADE = {
 DECLARED_TOPIC = r"^/?(\{robot\}|[A-Za-z_][A-Za-z0-9_]*)(/(\{robot\}|[A-Za-z_][A-Za-z0-9_]*))*$"
 RELIABILITIES = ("reliable", "best_effort")
 DURABILITIES = ("volatile", "transient_local")
+LIVELINESSES = ("automatic", "manual_by_topic")
 MAX_TOPICS = 200  # declarations of one direction of one module
 MAX_RATE_HZ = 100000
 _RATE_HZ = {
@@ -342,7 +343,7 @@ def _declared_topic(subscription: bool) -> dict:
         "qos": {
             "type": "object",
             "additionalProperties": False,
-            "x-expected": "a mapping with reliability, durability and depth",
+            "x-expected": "a mapping with reliability, durability, depth, deadline, liveliness and lease_duration",
             "properties": {
                 "reliability": {
                     "type": "string",
@@ -363,8 +364,33 @@ def _declared_topic(subscription: bool) -> dict:
                     "description": "History depth (keep last); does not decide whether endpoints match.",
                     "x-expected": "a whole number from 1 to 100000",
                 },
+                "deadline": {
+                    **_DURATION,
+                    "description": (
+                        "The longest time between two messages: a publisher offers it, a subscription requests it "
+                        "(matched when the publisher's is at most the subscription's). Default: none."
+                    ),
+                },
+                "liveliness": {
+                    "type": "string",
+                    "enum": list(LIVELINESSES),
+                    "description": (
+                        "automatic (the ROS default) or manual_by_topic; a manual_by_topic subscription gets nothing "
+                        "from an automatic publisher."
+                    ),
+                    "x-expected": "automatic or manual_by_topic",
+                },
+                "lease_duration": {
+                    **_DURATION,
+                    "description": (
+                        "The liveliness lease: matched when the publisher's is at most the subscription's. Default: none."
+                    ),
+                },
             },
-            "description": "The QoS the module's endpoint uses (defaults: reliable, volatile, depth 10).",
+            "description": (
+                "The QoS the module's endpoint uses (defaults: reliable, volatile, depth 10, no deadline, automatic "
+                "liveliness, no lease); endpoints whose QoS never match are refused, by ROS 2's request-offered rules."
+            ),
         },
         "rate": {
             "type": "object",

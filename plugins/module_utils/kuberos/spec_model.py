@@ -132,6 +132,9 @@ class DeclaredTopic:
     reliability: str = "reliable"
     durability: str = "volatile"
     depth: int = 10
+    deadline_ms: float | None = None  # None: no deadline (ROS's infinite)
+    liveliness: str = "automatic"
+    lease_ms: float | None = None  # the liveliness lease; None: infinite
     rate_min: float | None = None  # Hz
     rate_max: float | None = None
     external: bool = False  # subscribes: published outside the deployment

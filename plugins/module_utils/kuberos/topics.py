@@ -27,12 +27,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .naming import robot_ros_name
+from .quantities import format_latency, parse_latency_ms
 from .spec_model import DeclaredTopic
 
 ROBOT = "{robot}"
 DEFAULT_RELIABILITY = "reliable"
 DEFAULT_DURABILITY = "volatile"
 DEFAULT_DEPTH = 10
+DEFAULT_LIVELINESS = "automatic"
 DIRECTIONS = ("publishes", "subscribes")
 PROBE_NODE = "kuberos_rollout_probe"  # the probe's own node; its rate subscriptions are not the modules'
 
@@ -62,6 +64,9 @@ def declared(raw, origin: str = "") -> tuple[DeclaredTopic, ...]:
                     reliability=qos.get("reliability", DEFAULT_RELIABILITY),
                     durability=qos.get("durability", DEFAULT_DURABILITY),
                     depth=int(qos.get("depth", DEFAULT_DEPTH)),
+                    deadline_ms=_duration_ms(qos.get("deadline")),
+                    liveliness=qos.get("liveliness", DEFAULT_LIVELINESS),
+                    lease_ms=_duration_ms(qos.get("lease_duration")),
                     rate_min=float(rate["min"]) if "min" in rate else None,
                     rate_max=float(rate["max"]) if "max" in rate else None,
                     external=bool(item.get("external", False)),
@@ -72,18 +77,54 @@ def declared(raw, origin: str = "") -> tuple[DeclaredTopic, ...]:
     return tuple(topics)
 
 
-def qos_mismatch(publisher_reliability: str, publisher_durability: str, reliability: str, durability: str) -> str:
-    """Why a publisher's QoS never serves a subscription's (ROS 2's request-offered rules), or ''."""
+def _duration_ms(value) -> float | None:
+    """A validated duration in milliseconds; None when absent or 0 (ROS's infinite)."""
+    if value is None:
+        return None
+    ms = parse_latency_ms(value)
+    return ms if ms > 0 else None
+
+
+def _offered_within(offered: float | None, requested: float | None) -> bool:
+    """Whether an offered duration (None: infinite) is at most the requested one (None: infinite)."""
+    return requested is None or (offered is not None and offered <= requested)
+
+
+def _duration(ms: float | None) -> str:
+    return "none" if ms is None else format_latency(ms)
+
+
+def qos_mismatch(publisher, subscription) -> str:
+    """Why a publisher's QoS never serves a subscription's (ROS 2's request-offered rules), or ''. Both carry
+    ``reliability``, ``durability``, ``deadline_ms``, ``liveliness`` and ``lease_ms`` (a ``DeclaredTopic`` or an
+    ``Endpoint`` the probe saw)."""
     reasons = []
-    if reliability == "reliable" and publisher_reliability == "best_effort":
+    if subscription.reliability == "reliable" and publisher.reliability == "best_effort":
         reasons.append(
             "a reliable subscription gets nothing from a best_effort publisher (expected reliability best_effort in "
             "the subscription, or reliable in the publisher)"
         )
-    if durability == "transient_local" and publisher_durability == "volatile":
+    if subscription.durability == "transient_local" and publisher.durability == "volatile":
         reasons.append(
             "a transient_local subscription gets nothing from a volatile publisher (expected durability volatile in "
             "the subscription, or transient_local in the publisher)"
+        )
+    if not _offered_within(publisher.deadline_ms, subscription.deadline_ms):
+        reasons.append(
+            f"a subscription requesting a deadline of {_duration(subscription.deadline_ms)} gets nothing from a "
+            f"publisher offering {_duration(publisher.deadline_ms)} (expected the publisher's deadline at most the "
+            "subscription's)"
+        )
+    if subscription.liveliness == "manual_by_topic" and publisher.liveliness == "automatic":
+        reasons.append(
+            "a manual_by_topic subscription gets nothing from an automatic publisher (expected liveliness automatic "
+            "in the subscription, or manual_by_topic in the publisher)"
+        )
+    if not _offered_within(publisher.lease_ms, subscription.lease_ms):
+        reasons.append(
+            f"a subscription requesting a liveliness lease of {_duration(subscription.lease_ms)} gets nothing from a "
+            f"publisher offering {_duration(publisher.lease_ms)} (expected the publisher's lease at most the "
+            "subscription's)"
         )
     return "; ".join(reasons)
 
@@ -155,7 +196,7 @@ def declaration_findings(modules) -> list[Finding]:
 def _pair_problem(published: DeclaredTopic, subscribed: DeclaredTopic) -> str:
     if published.type != subscribed.type:
         return f"the types differ ({subscribed.type} subscribed, {published.type} published)"
-    why = qos_mismatch(published.reliability, published.durability, subscribed.reliability, subscribed.durability)
+    why = qos_mismatch(published, subscribed)
     if why:
         return why
     if subscribed.rate_min is not None and published.rate_max is not None and subscribed.rate_min > published.rate_max:
@@ -239,6 +280,9 @@ class Endpoint:
     type: str
     reliability: str
     durability: str
+    deadline_ms: float | None = None  # None: infinite
+    liveliness: str = DEFAULT_LIVELINESS
+    lease_ms: float | None = None
 
 
 @dataclass
@@ -281,7 +325,7 @@ def mismatches(name: str, want: Expectation, seen: Observed) -> list[str]:
                 lines.append(f"{name}: {point.node} {side} {point.type}, but the declared type is {want.type}")
     for publisher in seen.publishers:
         for subscriber in seen.subscribers:
-            why = qos_mismatch(publisher.reliability, publisher.durability, subscriber.reliability, subscriber.durability)
+            why = qos_mismatch(publisher, subscriber)
             if why:
                 lines.append(f"{name}: {subscriber.node} and {publisher.node} never match: {why}")
     return lines

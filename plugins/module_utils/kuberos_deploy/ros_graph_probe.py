@@ -159,12 +159,21 @@ def read_topics(path: str | None, environ=None) -> list[Expectation]:
     return wanted
 
 
-_POLICIES = {"RELIABLE": "reliable", "BEST_EFFORT": "best_effort", "VOLATILE": "volatile", "TRANSIENT_LOCAL": "transient_local"}
+_POLICIES = {"RELIABLE": "reliable", "BEST_EFFORT": "best_effort", "VOLATILE": "volatile", "TRANSIENT_LOCAL": "transient_local",
+             "AUTOMATIC": "automatic", "MANUAL_BY_TOPIC": "manual_by_topic"}  # fmt: skip
+# A duration this long (about 11.6 days) or longer is ROS's infinite, however the middleware spells it.
+_INFINITE_NS = 10**15
 
 
 def _policy(value) -> str:
     name = getattr(value, "name", str(value))
     return _POLICIES.get(name, name.lower())
+
+
+def _milliseconds(duration) -> float | None:
+    """An rclpy Duration in milliseconds; None for ROS's unset or infinite."""
+    nanoseconds = getattr(duration, "nanoseconds", 0) or 0
+    return None if nanoseconds <= 0 or nanoseconds >= _INFINITE_NS else nanoseconds / 1e6
 
 
 def endpoints(infos) -> list[Endpoint]:
@@ -175,6 +184,9 @@ def endpoints(infos) -> list[Endpoint]:
             info.topic_type,
             _policy(info.qos_profile.reliability),
             _policy(info.qos_profile.durability),
+            _milliseconds(info.qos_profile.deadline),
+            _policy(info.qos_profile.liveliness),
+            _milliseconds(info.qos_profile.liveliness_lease_duration),
         )
         for info in infos
         if info.node_name != PROBE_NODE
