@@ -94,38 +94,35 @@ def _duration(ms: float | None) -> str:
     return "none" if ms is None else format_latency(ms)
 
 
+# (policy, what a subscription may demand, the publisher's value that never serves it)
+_STRICTER = (
+    ("reliability", "reliable", "best_effort"),
+    ("durability", "transient_local", "volatile"),
+    ("liveliness", "manual_by_topic", "automatic"),
+)
+# (attribute, what it is): a publisher serves a subscription when it offers at most the duration requested
+_DURATIONS = (("deadline_ms", "deadline"), ("lease_ms", "liveliness lease"))
+
+
 def qos_mismatch(publisher, subscription) -> str:
     """Why a publisher's QoS never serves a subscription's (ROS 2's request-offered rules), or ''. Both carry
-    ``reliability``, ``durability``, ``deadline_ms``, ``liveliness`` and ``lease_ms`` (a ``DeclaredTopic`` or an
+    ``reliability``, ``durability``, ``liveliness``, ``deadline_ms`` and ``lease_ms`` (a ``DeclaredTopic`` or an
     ``Endpoint`` the probe saw)."""
     reasons = []
-    if subscription.reliability == "reliable" and publisher.reliability == "best_effort":
-        reasons.append(
-            "a reliable subscription gets nothing from a best_effort publisher (expected reliability best_effort in "
-            "the subscription, or reliable in the publisher)"
-        )
-    if subscription.durability == "transient_local" and publisher.durability == "volatile":
-        reasons.append(
-            "a transient_local subscription gets nothing from a volatile publisher (expected durability volatile in "
-            "the subscription, or transient_local in the publisher)"
-        )
-    if not _offered_within(publisher.deadline_ms, subscription.deadline_ms):
-        reasons.append(
-            f"a subscription requesting a deadline of {_duration(subscription.deadline_ms)} gets nothing from a "
-            f"publisher offering {_duration(publisher.deadline_ms)} (expected the publisher's deadline at most the "
-            "subscription's)"
-        )
-    if subscription.liveliness == "manual_by_topic" and publisher.liveliness == "automatic":
-        reasons.append(
-            "a manual_by_topic subscription gets nothing from an automatic publisher (expected liveliness automatic "
-            "in the subscription, or manual_by_topic in the publisher)"
-        )
-    if not _offered_within(publisher.lease_ms, subscription.lease_ms):
-        reasons.append(
-            f"a subscription requesting a liveliness lease of {_duration(subscription.lease_ms)} gets nothing from a "
-            f"publisher offering {_duration(publisher.lease_ms)} (expected the publisher's lease at most the "
-            "subscription's)"
-        )
+    for policy, demanded, short in _STRICTER:
+        if getattr(subscription, policy) == demanded and getattr(publisher, policy) == short:
+            article = "an" if short[0] in "aeiou" else "a"
+            reasons.append(
+                f"a {demanded} subscription gets nothing from {article} {short} publisher (expected {policy} {short} "
+                f"in the subscription, or {demanded} in the publisher)"
+            )
+    for attribute, what in _DURATIONS:
+        offered, requested = getattr(publisher, attribute), getattr(subscription, attribute)
+        if not _offered_within(offered, requested):
+            reasons.append(
+                f"a subscription requesting a {what} of {_duration(requested)} gets nothing from a publisher offering "
+                f"{_duration(offered)} (expected the publisher's {what} at most the subscription's)"
+            )
     return "; ".join(reasons)
 
 
