@@ -12,7 +12,7 @@ BUILD_ENV := KUBERNETES_VERSION=$(call version,kubernetes) ETCD_VERSION=$(call v
 REAL := inventories/real-pods
 REAL_KUBECONFIG = $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/cluster-real/kubeconfig
 
-.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-discovery bench-discovery-traffic bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit molecule schema bench bench-deploy bench-controller bench-rollout sim evaluate clean
+.PHONY: setup binaries cluster cluster-stop demo demo-real demo-real-stop bench-connectivity bench-discovery bench-discovery-traffic bench-real-pods bench-site bench-platform-pods bench-images bench-dashboard bench-scaling controller controller-stop status test lint sanity unit molecule schema bench bench-deploy bench-controller bench-rollout bench-pool sim evaluate clean
 
 setup:
 	@scripts/setup.sh
@@ -128,6 +128,10 @@ bench-controller: binaries
 ## Rollout benchmark: 100 robots, one module upgraded in waves of 10, and a broken version stopped at the canary.
 bench-rollout: binaries
 	cd bench && ../$(VENV)/python bench_rollout.py --json results/rollout.json
+
+## The robot pool's pass: a reserved robot freed and given back with 1 and 4 production deployments on it.
+bench-pool: binaries
+	cd bench && ../$(VENV)/python bench_pool_pass.py --json results/pool_pass.json
 
 ## Connectivity on real nodes: a robot cut off longer than the eviction delay (its pods, moves, rematch after
 ## reconnecting), and edge kubelets stopped in turn (time until their modules run elsewhere; docs/connectivity.md).
