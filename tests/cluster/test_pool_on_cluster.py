@@ -82,6 +82,7 @@ def test_a_reserved_robot_is_left_out_of_production_given_to_its_developer_and_g
         checked = pool(*alice, "--check", "--diff")
         assert checked.returncode == 0 and checked.changed == 1, checked.stdout[-3000:]
         assert "+owner: alice" in checked.stdout and "no robot is reserved" in checked.stdout, checked.stdout[-3000:]
+        assert re.search(r"would stop what (\S+, )*pool-app(, \S+)* run\(s\) for fetch-2 at once", said(checked)), checked.stdout
         reserved = pool(*alice)
         assert reserved.returncode == 0 and reserved.changed >= 2, reserved.stdout[-3000:]  # the reservation, the pass
         assert "fetch-2 (fleet test-fleet) is reserved by alice until" in said(reserved), reserved.stdout[-3000:]
