@@ -131,7 +131,7 @@ bench-rollout: binaries
 
 ## The robot pool's pass: a reserved robot freed and given back with 1 and 4 production deployments on it.
 bench-pool: binaries
-	cd bench && ../$(VENV)/python bench_pool_pass.py --json results/pool_pass.json
+	$(VENV)/python bench/bench_pool_pass.py --json bench/results/pool_pass.json
 
 ## Connectivity on real nodes: a robot cut off longer than the eviction delay (its pods, moves, rematch after
 ## reconnecting), and edge kubelets stopped in turn (time until their modules run elsewhere; docs/connectivity.md).

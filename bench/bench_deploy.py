@@ -820,10 +820,11 @@ def log(message: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
 
 
-def command_line(argv: list[str] | None) -> str:
+def command_line(argv: list[str] | None, script: str = "bench/bench_deploy.py") -> str:
+    """The command that ran a benchmark ``script`` (from the repository's root) with ``argv``."""
     niceness = os.nice(0)
     return " ".join(
-        ["cd", str(REPO), "&&", *(["nice", "-n", str(niceness)] if niceness else []), ".venv/bin/python", "bench/bench_deploy.py"]
+        ["cd", str(REPO), "&&", *(["nice", "-n", str(niceness)] if niceness else []), ".venv/bin/python", script]
         + (argv if argv is not None else sys.argv[1:])
     )
 

@@ -12,7 +12,7 @@ discovery servers) keeps its resourceVersion throughout. The sizes alternate (1,
 same machine; the ratio N : 1 is what to compare. Results print as Markdown and go to
 ``bench/results/pool_pass.json`` with ``--json``. Every wait is bounded; the cluster is removed at the end.
 
-    .venv/bin/python bench/bench_pool_pass.py --json bench/results/pool_pass.json
+    .venv/bin/python bench/bench_pool_pass.py --json bench/results/pool_pass.json   (make bench-pool)
     .venv/bin/python bench/bench_pool_pass.py --robots 4 --deployments 2 --rounds 1
 """
 
@@ -26,7 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_deploy import FLEET, REPO, Cluster, check, log, machine, playbook, write_inventory
+from bench_deploy import FLEET, Cluster, check, command_line, log, machine, playbook, write_inventory
 from workload import pick_and_place
 
 NAMESPACE = f"kuberos-{FLEET}"
@@ -144,10 +144,9 @@ def main(argv=None) -> int:
     inventory = write_inventory(work / "inventory", args.robots, gpus=False)
     cluster = Cluster(inventory, work / "cluster", args.timeout)
     sizes = [1, args.deployments]
-    arguments = " ".join(argv if argv is not None else sys.argv[1:])
     data = {
         "robots": args.robots, "sizes": sizes, "rounds": args.rounds, "soak": args.soak, "machine": machine(),
-        "command": f"cd {REPO} && .venv/bin/python bench/bench_pool_pass.py {arguments}".rstrip(),
+        "command": command_line(argv, "bench/bench_pool_pass.py"),
     }  # fmt: skip
     runs: dict[int, list[dict]] = {size: [] for size in sizes}
     try:
