@@ -65,11 +65,11 @@ status: setup
 	$(VENV)/ansible-playbook playbooks/status.yml -i inventories/local
 
 ## Lint and every test (the cluster tests start their own control plane; the cluster setup roles' tests need kubeadm,
-## and Calico's programs, built from Calico's Go module and ../shared/third_party's api/ tree).
+## and Cilium's programs, the lab's pod network, built from Cilium's Go module).
 ## The collection's images and the lab machines' Debian root are built beside the Go programs (downloads and disk
 ## more than CPU; their log: $(PREBUILD_LOG)); a build that fails there fails again in the test that needs it, which
 ## says why. Then pytest in two lanes side by side (docs/testing.md), while the images of the lab machines' cluster
-## (kubeadm's and Calico's, from the Go programs) are built beside the first tests (the site chain, which needs them,
+## (kubeadm's and Cilium's, from the Go programs) are built beside the first tests (the site chain, which needs them,
 ## comes later in its lane and waits for the build if it is not done).
 PREBUILD_LOG := $${KUBEROS_CACHE_DIR:-$$HOME/.cache/kuberos}/prebuild.log
 test: setup
@@ -78,7 +78,7 @@ test: setup
 	  && PYTHONPATH=$(CURDIR)/.collections $(VENV)/python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.machines root; \
 	} >"$(PREBUILD_LOG)" 2>&1 & prebuild=$$!; \
 	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1 \
-	  && roles/local_cluster/files/build-calico.sh \
+	  && roles/local_cluster/files/build-cilium.sh \
 	  && scripts/operator-crds.sh >/dev/null \
 	  && roles/local_cluster/files/build-kube-score.sh; built=$$?; \
 	wait $$prebuild || echo "make test: the images or the machines' root did not build here ($(PREBUILD_LOG)); the tests that need them build them again"; \
@@ -93,10 +93,10 @@ unit: setup
 	$(VENV)/python -m pytest tests/unit
 
 ## Every molecule scenario run whole (as root), also those on lab machines that `make test` only syntax-checks because
-## the site chain runs their roles (kubeadm_init, kubeadm_join, calico; docs/testing.md). S=NAME runs one.
+## the site chain runs their roles (kubeadm_init, kubeadm_join, cilium; docs/testing.md). S=NAME runs one.
 molecule: setup
 	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1
-	@roles/local_cluster/files/build-calico.sh
+	@roles/local_cluster/files/build-cilium.sh
 	KUBEROS_MACHINE_SCENARIOS=1 $(VENV)/python -m pytest tests/molecule $(if $(S),-k "$(S)")
 
 ## Lint as the ecosystem does: ruff, yamllint, ansible-lint (production profile), ansible-test sanity on the built
@@ -158,7 +158,7 @@ bench-real-pods:
 ## (docs/cluster-setup.md).
 bench-site: setup
 	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1
-	@roles/local_cluster/files/build-calico.sh
+	@roles/local_cluster/files/build-cilium.sh
 	$(VENV)/python bench/bench_site.py --json bench/results/site.json
 
 ## Images benchmark (as root): every image built cold and warm, rebuilt for the same digests, pushed to the lab

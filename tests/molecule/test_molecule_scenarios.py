@@ -6,7 +6,7 @@ asserts real outcomes in its verify.yml, and removes the hosts. The hosts are ke
 read the secrets the role made on them (private keys), to check none of them appears in the output.
 Needs root and Debian's openssh-server (skipped locally without them, a failure in CI).
 
-The scenarios on lab machines (``kubeadm_init``, ``kubeadm_join``, ``calico``) run the roles that the site chain
+The scenarios on lab machines (``kubeadm_init``, ``kubeadm_join``, ``cilium``) run the roles that the site chain
 (tests/site) runs on seven machines, and check what it checks there too: etcd's members, every node Ready, labels and
 taints, kube-proxy, pod traffic across nodes, a NetworkPolicy refusing, a second run changing nothing. They take about
 12 minutes of a two-core machine, so ``make test`` checks only their playbooks' syntax (``molecule syntax``) and
@@ -75,8 +75,8 @@ def run_whole(scenario: str) -> bool:
 
 
 def test_there_are_scenarios():
-    assert {"wireguard", "node_prereqs", "robot_register", "kubeadm_init", "kubeadm_join", "calico"} <= set(SCENARIOS)
-    assert all(uses_machines(name) for name in ("kubeadm_init", "kubeadm_join", "calico")) and not uses_machines("wireguard")
+    assert {"wireguard", "node_prereqs", "robot_register", "kubeadm_init", "kubeadm_join", "cilium"} <= set(SCENARIOS)
+    assert all(uses_machines(name) for name in ("kubeadm_init", "kubeadm_join", "cilium")) and not uses_machines("wireguard")
 
 
 @pytest.mark.parametrize("scenario", [name for name in SCENARIOS if not run_whole(name)])

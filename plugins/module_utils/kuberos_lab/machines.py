@@ -1,12 +1,12 @@
 """Lab machines: Debian machines booted with systemd-nspawn, each behaving as a separate host of a site.
 
-The cluster setup roles (node_prereqs, kubeadm_init, kubeadm_join, calico) run on them as on a real site: over
+The cluster setup roles (node_prereqs, kubeadm_init, kubeadm_join, cilium) run on them as on a real site: over
 SSH as a non-root user with sudo (Ansible ``become``), against a real systemd that supervises containerd and the
 kubelet, and with ``kubeadm init`` and ``join`` for real. A machine has:
 
 - its own root filesystem: an overlay of one cached Debian root (``debootstrap --variant=minbase`` of bookworm with
   systemd, sshd, sudo, Python, containerd, runc and the programs kubeadm's preflight wants) and the machine's own
-  upper directory, so everything kubeadm, the kubelet, etcd and Calico write (``/etc/kubernetes``,
+  upper directory, so everything kubeadm, the kubelet, etcd and Cilium write (``/etc/kubernetes``,
   ``/var/lib/kubelet``, ``/var/lib/etcd``, ``/etc/cni``, ``/opt/cni``) is the machine's alone; containerd's root
   (``/var/lib/containerd``) is a directory of its own bound in, because its overlayfs snapshots cannot live on an
   overlay;
@@ -699,14 +699,14 @@ def site_vars(cache_dir: str, log=print) -> dict:
     """The lab's choices for the cluster setup roles, as inventory variables (each a documented role variable a real
     site may set too): the cgroupfs driver (systemd in a machine does not own the cgroup controllers the lab mounts),
     kubelet and kubeadm from the programs built here instead of the package repository, the images kubeadm runs
-    preloaded from archives built here (with Calico's, built from its Go module, and a busybox image for network
-    checks), and the etcd and CoreDNS versions the project builds."""
-    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import calico_images, kubeadm_images
+    preloaded from archives built here (with Cilium's, built from its Go module, and a busybox image for network
+    checks), Cilium as the pod network (``kuberos_cni``), and the etcd and CoreDNS versions the project builds."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import cilium_images, kubeadm_images
 
     versions = kubeadm_images.pinned_versions()
     cache = os.path.abspath(os.path.expanduser(cache_dir))
     images = kubeadm_images.build_all(cache, log=log)
-    images.update(calico_images.build(cache, log=log))
+    images.update(cilium_images.build(cache, log=log))
     toolbox, archive = kubeadm_images.build_toolbox(cache, log=log)
     images[toolbox] = archive
     binaries = {name: os.path.join(cache, "bin", f"{name}-{versions['kubernetes']}") for name in ("kubelet", "kubeadm")}
@@ -723,7 +723,10 @@ def site_vars(cache_dir: str, log=print) -> dict:
         # the machines share this host's disk with everything else on it: the kubelet's default shares (10% and 15%
         # free) would evict every machine's pods at once when the host fills, which says nothing about a machine
         "kuberos_kubelet_eviction_hard": LAB_EVICTION_HARD,
-        "calico_version": calico_images.DEFAULT_VERSION,  # Calico built here from its Go module (build-calico.sh)
+        # the pod network the lab builds from the Go module proxy (build-cilium.sh) and runs: Calico's sources are not
+        # all served there (docs/cluster-setup.md)
+        "kuberos_cni": "cilium",
+        "cilium_version": cilium_images.DEFAULT_VERSION,
         "kuberos_lab_toolbox_image": toolbox,  # the lab's network checks (a busybox image)
         "node_prereqs_kubernetes_binaries": binaries,
         "node_prereqs_image_archives": sorted(images.values()),
@@ -766,7 +769,7 @@ def main(argv: list[str] | None = None) -> int:
     root = sub.add_parser("root", help="build (or reuse) the machines' Debian root in the cache; print its folder")
     root.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
     images = sub.add_parser(
-        "site-images", help="build (or reuse) the images the machines' cluster runs (kubeadm's, Calico's); print them"
+        "site-images", help="build (or reuse) the images the machines' cluster runs (kubeadm's, Cilium's); print them"
     )
     images.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
     down = sub.add_parser("down", help="power off, remove mounts, cgroups, namespaces and links")

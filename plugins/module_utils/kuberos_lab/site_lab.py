@@ -215,9 +215,9 @@ class SiteLab:
             "kuberos_control_plane_endpoint": f"{VIP}:6443",  # no resolver here knows the sample's DNS name
             "wireguard_hub_routed_networks": [f"{SUBNET}.0/24"],  # the site network behind the hub
             "node_prereqs_registry_mirrors": mirrors,
-            "calico_node_cpu_request": "0",  # every core of the lab's machines is the modules'
+            "cilium_agent_cpu_request": "0",  # every core of the lab's machines is the modules'
             "kuberos_kubeconfig": self.kubeconfig,
-            "calico_render_dir": self.path("rendered", "calico"),
+            "cilium_render_dir": self.path("rendered", "cilium"),
         }
         with open(os.path.join(all_dir, "10-lab.yml"), "w", encoding="utf-8") as handle:
             handle.write("# The lab's choices (kuberos_lab.site_lab): each a documented variable a site may set too.\n")
@@ -295,7 +295,7 @@ def pod_network_check(kube: Kube, toolbox: str, servers: dict[str, str], clients
     """Web servers (name -> node) that admit only pods labelled access=granted (a NetworkPolicy), and clients
     (name, node, server, admitted) that each fetch a file of BIG_FILE_KIB KiB from a server's pod IP. Returns
     client -> {"phase", "bytes"} (the reply's, headers included): an admitted client reads the whole file through
-    the pod network (Calico's VXLAN, and the VPN for a cloud node, at the MTU the role set); a refused one reads
+    the pod network (the CNI's VXLAN, and the VPN for a cloud node, at the MTU the role set); a refused one reads
     nothing."""
     try:
         kube.delete("Namespace", CHECK_NAMESPACE)
@@ -701,7 +701,7 @@ class SiteChain:
 
 def serve_images(registry, archives: list[str], repo_root: str, cache_dir: str, app_images: bool, log=print) -> dict:
     """Start ``registry`` (a `registry.LocalRegistry`) and push every image a site runs under the name its specs,
-    kubeadm and the calico role use: the ``archives`` (``registry.k8s.io/...``, ``quay.io/calico/...``, the lab's
+    kubeadm and the CNI's role use: the ``archives`` (``registry.k8s.io/...``, ``quay.io/cilium/...``, the lab's
     toolbox) and, with ``app_images``, the collection's images (``ghcr.io/kuberos/...``, ``ros:jazzy-ros-base``).
     Returns node_prereqs_registry_mirrors: the registry as the mirror of each of those registries."""
     names = {_archive_name(archive): archive for archive in archives}

@@ -1,6 +1,6 @@
 # shellcheck shell=bash
 # shellcheck disable=SC2034,SC2317  # its variables and functions are used by the scripts that source it
-# What build-binaries.sh and build-calico.sh share, sourced by both: --print-paths, the Go environment (caches under
+# What build-binaries.sh and build-cilium.sh share, sourced by both: --print-paths, the Go environment (caches under
 # $CACHE_DIR/go, CGO off, no workspace), one build at a time per cache (flock on $CACHE_DIR/.build.lock), the clean-up
 # on exit, and the step timings. Call go_build_setup after PROGRAMS, path_of, PRINT_PATHS, BIN_DIR, WORK_DIR and
 # CACHE_DIR are set (and log, die, with_progress from progress.sh); GO_BUILD_EXTRA_FLAGS adds to GOFLAGS.
