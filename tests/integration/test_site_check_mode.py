@@ -4,7 +4,7 @@ The site: two edge servers running the control plane (HA; edge-1 also the VPN ga
 VM, each a network namespace with a real sshd and its own /etc (tests/sshlab.py). The play runs every role
 of the cluster setup in check mode over SSH, as an infrastructure engineer would before the first real run:
 node_prereqs, wireguard, kubeadm_init (the first control plane and a joining one), kubeadm_join (the robot and
-the cloud VM), then stops before Calico and the labels because no cluster exists yet. The real kubeadm (built
+the cloud VM), then stops before the pod network and the labels because no cluster exists yet. The real kubeadm (built
 from the Go module proxy, the same program the kubeadm tests use) validates every host's rendered
 configuration on the host. Checked: no failure, each host's configuration validated by kubeadm, nothing
 written on any host (every file of every host's /etc hashed before and after), no secret on the output.
@@ -162,12 +162,13 @@ def test_site_check_mode_changes_nothing_and_validates_every_config(site):
     robot = worker["fetch-1"]["ansible_facts"]["kubeadm_join__plan"]["content"]
     assert "kuberos.io/robot" in robot and "NoSchedule" in robot, robot  # robots accept only placed modules
 
-    # Nothing was written on any host, and the play stopped before Calico (no cluster yet).
+    # Nothing was written on any host, and the play stopped before the pod network (no cluster yet).
     after = {name: etc_digest(lab, name) for name in lab.hosts}
     for name in lab.hosts:
         changed = sorted(set(before[name].items()) ^ set(after[name].items()))
         assert not changed, f"check mode changed files on {name}: {changed[:10]}"
-    assert not task_hosts(report, "calico", "Render the manifests")
+    assert not task_hosts(report, "calico", "Render Calico's objects")
+    assert not task_hosts(report, "cilium", "Render Cilium's objects")
 
 
 def test_a_bad_inventory_is_refused_before_any_machine_is_touched(site, tmp_path_factory):

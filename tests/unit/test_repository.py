@@ -248,3 +248,22 @@ def test_only_the_collection_link_is_a_tracked_link():
         pytest.skip("not a git checkout")
     links = sorted(line.split("\t", 1)[1] for line in listing.stdout.splitlines() if line.startswith("120000 "))
     assert links == [".collections/ansible_collections/kuberos/platform"]
+
+
+def test_nothing_builds_from_sources_outside_the_registries():
+    """Every build here takes its sources from a package registry (the Go module proxy, PyPI, Debian, ...): no file
+    names a source tree handed in beside the repository (the shared folder's third-party trees)."""
+    import subprocess
+
+    listing = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=False)
+    if listing.returncode != 0:
+        pytest.skip("not a git checkout")
+    needle = "/".join(("shared", "third_party")).encode()  # not spelled whole here, so that this file passes
+    found = []
+    for path in listing.stdout.decode().split("\0"):
+        full = os.path.join(ROOT, path)
+        if path and os.path.isfile(full) and not os.path.islink(full):
+            with open(full, "rb") as handle:
+                if needle in handle.read():
+                    found.append(path)
+    assert found == [], f"these files name a source tree outside the registries: {found}"

@@ -567,8 +567,20 @@ class SiteChain:
             self.figures.update(hosts=len(found), control_planes=len(CONTROL_PLANES))
             tunnel_ip = self.lab.vpn_address(CLOUD_VM)
             self.figures["cloud_node_joined_over_vpn"] = bool(cloud.get("ready")) and cloud.get("internal_ip") == tunnel_ip
+            self.figures["cni"] = self.cni()
         self.figures[key] = round(result.seconds, 1)
         return result
+
+    def cni(self) -> dict:
+        """The pod network the cluster runs, read from it: the CNI's name and its agent image's tag, and how many
+        nodes run a Ready agent."""
+        names = {"cilium": "cilium", "calico-node": "calico"}
+        for daemonset in self.kube.clients["apps"].list_namespaced_daemon_set("kube-system").items:
+            if daemonset.metadata.name in names:
+                image = daemonset.spec.template.spec.containers[0].image
+                ready = (daemonset.status and daemonset.status.number_ready) or 0
+                return {"name": names[daemonset.metadata.name], "version": image.rpartition(":")[2], "ready_agents": ready}
+        return {"name": "", "version": "", "ready_agents": 0}
 
     def network(self, toolbox: str, robot: str, edge: str, other_edge: str, cloud: str) -> dict:
         """Pod to pod across nodes (robot to edge worker, robot to cloud VM through the VPN) and a refusal."""
