@@ -8,8 +8,9 @@ WireGuard tunnel. In order:
 
 1. ``site.yml`` for real: every node Ready with its labels and taints, three etcd members, the virtual IP held by
    one control plane, the cloud VM's node IP its tunnel address;
-2. the pod network for real (Cilium, ``kuberos_cni``, built here from its Go module): a robot's pod reaches pods on the edge worker and on the cloud VM (through the tunnel, a file
-   larger than any window: the MTU holds), and a NetworkPolicy refuses another pod;
+2. the pod network for real (Cilium, ``kuberos_cni``, built here from its Go module): a robot's pod reaches pods on
+   the edge worker and on the cloud VM (through the tunnel, a file larger than any window: the MTU holds), and a
+   NetworkPolicy refuses another pod;
 3. a second ``site.yml`` changes nothing;
 4. ``controller.yml`` (in the cluster) and ``deploy.yml`` of ``examples/pick-and-place.yml`` (aimed at the picking
    fleet, its CPU requests divided by four for the lab's two cores: ``site_lab.lab_example``): pods Running where
@@ -103,7 +104,8 @@ def test_site_yml_builds_an_ha_cluster_with_the_cloud_vm_over_the_vpn(chain):
     assert found[CLOUD]["internal_ip"] == chain.lab.vpn_address(CLOUD) == "10.99.0.11", found[CLOUD]  # inside the tunnel
     assert chain.figures["cloud_node_joined_over_vpn"] and chain.figures["hosts"] == 7, chain.figures
     # the lab's pod network: Cilium as built here, an agent Ready on every node
-    assert chain.figures["cni"] == {"name": "cilium", "version": chain.site_vars["cilium_version"], "ready_agents": 7}, chain.figures
+    cni = {"name": "cilium", "version": chain.site_vars["cilium_version"], "ready_agents": 7}
+    assert chain.figures["cni"] == cni, chain.figures
     assert all("node-role.kubernetes.io/control-plane" in found[cp]["labels"] for cp in CONTROL_PLANES)
     assert len(site_lab.vip_holders(chain.lab.machines, CONTROL_PLANES)) == 1
     members = site_lab.etcd_members(chain.lab.machines, "edge-a")

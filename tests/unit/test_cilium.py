@@ -12,7 +12,6 @@ import yaml
 from ansible_collections.kuberos.platform.plugins.filter.cilium_manifests import cilium_manifests
 from ansible_collections.kuberos.platform.plugins.filter.manifest_yaml import manifest_yaml
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.calico import tolerates
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cilium import (
     CONFIG_HASH_ANNOTATION,
     CiliumSettings,
@@ -20,6 +19,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.c
     pod_mtu,
     settings_from,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cni import tolerates
 
 KUBERNETES_VERSION = "1.34"
 ROBOT_TAINT = {"key": "kuberos.io/robot", "value": "true", "effect": "NoSchedule"}
@@ -40,7 +40,9 @@ def test_pod_mtu_is_the_narrowest_link_less_the_tunnel(base, vpn, vpn_mtu, expec
     assert pod_mtu(base, "vxlan", vpn, vpn_mtu) == expected
 
 
-@pytest.mark.parametrize(("settings", "mtu"), [(CiliumSettings("10.244.0.0/16"), "1500"), (CiliumSettings("10.244.0.0/16", vpn=True), "1420")])
+@pytest.mark.parametrize(
+    ("settings", "mtu"), [(CiliumSettings("10.244.0.0/16"), "1500"), (CiliumSettings("10.244.0.0/16", vpn=True), "1420")]
+)
 def test_the_agent_is_told_the_networks_mtu(settings, mtu):
     config = one(cilium_objects(settings), "ConfigMap")["data"]
     assert config["mtu"] == mtu
@@ -49,7 +51,9 @@ def test_the_agent_is_told_the_networks_mtu(settings, mtu):
     assert config["kube-proxy-replacement"] == "false" and config["enable-policy"] == "default"
 
 
-@pytest.mark.parametrize("settings", [CiliumSettings("10.244.0.0/16"), CiliumSettings("192.168.0.0/16", vpn=True, agent_cpu_request="0")])
+@pytest.mark.parametrize(
+    "settings", [CiliumSettings("10.244.0.0/16"), CiliumSettings("192.168.0.0/16", vpn=True, agent_cpu_request="0")]
+)
 def test_built_in_kinds_pass_the_kubernetes_schema(settings):
     objects = cilium_objects(settings)
     assert [o["kind"] for o in objects][-2:] == ["DaemonSet", "Deployment"]
@@ -111,7 +115,9 @@ def test_rbac_binds_each_service_account_to_its_role():
     objects = cilium_objects(CiliumSettings("10.244.0.0/16", namespace="cni"))
     for name in ("cilium", "cilium-operator"):
         binding = one(objects, "ClusterRoleBinding", name)
-        assert binding["roleRef"]["name"] == name and binding["subjects"] == [{"kind": "ServiceAccount", "name": name, "namespace": "cni"}]
+        assert binding["roleRef"]["name"] == name and binding["subjects"] == [
+            {"kind": "ServiceAccount", "name": name, "namespace": "cni"}
+        ]
         rules = one(objects, "ClusterRole", name)["rules"]
         assert not any("*" in rule["verbs"] or "*" in rule["resources"] for rule in rules), name
     agent_rules = one(objects, "ClusterRole", "cilium")["rules"]

@@ -1,6 +1,7 @@
 """Fleets isolated (kuberos/network_policy.py): every fleet namespace deploy renders, here and in a third-party
 cluster, denies ingress by default and admits the fleet's own pods; each other opening is named (a bridge server's
-gRPC port, metrics ports for the metrics namespaces). Calico enforcing them is proven on the site (tests/site)."""
+gRPC port, metrics ports for the metrics namespaces). A CNI enforcing them (Cilium in the lab) is proven on the site
+(tests/site)."""
 
 from __future__ import annotations
 

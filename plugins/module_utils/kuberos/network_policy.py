@@ -11,7 +11,7 @@ pods, whatever their node or tier. On top of that, each opening is named:
 
 Traffic from a pod's own node (the kubelet's probes) is always allowed (NetworkPolicy semantics); egress is not
 restricted (modules reach their discovery servers, DNS, registries and their bridge's partner). The policies are
-enforced where the CNI enforces NetworkPolicy (Calico on a site); elsewhere they are kept and change nothing.
+enforced where the CNI enforces NetworkPolicy (Calico or Cilium on a site); elsewhere they are kept and change nothing.
 
 Pure: plain data in, plain data out.
 """

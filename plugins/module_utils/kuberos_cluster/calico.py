@@ -24,10 +24,19 @@ from dataclasses import dataclass
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe, did_you_mean
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import MANAGED_BY
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cni import (  # noqa: F401 (tolerates: the tests')
+    BASE_MTU_RANGE,
+    DEFAULT_VPN_MTU,
+    MIN_POD_MTU,
+    RBAC_API,
+    _integer,
+    _rule,
+    settings_of,
+    tolerates,
+)
 
 GROUP = "crd.projectcalico.org"
 CRD_API = "apiextensions.k8s.io/v1"
-RBAC_API = "rbac.authorization.k8s.io/v1"
 NODE = "calico-node"
 CNI_PLUGIN = "calico-cni-plugin"
 KUBE_CONTROLLERS = "calico-kube-controllers"
@@ -46,9 +55,6 @@ ENCAPSULATION_OVERHEAD = {
     ("none", 6): 0,
 }
 # WireGuard over an IPv4 underlay: outer IPv4 (20) + UDP (8) + WireGuard header and tag (32).
-DEFAULT_VPN_MTU = 1420  # the wireguard role's wireguard_mtu (wg-quick's default)
-BASE_MTU_RANGE = (576, 9216)
-MIN_POD_MTU = {4: 576, 6: 1280}
 BLOCK_SIZE_RANGE = {4: (20, 32), 6: (116, 128)}
 AUTODETECTION_VALUES = ("first-found", "kubernetes-internal-ip")
 AUTODETECTION_PREFIXES = ("can-reach=", "interface=", "skip-interface=", "cidr=")
@@ -119,15 +125,7 @@ class CalicoSettings:
 
 def settings_from(pod_cidr, options: dict, prefix: str = "calico_") -> CalicoSettings:
     """Settings from keyword options, an unknown one reported with the closest known name."""
-    known = [f for f in CalicoSettings.__dataclass_fields__ if f != "pod_cidr"]
-    unknown = [
-        Problem("calico", prefix + str(name), f"unknown setting{did_you_mean(name, known)} (known: {', '.join(known)})")
-        for name in options
-        if name not in known
-    ]
-    if unknown:
-        raise SpecError(unknown, title="invalid Calico settings")
-    return CalicoSettings(pod_cidr=pod_cidr, **options)
+    return settings_of(CalicoSettings, "calico", pod_cidr, options, prefix)
 
 
 @dataclass(frozen=True)
@@ -242,16 +240,6 @@ def check_settings(settings: CalicoSettings, prefix: str = "calico_") -> _Checke
     return _Checked(settings, network, block_size, base_mtu, veth_mtu)
 
 
-def _integer(value) -> int | None:
-    if isinstance(value, bool):
-        return None
-    if isinstance(value, int):
-        return value
-    if isinstance(value, str) and value.strip().isdigit():
-        return int(value.strip())
-    return None
-
-
 def _check_autodetection(method, problem) -> None:
     known = (
         "first-found, kubernetes-internal-ip, can-reach=<address or name>, interface=<regex>, skip-interface=<regex>, cidr=<cidr>"
@@ -312,20 +300,6 @@ def calico_objects(settings: CalicoSettings, prefix: str = "calico_") -> list[di
         }
     )
     return objects
-
-
-def tolerates(pod_spec: dict, taint: dict) -> bool:
-    """Whether a pod spec's tolerations let it run on a node with this taint (Kubernetes' matching rules)."""
-    for toleration in pod_spec.get("tolerations", []):
-        if toleration.get("effect") and toleration["effect"] != taint["effect"]:
-            continue
-        key = toleration.get("key")
-        if toleration.get("operator") == "Exists":
-            if not key or key == taint["key"]:
-                return True
-        elif key == taint["key"] and toleration.get("value", "") == taint.get("value", ""):
-            return True
-    return False
 
 
 # --- CustomResourceDefinitions ------------------------------------------------------------------------
@@ -428,13 +402,6 @@ def _ip_pool(checked: _Checked, labels: dict) -> dict:
 
 
 # --- RBAC ---------------------------------------------------------------------------------------------
-
-
-def _rule(group: str, resources: list[str], verbs: list[str], names: list[str] | None = None) -> dict:
-    rule = {"apiGroups": [group], "resources": resources, "verbs": verbs}
-    if names:
-        rule["resourceNames"] = names
-    return rule
 
 
 def _node_rules() -> list[dict]:

@@ -25,13 +25,14 @@ from dataclasses import dataclass
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe, did_you_mean
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import MANAGED_BY
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.calico import (
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cni import (
     BASE_MTU_RANGE,
     DEFAULT_VPN_MTU,
     MIN_POD_MTU,
     RBAC_API,
     _integer,
     _rule,
+    settings_of,
 )
 
 AGENT = "cilium"
@@ -48,24 +49,54 @@ _READ = ["get", "list", "watch"]
 
 # Every cilium.io kind the 1.15 agent lists and watches.
 AGENT_WATCHES = [
-    "ciliumloadbalancerippools", "ciliumbgppeeringpolicies", "ciliumbgpnodeconfigs", "ciliumbgpadvertisements",
-    "ciliumbgppeerconfigs", "ciliumclusterwideenvoyconfigs", "ciliumclusterwidenetworkpolicies",
-    "ciliumegressgatewaypolicies", "ciliumendpoints", "ciliumendpointslices", "ciliumenvoyconfigs", "ciliumidentities",
-    "ciliumlocalredirectpolicies", "ciliumnetworkpolicies", "ciliumnodes", "ciliumnodeconfigs", "ciliumcidrgroups",
-    "ciliuml2announcementpolicies", "ciliumpodippools",
-]  # fmt: skip
+    "ciliumloadbalancerippools",
+    "ciliumbgppeeringpolicies",
+    "ciliumbgpnodeconfigs",
+    "ciliumbgpadvertisements",
+    "ciliumbgppeerconfigs",
+    "ciliumclusterwideenvoyconfigs",
+    "ciliumclusterwidenetworkpolicies",
+    "ciliumegressgatewaypolicies",
+    "ciliumendpoints",
+    "ciliumendpointslices",
+    "ciliumenvoyconfigs",
+    "ciliumidentities",
+    "ciliumlocalredirectpolicies",
+    "ciliumnetworkpolicies",
+    "ciliumnodes",
+    "ciliumnodeconfigs",
+    "ciliumcidrgroups",
+    "ciliuml2announcementpolicies",
+    "ciliumpodippools",
+]
 # The CRDs the 1.15 operator registers (and may update).
 OPERATOR_CRDS = [
     f"{plural}.{GROUP}"
     for plural in (
-        "ciliumloadbalancerippools", "ciliumbgppeeringpolicies", "ciliumbgpclusterconfigs", "ciliumbgppeerconfigs",
-        "ciliumbgpadvertisements", "ciliumbgpnodeconfigs", "ciliumbgpnodeconfigoverrides",
-        "ciliumclusterwideenvoyconfigs", "ciliumclusterwidenetworkpolicies", "ciliumegressgatewaypolicies",
-        "ciliumendpoints", "ciliumendpointslices", "ciliumenvoyconfigs", "ciliumexternalworkloads", "ciliumidentities",
-        "ciliumlocalredirectpolicies", "ciliumnetworkpolicies", "ciliumnodes", "ciliumnodeconfigs", "ciliumcidrgroups",
-        "ciliuml2announcementpolicies", "ciliumpodippools",
+        "ciliumloadbalancerippools",
+        "ciliumbgppeeringpolicies",
+        "ciliumbgpclusterconfigs",
+        "ciliumbgppeerconfigs",
+        "ciliumbgpadvertisements",
+        "ciliumbgpnodeconfigs",
+        "ciliumbgpnodeconfigoverrides",
+        "ciliumclusterwideenvoyconfigs",
+        "ciliumclusterwidenetworkpolicies",
+        "ciliumegressgatewaypolicies",
+        "ciliumendpoints",
+        "ciliumendpointslices",
+        "ciliumenvoyconfigs",
+        "ciliumexternalworkloads",
+        "ciliumidentities",
+        "ciliumlocalredirectpolicies",
+        "ciliumnetworkpolicies",
+        "ciliumnodes",
+        "ciliumnodeconfigs",
+        "ciliumcidrgroups",
+        "ciliuml2announcementpolicies",
+        "ciliumpodippools",
     )
-]  # fmt: skip
+]
 
 
 @dataclass(frozen=True)
@@ -87,15 +118,7 @@ class CiliumSettings:
 
 def settings_from(pod_cidr, options: dict, prefix: str = "cilium_") -> CiliumSettings:
     """Settings from keyword options, an unknown one reported with the closest known name."""
-    known = [f for f in CiliumSettings.__dataclass_fields__ if f != "pod_cidr"]
-    unknown = [
-        Problem("cilium", prefix + str(name), f"unknown setting{did_you_mean(name, known)} (known: {', '.join(known)})")
-        for name in options
-        if name not in known
-    ]
-    if unknown:
-        raise SpecError(unknown, title="invalid Cilium settings")
-    return CiliumSettings(pod_cidr=pod_cidr, **options)
+    return settings_of(CiliumSettings, "cilium", pod_cidr, options, prefix)
 
 
 def network_mtu(base_mtu: int, vpn: bool, vpn_mtu: int = DEFAULT_VPN_MTU) -> int:
@@ -134,7 +157,8 @@ def check_settings(settings: CiliumSettings, prefix: str = "cilium_") -> dict:
     if s.tunnel_protocol not in TUNNEL_PROTOCOLS:
         problem(
             "tunnel_protocol",
-            f"{describe(s.tunnel_protocol)} is not one of {', '.join(TUNNEL_PROTOCOLS)}{did_you_mean(s.tunnel_protocol, TUNNEL_PROTOCOLS)}",
+            f"{describe(s.tunnel_protocol)} is not one of {', '.join(TUNNEL_PROTOCOLS)}"
+            f"{did_you_mean(s.tunnel_protocol, TUNNEL_PROTOCOLS)}",
         )
     for field in ("vpn", "masquerade"):
         if not isinstance(getattr(s, field), bool):
@@ -177,7 +201,9 @@ def cilium_objects(settings: CiliumSettings, prefix: str = "cilium_") -> list[di
     ]
     objects.append(config)
     for name, rules in ((AGENT, _agent_rules()), (OPERATOR, _operator_rules())):
-        objects.append({"apiVersion": RBAC_API, "kind": "ClusterRole", "metadata": {"name": name, "labels": labels}, "rules": rules})
+        objects.append(
+            {"apiVersion": RBAC_API, "kind": "ClusterRole", "metadata": {"name": name, "labels": labels}, "rules": rules}
+        )
         objects.append(
             {
                 "apiVersion": RBAC_API,
@@ -295,10 +321,16 @@ def _agent_rules() -> list[dict]:
         _rule(GROUP, ["ciliumnodes", "ciliumnodes/status"], ["get", "update"]),
         _rule(
             GROUP,
-            ["ciliumnetworkpolicies/status", "ciliumclusterwidenetworkpolicies/status", "ciliumendpoints/status",
-             "ciliumendpoints", "ciliuml2announcementpolicies/status", "ciliumbgpnodeconfigs/status"],
+            [
+                "ciliumnetworkpolicies/status",
+                "ciliumclusterwidenetworkpolicies/status",
+                "ciliumendpoints/status",
+                "ciliumendpoints",
+                "ciliuml2announcementpolicies/status",
+                "ciliumbgpnodeconfigs/status",
+            ],
             ["patch"],
-        ),  # fmt: skip
+        ),
     ]
 
 
@@ -323,14 +355,22 @@ def _operator_rules() -> list[dict]:
         _rule(GROUP, ["ciliumnodes/status"], ["update"]),
         _rule(
             GROUP,
-            ["ciliumendpointslices", "ciliumenvoyconfigs", "ciliumbgppeerconfigs", "ciliumbgpadvertisements",
-             "ciliumbgpnodeconfigs"],
+            [
+                "ciliumendpointslices",
+                "ciliumenvoyconfigs",
+                "ciliumbgppeerconfigs",
+                "ciliumbgpadvertisements",
+                "ciliumbgpnodeconfigs",
+            ],
             ["create", "update", "get", "list", "watch", "delete", "patch"],
-        ),  # fmt: skip
+        ),
         _rule("apiextensions.k8s.io", ["customresourcedefinitions"], ["create", "get", "list", "watch"]),
         _rule("apiextensions.k8s.io", ["customresourcedefinitions"], ["update"], OPERATOR_CRDS),
-        _rule(GROUP, ["ciliumloadbalancerippools", "ciliumpodippools", "ciliumbgpclusterconfigs",
-                      "ciliumbgpnodeconfigoverrides"], _READ),  # fmt: skip
+        _rule(
+            GROUP,
+            ["ciliumloadbalancerippools", "ciliumpodippools", "ciliumbgpclusterconfigs", "ciliumbgpnodeconfigoverrides"],
+            _READ,
+        ),
         _rule(GROUP, ["ciliumpodippools"], ["create"]),
         _rule(GROUP, ["ciliumloadbalancerippools/status"], ["patch"]),
     ]
@@ -394,7 +434,9 @@ def _agent_daemonset(s: CiliumSettings, labels: dict, config: dict) -> dict:
                             "command": ["/bin/sh", "-c", "--"],
                             "args": ['mount | grep "/sys/fs/bpf type bpf" || mount -t bpf bpf /sys/fs/bpf'],
                             "securityContext": privileged,
-                            "volumeMounts": [{"name": "bpf-maps", "mountPath": "/sys/fs/bpf", "mountPropagation": "Bidirectional"}],
+                            "volumeMounts": [
+                                {"name": "bpf-maps", "mountPath": "/sys/fs/bpf", "mountPropagation": "Bidirectional"}
+                            ],
                         },
                         {
                             # the CNI plugin (and the loopback plugin where the node has none) into the node's /opt/cni/bin
@@ -479,14 +521,19 @@ def _operator_deployment(s: CiliumSettings, checked: dict, labels: dict, config:
                                 {
                                     "weight": 100,
                                     "preference": {
-                                        "matchExpressions": [{"key": "node-role.kubernetes.io/control-plane", "operator": "Exists"}]
+                                        "matchExpressions": [
+                                            {"key": "node-role.kubernetes.io/control-plane", "operator": "Exists"}
+                                        ]
                                     },
                                 }
                             ]
                         },
                         "podAntiAffinity": {
                             "requiredDuringSchedulingIgnoredDuringExecution": [
-                                {"labelSelector": {"matchLabels": {"io.cilium/app": "operator"}}, "topologyKey": "kubernetes.io/hostname"}
+                                {
+                                    "labelSelector": {"matchLabels": {"io.cilium/app": "operator"}},
+                                    "topologyKey": "kubernetes.io/hostname",
+                                }
                             ]
                         },
                     },
@@ -498,7 +545,10 @@ def _operator_deployment(s: CiliumSettings, checked: dict, labels: dict, config:
                             "command": ["cilium-operator-generic"],
                             "args": ["--config-dir=/tmp/cilium/config-map", "--debug=false"],
                             "env": [
-                                {"name": "K8S_NODE_NAME", "valueFrom": {"fieldRef": {"apiVersion": "v1", "fieldPath": "spec.nodeName"}}},
+                                {
+                                    "name": "K8S_NODE_NAME",
+                                    "valueFrom": {"fieldRef": {"apiVersion": "v1", "fieldPath": "spec.nodeName"}},
+                                },
                                 {
                                     "name": "CILIUM_K8S_NAMESPACE",
                                     "valueFrom": {"fieldRef": {"apiVersion": "v1", "fieldPath": "metadata.namespace"}},
@@ -509,7 +559,9 @@ def _operator_deployment(s: CiliumSettings, checked: dict, labels: dict, config:
                             "resources": {"requests": {"memory": "64Mi"}},
                             "securityContext": {"allowPrivilegeEscalation": False, "capabilities": {"drop": ["ALL"]}},
                             "terminationMessagePolicy": "FallbackToLogsOnError",
-                            "volumeMounts": [{"name": "cilium-config-path", "mountPath": "/tmp/cilium/config-map", "readOnly": True}],
+                            "volumeMounts": [
+                                {"name": "cilium-config-path", "mountPath": "/tmp/cilium/config-map", "readOnly": True}
+                            ],
                         }
                     ],
                     "volumes": [{"name": "cilium-config-path", "configMap": {"name": CONFIG}}],

@@ -124,7 +124,8 @@ def build(cache_dir: str, registry: str = DEFAULT_REGISTRY, version: str = DEFAU
              ("/cni/loopback", built["loopback"]),
              ("/install-plugin.sh", os.path.join(module, "plugins", "cilium-cni", "install-plugin.sh")),
              *_tree_files(os.path.join(module, "bpf"), "/var/lib/cilium/bpf")],
-            ["--config.env", "INITSYSTEM=SYSTEMD", "--config.workingdir", "/home/cilium", "--config.cmd", "/usr/bin/cilium-agent"],
+            ["--config.env", "INITSYSTEM=SYSTEMD", "--config.workingdir", "/home/cilium",
+             "--config.cmd", "/usr/bin/cilium-agent"],
         ),
         "operator": (
             [("/usr/bin/cilium-operator-generic", built["operator-generic"])],
@@ -155,6 +156,21 @@ def build(cache_dir: str, registry: str = DEFAULT_REGISTRY, version: str = DEFAU
     return found
 
 
+# What clang-14's packages bring that compiling the datapath never reads (it builds with -nostdinc for the bpf target
+# and links nothing): the C interface library, the sanitizers' runtimes, gcc's support files and the C headers.
+TRIMMED = ("usr/lib/gcc", "usr/include")
+TRIMMED_LIBRARIES = re.compile(r"lib(clang-14\.so.*|[a-z]*san\.so.*)$")
+
+
+def _trim(rootfs: str) -> None:
+    for relative in TRIMMED:
+        li._remove(os.path.join(rootfs, relative))
+    libraries = os.path.join(rootfs, "usr", "lib", "x86_64-linux-gnu")
+    for name in os.listdir(libraries) if os.path.isdir(libraries) else []:
+        if TRIMMED_LIBRARIES.match(name):
+            os.unlink(os.path.join(libraries, name))
+
+
 def _build(work: str, reference: str, base: str | None, files, config: list[str], archive: str) -> None:
     layout, bundle = os.path.join(work, "layout"), os.path.join(work, "bundle")
     li._run(["umoci", "init", "--layout", layout])
@@ -166,6 +182,7 @@ def _build(work: str, reference: str, base: str | None, files, config: list[str]
         clang = os.path.join(rootfs, "usr", "bin", "clang")  # Debian names it clang-14; the agent runs `clang`
         if not os.path.lexists(clang):
             os.symlink("clang-14", clang)
+        _trim(rootfs)
     else:  # the operator talks TLS to the API server: the host's CA bundle is not needed, but a CA directory is
         os.makedirs(os.path.join(rootfs, "etc", "ssl", "certs"), exist_ok=True)
     for inside, source in files:
