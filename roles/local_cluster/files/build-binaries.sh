@@ -139,39 +139,7 @@ go_build_setup
 log "cache: $CACHE_DIR ($("$GO" version | cut -d' ' -f3-), GOTOOLCHAIN=$GOTOOLCHAIN, -p $BUILD_JOBS)"
 log "versions: kubernetes $KUBERNETES_VERSION (staging $STAGING_VERSION), etcd $ETCD_VERSION, kwok $KWOK_VERSION"
 
-TODO=()
-for p in "${PROGRAMS[@]}"; do
-  if binary_ok "$p" "$(path_of "$p")"; then
-    log "cached   $p $(version_of "$p") ($(index_of "$p")/$TOTAL): $(path_of "$p")"
-  else
-    TODO+=("$p")
-  fi
-done
-# Run "$@" with its output in log file $1; on failure show the log's tail.
-run_logged() {
-  local logfile=$1 rc=0
-  shift
-  "$@" >"$logfile" 2>&1 || rc=$?
-  if ((rc != 0)); then
-    printf -- '--- last lines of %s ---\n' "$logfile" >&2
-    tail -n 40 "$logfile" >&2
-    printf -- '---\n' >&2
-  fi
-  return "$rc"
-}
-downloads_in() { local n; n=$(grep -c '^go: downloading' "$1" || true); echo "${n:-0} modules downloaded"; }
-in_dir() { local dir=$1; shift; (cd "$dir" && "$@"); }
-
-# The progress of a go build -v writing to $BUILD_LOG: packages compiled so far (of $PACKAGES_TOTAL, the
-# packages `go list -deps` found, when known; fewer are compiled when the Go build cache has the others).
-BUILD_LOG=/dev/null
-PACKAGES_TOTAL=""
-packages_compiled() {
-  local n
-  n=$(grep -vc '^go: ' "$BUILD_LOG" 2>/dev/null || true)
-  echo "${n:-0}${PACKAGES_TOTAL:+ of $PACKAGES_TOTAL} packages compiled"
-}
-packages_in() { grep -vc '^go: ' "$1" || true; }
+collect_todo
 
 # How long a step takes with cold caches on 2 free cores, as measured (docs/local-cluster.md); shown with its
 # progress lines. Other work on the machine makes it much longer.
@@ -403,15 +371,5 @@ STEP="finishing"
 
 # --- summary -------------------------------------------------------------------
 
-log "summary:"
-for p in "${PROGRAMS[@]}"; do
-  binary_ok "$p" "$(path_of "$p")" || die "$p is not usable at $(path_of "$p") after the build"
-  printf '  %-24s %-9s %s\n' "$p" "$(version_of "$p")" "$(path_of "$p")"
-done
-if ((${#TIME_ORDER[@]})); then
-  log "step times:"
-  for k in "${TIME_ORDER[@]}"; do printf '  %-60s %s\n' "$k" "$(fmt_secs "${TIMES[$k]}")"; done
-else
-  log "nothing to build: all ${#PROGRAMS[@]} programs were cached"
-fi
+print_summary 9
 log "versions: kubernetes $KUBERNETES_VERSION, etcd $ETCD_VERSION, kwok $KWOK_VERSION, coredns $COREDNS_VERSION; total wall time $(fmt_secs $((SECONDS - T_START)))"

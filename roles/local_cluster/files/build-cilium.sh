@@ -114,7 +114,7 @@ binary_ok() {
       [[ $out == *" ${CILIUM_VERSION#v} "* ]] ;;
     # The plugin prints its version only inside a CNI call; the module it was built from says it.
     cilium-cni)
-      awk -v m="$CILIUM_MODULE" -v v="$CILIUM_VERSION" '$1 == "dep" && $2 == m && $3 == v { f = 1 }
+      awk -v m="$CILIUM_MODULE" -v v="$CILIUM_VERSION" '($1 == "mod" || $1 == "dep") && $2 == m && $3 == v { f = 1 }
              END { exit !f }' <<<"$info" ;;
     # Run without CNI_COMMAND a reference plugin prints "CNI <name> plugin <version>" (and exits non-zero).
     cni-*)
@@ -129,37 +129,7 @@ go_build_setup
 log "cache: $CACHE_DIR ($("$GO" version | cut -d' ' -f3-), GOTOOLCHAIN=$GOTOOLCHAIN, -p $BUILD_JOBS)"
 log "versions: cilium $CILIUM_VERSION ($CILIUM_MODULE, Go module proxy), CNI plugins $CNI_PLUGINS_VERSION"
 
-TODO=()
-for p in "${PROGRAMS[@]}"; do
-  if binary_ok "$p" "$(path_of "$p")"; then
-    log "cached   $p $(version_of "$p") ($(index_of "$p")/$TOTAL): $(path_of "$p")"
-  else
-    TODO+=("$p")
-  fi
-done
-# Run "$@" with its output in log file $1; on failure show the log's tail.
-run_logged() {
-  local logfile=$1 rc=0
-  shift
-  "$@" >"$logfile" 2>&1 || rc=$?
-  if ((rc != 0)); then
-    printf -- '--- last lines of %s ---\n' "$logfile" >&2
-    tail -n 40 "$logfile" >&2
-    printf -- '---\n' >&2
-  fi
-  return "$rc"
-}
-downloads_in() { local n; n=$(grep -c '^go: downloading' "$1" || true); echo "${n:-0} modules downloaded"; }
-in_dir() { local dir=$1; shift; (cd "$dir" && "$@"); }
-
-BUILD_LOG=/dev/null
-PACKAGES_TOTAL=""
-packages_compiled() {
-  local n
-  n=$(grep -vc '^go: ' "$BUILD_LOG" 2>/dev/null || true)
-  echo "${n:-0}${PACKAGES_TOTAL:+ of $PACKAGES_TOTAL} packages compiled"
-}
-packages_in() { grep -vc '^go: ' "$1" || true; }
+collect_todo
 
 # How long a step takes with cold caches on 2 cores, as measured on 2026-12-06; shown with its progress lines.
 about() {
@@ -211,6 +181,7 @@ build_cilium() {
     if [[ -n $replaces ]]; then
       echo
       echo "replace ("
+      # shellcheck disable=SC2001  # a tab at the start of every line of the list
       sed 's/^[[:space:]]*/\t/' <<<"$replaces"
       echo ")"
     fi
@@ -272,15 +243,5 @@ STEP="finishing"
 
 # --- summary -------------------------------------------------------------------
 
-log "summary:"
-for p in "${PROGRAMS[@]}"; do
-  binary_ok "$p" "$(path_of "$p")" || die "$p is not usable at $(path_of "$p") after the build"
-  printf '  %-26s %-10s %s\n' "$p" "$(version_of "$p")" "$(path_of "$p")"
-done
-if ((${#TIME_ORDER[@]})); then
-  log "step times:"
-  for k in "${TIME_ORDER[@]}"; do printf '  %-60s %s\n' "$k" "$(fmt_secs "${TIMES[$k]}")"; done
-else
-  log "nothing to build: all ${#PROGRAMS[@]} programs were cached"
-fi
+print_summary 10
 log "versions: cilium $CILIUM_VERSION, CNI plugins $CNI_PLUGINS_VERSION; total wall time $(fmt_secs $((SECONDS - T_START)))"

@@ -2,7 +2,8 @@
 # shellcheck disable=SC2034,SC2317  # its variables and functions are used by the scripts that source it
 # What build-binaries.sh and build-cilium.sh share, sourced by both: --print-paths, the Go environment (caches under
 # $CACHE_DIR/go, CGO off, no workspace), one build at a time per cache (flock on $CACHE_DIR/.build.lock), the clean-up
-# on exit, and the step timings. Call go_build_setup after PROGRAMS, path_of, PRINT_PATHS, BIN_DIR, WORK_DIR and
+# on exit, the step timings, the cache check (collect_todo), logged commands and progress, and the summary. Call
+# go_build_setup after PROGRAMS, path_of, PRINT_PATHS, BIN_DIR, WORK_DIR and
 # CACHE_DIR are set (and log, die, with_progress from progress.sh); GO_BUILD_EXTRA_FLAGS adds to GOFLAGS.
 
 go_build_setup() {
@@ -68,4 +69,59 @@ go_build_setup() {
 
   TOTAL=${#PROGRAMS[@]}
   index_of() { local i; for i in "${!PROGRAMS[@]}"; do [[ ${PROGRAMS[$i]} == "$1" ]] && { echo $((i + 1)); return; }; done; }
+}
+
+# The programs of PROGRAMS that are not in the cache at the expected version (binary_ok): fills TODO.
+collect_todo() {
+  TODO=()
+  local p
+  for p in "${PROGRAMS[@]}"; do
+    if binary_ok "$p" "$(path_of "$p")"; then
+      log "cached   $p $(version_of "$p") ($(index_of "$p")/$TOTAL): $(path_of "$p")"
+    else
+      TODO+=("$p")
+    fi
+  done
+}
+
+# Run "$@" with its output in log file $1; on failure show the log's tail.
+run_logged() {
+  local logfile=$1 rc=0
+  shift
+  "$@" >"$logfile" 2>&1 || rc=$?
+  if ((rc != 0)); then
+    printf -- '--- last lines of %s ---\n' "$logfile" >&2
+    tail -n 40 "$logfile" >&2
+    printf -- '---\n' >&2
+  fi
+  return "$rc"
+}
+downloads_in() { local n; n=$(grep -c '^go: downloading' "$1" || true); echo "${n:-0} modules downloaded"; }
+in_dir() { local dir=$1; shift; (cd "$dir" && "$@"); }
+
+# The progress of a go build -v writing to $BUILD_LOG: packages compiled so far (of $PACKAGES_TOTAL, the
+# packages `go list -deps` found, when known; fewer are compiled when the Go build cache has the others).
+BUILD_LOG=/dev/null
+PACKAGES_TOTAL=""
+packages_compiled() {
+  local n
+  n=$(grep -vc '^go: ' "$BUILD_LOG" 2>/dev/null || true)
+  echo "${n:-0}${PACKAGES_TOTAL:+ of $PACKAGES_TOTAL} packages compiled"
+}
+packages_in() { grep -vc '^go: ' "$1" || true; }
+
+# Every program usable at its path (or die), then the step times; $1: the width of the version column.
+print_summary() {
+  local p
+  log "summary:"
+  for p in "${PROGRAMS[@]}"; do
+    binary_ok "$p" "$(path_of "$p")" || die "$p is not usable at $(path_of "$p") after the build"
+    printf "  %-26s %-${1}s %s\n" "$p" "$(version_of "$p")" "$(path_of "$p")"
+  done
+  if ((${#TIME_ORDER[@]})); then
+    log "step times:"
+    for p in "${TIME_ORDER[@]}"; do printf '  %-60s %s\n' "$p" "$(fmt_secs "${TIMES[$p]}")"; done
+  else
+    log "nothing to build: all ${#PROGRAMS[@]} programs were cached"
+  fi
 }
