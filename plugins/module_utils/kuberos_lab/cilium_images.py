@@ -116,7 +116,7 @@ def build(cache_dir: str, registry: str = DEFAULT_REGISTRY, version: str = DEFAU
     images = os.path.join(cache, "images")
     folder = os.path.join(images, "cilium")
     os.makedirs(os.path.join(images, "tmp"), exist_ok=True)
-    os.makedirs(folder, exist_ok=True)
+    os.makedirs(os.path.join(folder, "tmp"), exist_ok=True)  # the archives' temporary files
     wanted = references(registry, version)
     recipes = {
         "agent": (
