@@ -56,7 +56,7 @@ def test_the_agent_is_told_the_networks_mtu(settings, mtu):
 )
 def test_built_in_kinds_pass_the_kubernetes_schema(settings):
     objects = cilium_objects(settings)
-    assert [o["kind"] for o in objects][-2:] == ["DaemonSet", "Deployment"]
+    assert [o["kind"] for o in objects][-2:] == ["Deployment", "DaemonSet"]
     for obj in objects:
         kubernetes_validate.validate(obj, KUBERNETES_VERSION, strict=True)
 

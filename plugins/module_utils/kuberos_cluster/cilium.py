@@ -1,8 +1,8 @@
 """Cilium, the cluster's CNI, as Kubernetes objects: the agent on every node and the generic operator.
 
 ``cilium_objects`` returns, in apply order: the ServiceAccounts, least-privilege ClusterRoles and their bindings of
-the agent and the operator, the ``cilium-config`` ConfigMap, the ``cilium`` DaemonSet (on every node, tainted robot
-nodes and not-ready nodes included) and the ``cilium-operator`` Deployment. Cilium's CustomResourceDefinitions are
+the agent and the operator, the ``cilium-config`` ConfigMap, the ``cilium-operator`` Deployment and the ``cilium``
+DaemonSet (on every node, tainted robot nodes and not-ready nodes included). Cilium's CustomResourceDefinitions are
 not among them: the operator registers its release's own when it starts, and the agents wait for them.
 
 The choices are a site's usual ones beside kubeadm's kube-proxy: a VXLAN (or Geneve) overlay between nodes, so that a
@@ -233,8 +233,8 @@ def cilium_objects(settings: CiliumSettings, prefix: str = "cilium_") -> list[di
                 "subjects": [{"kind": "ServiceAccount", "name": name, "namespace": s.namespace}],
             }
         )
-    objects.append(_agent_daemonset(s, labels, config))
     objects.append(_operator_deployment(s, checked, labels, config))
+    objects.append(_agent_daemonset(s, labels, config))
     return objects
 
 

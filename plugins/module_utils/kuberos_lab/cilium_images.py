@@ -7,10 +7,10 @@ preloads them into the lab machines' containerd (``node_prereqs_image_archives``
 
 ``<registry>/cilium:<version>``
     Debian bookworm minbase with what the agent runs besides itself: clang (it compiles its datapath when it starts),
-    iproute2, iptables (nft and legacy), ipset, kmod, ca-certificates; ``/usr/bin/cilium-agent``; the datapath's C
-    sources (``bpf/`` of the same module) in ``/var/lib/cilium/bpf``, where the agent looks for them; the CNI plugin
-    ``/opt/cni/bin/cilium-cni``, the loopback plugin ``/cni/loopback`` and upstream's ``/install-plugin.sh`` (from
-    the module), which the install-cni init container runs. No Envoy (the L7 proxy is off) and no Hubble.
+    bpftool (its kernel feature probe), iproute2, iptables (nft and legacy), ipset, kmod, ca-certificates;
+    ``/usr/bin/cilium-agent``; the datapath's C sources (``bpf/`` of the same module) in ``/var/lib/cilium/bpf``,
+    where the agent looks for them; the CNI plugin ``/opt/cni/bin/cilium-cni``, the loopback plugin ``/cni/loopback``
+    and upstream's ``/install-plugin.sh`` (from the module), which the install-cni init container runs. No Envoy (the L7 proxy is off) and no Hubble.
 ``<registry>/operator-generic:<version>``
     ``/usr/bin/cilium-operator-generic`` alone (a static program) with CA certificates.
 
@@ -31,13 +31,13 @@ import time
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import kubeadm_images as ki
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import local_images as li
 
-RECIPE_VERSION = "1"
+RECIPE_VERSION = "2"
 AGENT_BASE_VERSION = "1"  # the agent image's Debian root: its own key, so that image recipe changes do not rebuild it
 DEFAULT_REGISTRY = "quay.io/cilium"
 DEFAULT_VERSION = "v1.15.19"  # build-cilium.sh's default: the release the Go module proxy serves
 CNI_PLUGINS_VERSION = "v1.6.0"
 MODULE = "github.com/cilium/cilium"
-AGENT_PACKAGES = ("clang-14", "iproute2", "iptables", "ipset", "kmod", "ca-certificates")
+AGENT_PACKAGES = ("clang-14", "bpftool", "iproute2", "iptables", "ipset", "kmod", "ca-certificates")
 IMAGES = {"agent": "cilium", "operator": "operator-generic"}
 
 
@@ -59,10 +59,13 @@ def module_dir(cache_dir: str, version: str = DEFAULT_VERSION) -> str:
     return os.path.join(os.path.abspath(os.path.expanduser(cache_dir)), "go", "mod", f"{MODULE}@{version}")
 
 
+def _agent_base_key() -> str:
+    return hashlib.sha256("\0".join([AGENT_BASE_VERSION, li.DEBIAN_SUITE, *AGENT_PACKAGES]).encode()).hexdigest()[:12]
+
+
 def _agent_base(folder: str, log) -> str:
     """A Debian minbase root with what the agent runs besides itself (debootstrap, cached by its recipe)."""
-    key = hashlib.sha256("\0".join([AGENT_BASE_VERSION, li.DEBIAN_SUITE, *AGENT_PACKAGES]).encode()).hexdigest()[:12]
-    base = os.path.join(folder, f"agent-base-{key}")
+    base = os.path.join(folder, f"agent-base-{_agent_base_key()}")
     if os.path.exists(os.path.join(base, "done")):
         return os.path.join(base, "rootfs")
     li._require_programs("debootstrap", "unshare")
@@ -136,7 +139,8 @@ def build(cache_dir: str, registry: str = DEFAULT_REGISTRY, version: str = DEFAU
     with li._locked(images, log):
         for role, reference in wanted.items():
             files, config = recipes[role]
-            key = li._sha256(RECIPE_VERSION, reference, json.dumps(config), *_digests(files))[:12]
+            base_key = _agent_base_key() if role == "agent" else ""  # a new Debian root makes a new image
+            key = li._sha256(RECIPE_VERSION, base_key, reference, json.dumps(config), *_digests(files))[:12]
             archive = os.path.join(folder, f"{role}-{version}-{key}.tar")
             if os.path.exists(archive):
                 os.utime(archive)
