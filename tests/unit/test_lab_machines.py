@@ -72,6 +72,6 @@ def test_image_files_never_land_outside_the_image(tmp_path):
     (rootfs / "etc" / "service").symlink_to("runit/current")
     (rootfs / "usr" / "bin").mkdir(parents=True)
     (rootfs / "bin").symlink_to("usr/bin")  # merged /usr: relative, stays inside
-    assert kubeadm_images.inside(str(rootfs), "/bin/calico-node") == str(rootfs / "bin" / "calico-node")
+    assert kubeadm_images.inside(str(rootfs), "/usr/bin/cilium-agent") == str(rootfs / "usr" / "bin" / "cilium-agent")
     with pytest.raises(ImageBuildError, match="outside the image"):
         kubeadm_images.inside(str(rootfs), "/etc/service/available/felix/run")

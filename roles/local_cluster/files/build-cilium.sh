@@ -22,6 +22,8 @@ source "$SCRIPT_DIR/go-build.sh"
 
 CILIUM_MODULE=github.com/cilium/cilium
 CNI_PLUGINS_MODULE=github.com/containernetworking/plugins
+# What the built agent and operator report after the release: the build's patch level (see "The patch" below).
+BUILD_LABEL=kuberos-1
 
 usage() {
   cat <<EOF
@@ -57,7 +59,10 @@ Layout under the cache root:
   work/cilium-<version>/      the wrapper module and the build logs
 
 The programs are built with CGO_ENABLED=0, as upstream builds them. The agent compiles its datapath (the C sources
-under bpf/ of the same module) with clang when it starts: the image carries them and Debian's clang.
+under bpf/ of the same module) with clang when it starts: the image carries them and Debian's clang. One file is
+patched in a copy of the module (work/cilium-<version>/src, the wrapper's replace target): a kernel without loadable
+modules has no /proc/modules, which the 1.15 agent otherwise refuses to start without; the programs report
+"<version> $BUILD_LABEL".
 EOF
 }
 
@@ -111,7 +116,7 @@ binary_ok() {
   case $name in
     cilium-agent | cilium-operator-generic)
       out=$(timeout 60 "$file" --version 2>&1) || return 1
-      [[ $out == *" ${CILIUM_VERSION#v} "* ]] ;;
+      [[ $out == *" ${CILIUM_VERSION#v} $BUILD_LABEL "* ]] ;;
     # The plugin prints its version only inside a CNI call; the module it was built from says it.
     cilium-cni)
       awk -v m="$CILIUM_MODULE" -v v="$CILIUM_VERSION" '($1 == "mod" || $1 == "dep") && $2 == m && $3 == v { f = 1 }
@@ -199,8 +204,29 @@ build_cilium() {
   # Where upstream's Makefile.defs stamps the version; the datapath hash keys the agent's compiled templates.
   local ldflags="-s -w" datapath
   datapath=$(cd "$dir" && find bpf -type f | LC_ALL=C sort | xargs cat | sha256sum | cut -d' ' -f1)
-  ldflags+=" -X '$CILIUM_MODULE/pkg/version.ciliumVersion=${CILIUM_VERSION#v} kuberos-build'"
+  ldflags+=" -X '$CILIUM_MODULE/pkg/version.ciliumVersion=${CILIUM_VERSION#v} $BUILD_LABEL'"
   ldflags+=" -X $CILIUM_MODULE/pkg/datapath/loader.DatapathSHA256=$datapath"
+
+  # The patch: a kernel built without loadable modules (CONFIG_MODULES unset, as this machine's) has no
+  # /proc/modules, and Cilium 1.15's agent refuses to start without it (1.20 no longer reads it). The build takes a
+  # copy of the module (the wrapper's replace line points at it; the Go module cache is never modified) with one
+  # change: a missing /proc/modules reads as no module loaded (every module such a kernel has is built in). A site's
+  # kernel, which has /proc/modules, never takes that path.
+  local src="$tree/src" modules="pkg/datapath/linux/modules/modules_linux.go"
+  STEP="copying $CILIUM_MODULE@$CILIUM_VERSION to $src and patching $modules"
+  grep -qF 'fModules, err := os.Open(loadedModulesFilepath)' "$dir/$modules" \
+    || die "$dir/$modules has no os.Open(loadedModulesFilepath): the patch does not fit Cilium $CILIUM_VERSION"
+  rm -rf "$src.new" "$src"
+  TMP_DIRS+=("$src.new")
+  cp -R "$dir/." "$src.new/"
+  chmod -R u+w "$src.new"
+  awk '{ print } /fModules, err := os.Open\(loadedModulesFilepath\)/ {
+         print "\tif errors.Is(err, os.ErrNotExist) {"
+         print "\t\treturn nil, nil // no loadable modules: no /proc/modules (kuberos build patch)"
+         print "\t}"
+       }' "$dir/$modules" >"$src.new/$modules"
+  mv "$src.new" "$src"
+  printf '\nreplace %s => ./src\n' "$CILIUM_MODULE" >>"$tree/go.mod"
 
   local t1=$SECONDS out
   out=$(mktemp -d "$BIN_DIR/.build-cilium.XXXXXX"); TMP_DIRS+=("$out")
