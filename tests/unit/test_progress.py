@@ -2,7 +2,7 @@
 least every KUBEROS_PROGRESS_INTERVAL seconds (30) while they run, and their time when they end.
 
 The helpers run for real with a 1-second (shell) or 0.2-second (Python) interval on commands that sleep; the
-static checks make every long command of build-binaries.sh and setup.sh, and the role's build task, use them.
+static checks make every long command of build-binaries.sh, build-cilium.sh and setup.sh, and the role's build task, use them.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab impor
 
 PROGRESS = os.path.join(ROOT, "roles", "local_cluster", "files", "progress.sh")
 BUILD = os.path.join(ROOT, "roles", "local_cluster", "files", "build-binaries.sh")
+BUILD_CILIUM = os.path.join(ROOT, "roles", "local_cluster", "files", "build-cilium.sh")
 SETUP = os.path.join(ROOT, "scripts", "setup.sh")
 STILL = re.compile(r"^\[\d\d:\d\d:\d\d\]   still sleeping a while \.\.\. 0m0(\d)s elapsed \(about 3 s\)$")
 
@@ -78,6 +79,7 @@ def _logical_lines(path: str) -> list[str]:
 # The commands that can take minutes: compiling or downloading Go modules, making a venv, installing wheels or packages.
 LONG = {
     BUILD: re.compile(r'"\$GO" (build|install|mod tidy|list -mod=mod -deps)\b'),
+    BUILD_CILIUM: re.compile(r'"\$GO" (build|install|mod tidy|list -mod=mod)\b'),
     SETUP: re.compile(r"pip install|apt-get install|-m venv"),
 }
 

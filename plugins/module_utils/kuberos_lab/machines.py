@@ -506,7 +506,9 @@ class MachineLab:
             "--register=no", "--keep-unit", f"--machine={self.machine_name(machine.name)}",
             f"--hostname={machine.name}", f"--uuid={machine.uuid}",
             f"--network-namespace-path=/var/run/netns/{self.netns(machine.name)}",
-            "--capability=all", "--system-call-filter=@keyring bpf",
+            # beside nspawn's default filter: the kernel keyring (containerd), bpf and perf_event_open (the CNI's
+            # agent loads eBPF programs and reads their events through perf rings)
+            "--capability=all", "--system-call-filter=@keyring bpf perf_event_open",
             f"--bind={self.home(machine.name, 'containerd')}:/var/lib/containerd",
             "--bind-ro=/lib/modules", "--bind=/dev/kmsg", "--bind=/dev/net/tun", "--console=passive",
         ]  # fmt: skip
