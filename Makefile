@@ -79,7 +79,7 @@ test: setup
 	} >"$(PREBUILD_LOG)" 2>&1 & prebuild=$$!; \
 	$(MAKE) binaries WITH_KUBEADM=1 WITH_NODES=1 \
 	  && roles/local_cluster/files/build-cilium.sh \
-	  && scripts/operator-crds.sh >/dev/null \
+	  && scripts/operator-crds.sh >/dev/null && scripts/calico-manifest.sh >/dev/null \
 	  && roles/local_cluster/files/build-kube-score.sh; built=$$?; \
 	wait $$prebuild || echo "make test: the images or the machines' root did not build here ($(PREBUILD_LOG)); the tests that need them build them again"; \
 	[ $$built -eq 0 ] || exit 1; \

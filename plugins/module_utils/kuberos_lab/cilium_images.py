@@ -10,7 +10,8 @@ preloads them into the lab machines' containerd (``node_prereqs_image_archives``
     bpftool (its kernel feature probe), iproute2, iptables (nft and legacy), ipset, kmod, ca-certificates;
     ``/usr/bin/cilium-agent``; the datapath's C sources (``bpf/`` of the same module) in ``/var/lib/cilium/bpf``,
     where the agent looks for them; the CNI plugin ``/opt/cni/bin/cilium-cni``, the loopback plugin ``/cni/loopback``
-    and upstream's ``/install-plugin.sh`` (from the module), which the install-cni init container runs. No Envoy (the L7 proxy is off) and no Hubble.
+    and upstream's ``/install-plugin.sh`` (from the module), which the install-cni init container runs. No Envoy (the
+    L7 proxy is off) and no Hubble.
 ``<registry>/operator-generic:<version>``
     ``/usr/bin/cilium-operator-generic`` alone (a static program) with CA certificates.
 
