@@ -28,13 +28,12 @@ import re
 from dataclasses import dataclass
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe, did_you_mean
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cni import (  # noqa: F401 (tolerates: the tests')
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cni import (
     BASE_MTU_RANGE,
     DEFAULT_VPN_MTU,
     MIN_POD_MTU,
     _integer,
     settings_of,
-    tolerates,
 )
 
 NODE = "calico-node"
