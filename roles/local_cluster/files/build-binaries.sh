@@ -64,22 +64,7 @@ SKIP_KUBEADM=${SKIP_KUBEADM:-0}
 BUILD_JOBS=${KUBEROS_BUILD_JOBS:-2}
 PRINT_PATHS=${KUBEROS_PRINT_PATHS:-0}
 
-while (($#)); do
-  case $1 in
-    --print-paths) PRINT_PATHS=1 ;;
-    -h | --help) usage; exit 0 ;;
-    *) echo "$SCRIPT_NAME: unknown argument: $1 (try --help)" >&2; exit 2 ;;
-  esac
-  shift
-done
-
-CACHE_DIR=${KUBEROS_CACHE_DIR:-${HOME:?HOME is not set}/.cache/kuberos}
-[[ $CACHE_DIR == /* ]] || CACHE_DIR="$PWD/$CACHE_DIR"   # go needs absolute paths
-BIN_DIR="$CACHE_DIR/bin"
-WORK_DIR="$CACHE_DIR/work"
-
-log() { printf '[%s] %s\n' "$(date +%H:%M:%S)" "$*"; }
-die() { printf '[%s] %s: ERROR: %s\n' "$(date +%H:%M:%S)" "$SCRIPT_NAME" "$*" >&2; exit 1; }
+go_build_args "$@"
 
 # --- versions and programs ----------------------------------------------------
 

@@ -71,22 +71,7 @@ CNI_PLUGINS_VERSION=${CNI_PLUGINS_VERSION:-v1.6.0}
 BUILD_JOBS=${KUBEROS_BUILD_JOBS:-2}
 PRINT_PATHS=${KUBEROS_PRINT_PATHS:-0}
 
-while (($#)); do
-  case $1 in
-    --print-paths) PRINT_PATHS=1 ;;
-    -h | --help) usage; exit 0 ;;
-    *) echo "$SCRIPT_NAME: unknown argument: $1 (try --help)" >&2; exit 2 ;;
-  esac
-  shift
-done
-
-CACHE_DIR=${KUBEROS_CACHE_DIR:-${HOME:?HOME is not set}/.cache/kuberos}
-[[ $CACHE_DIR == /* ]] || CACHE_DIR="$PWD/$CACHE_DIR"   # go needs absolute paths
-BIN_DIR="$CACHE_DIR/bin"
-WORK_DIR="$CACHE_DIR/work"
-
-log() { printf '[%s] %s\n' "$(date +%H:%M:%S)" "$*"; }
-die() { printf '[%s] %s: ERROR: %s\n' "$(date +%H:%M:%S)" "$SCRIPT_NAME" "$*" >&2; exit 1; }
+go_build_args "$@"
 
 [[ $CILIUM_VERSION =~ ^v1\.[0-9]+\.[0-9]+$ ]] || die "CILIUM_VERSION must look like v1.15.19, got '$CILIUM_VERSION'"
 [[ $CNI_PLUGINS_VERSION =~ ^v[0-9]+\.[0-9]+\.[0-9]+$ ]] \

@@ -51,22 +51,7 @@ KUBE_SCORE_VERSION=${KUBE_SCORE_VERSION:-v1.20.0}
 BUILD_JOBS=${KUBEROS_BUILD_JOBS:-2}
 PRINT_PATHS=${KUBEROS_PRINT_PATHS:-0}
 
-while (($#)); do
-  case $1 in
-    --print-paths) PRINT_PATHS=1 ;;
-    -h | --help) usage; exit 0 ;;
-    *) echo "$SCRIPT_NAME: unknown argument: $1 (try --help)" >&2; exit 2 ;;
-  esac
-  shift
-done
-
-CACHE_DIR=${KUBEROS_CACHE_DIR:-${HOME:?HOME is not set}/.cache/kuberos}
-[[ $CACHE_DIR == /* ]] || CACHE_DIR="$PWD/$CACHE_DIR"   # go needs absolute paths
-BIN_DIR="$CACHE_DIR/bin"
-WORK_DIR="$CACHE_DIR/work"
-
-log() { printf '[%s] %s\n' "$(date +%H:%M:%S)" "$*"; }
-die() { printf '[%s] %s: ERROR: %s\n' "$(date +%H:%M:%S)" "$SCRIPT_NAME" "$*" >&2; exit 1; }
+go_build_args "$@"
 
 # --- version and program --------------------------------------------------------
 
@@ -90,20 +75,6 @@ go_build_setup
 
 log "cache: $CACHE_DIR ($("$GO" version | cut -d' ' -f3-), GOTOOLCHAIN=$GOTOOLCHAIN, -p $BUILD_JOBS)"
 log "versions: kube-score $KUBE_SCORE_VERSION"
-
-# Run "$@" with its output in log file $1; on failure show the log's tail.
-run_logged() {
-  local logfile=$1 rc=0
-  shift
-  "$@" >"$logfile" 2>&1 || rc=$?
-  if ((rc != 0)); then
-    printf -- '--- last lines of %s ---\n' "$logfile" >&2
-    tail -n 40 "$logfile" >&2
-    printf -- '---\n' >&2
-  fi
-  return "$rc"
-}
-downloads_in() { local n; n=$(grep -c '^go: downloading' "$1" || true); echo "${n:-0} modules downloaded"; }
 
 # The progress of a go install -v writing to $BUILD_LOG: packages compiled so far.
 BUILD_LOG=/dev/null

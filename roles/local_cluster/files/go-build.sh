@@ -1,10 +1,29 @@
 # shellcheck shell=bash
 # shellcheck disable=SC2034,SC2317  # its variables and functions are used by the scripts that source it
-# What build-binaries.sh and build-cilium.sh share, sourced by both: --print-paths, the Go environment (caches under
-# $CACHE_DIR/go, CGO off, no workspace), one build at a time per cache (flock on $CACHE_DIR/.build.lock), the clean-up
-# on exit, the step timings, the cache check (collect_todo), logged commands and progress, and the summary. Call
-# go_build_setup after PROGRAMS, path_of, PRINT_PATHS, BIN_DIR, WORK_DIR and
-# CACHE_DIR are set (and log, die, with_progress from progress.sh); GO_BUILD_EXTRA_FLAGS adds to GOFLAGS.
+# What the Go build scripts (build-binaries.sh, build-cilium.sh, build-kube-score.sh) share, sourced by each: their
+# arguments and cache folders, --print-paths, the Go environment (caches under $CACHE_DIR/go, CGO off, no workspace),
+# one build at a time per cache (flock on $CACHE_DIR/.build.lock), the clean-up on exit, the step timings, the cache
+# check (collect_todo), logged commands and progress, and the summary. Call go_build_args "$@", then go_build_setup
+# once PROGRAMS and path_of are set (with_progress comes from progress.sh); GO_BUILD_EXTRA_FLAGS adds to GOFLAGS.
+
+# The scripts' arguments (--print-paths, --help: the script's usage) and where the cache is: sets PRINT_PATHS,
+# CACHE_DIR, BIN_DIR and WORK_DIR, and defines log and die.
+go_build_args() {
+  while (($#)); do
+    case $1 in
+      --print-paths) PRINT_PATHS=1 ;;
+      -h | --help) usage; exit 0 ;;
+      *) echo "$SCRIPT_NAME: unknown argument: $1 (try --help)" >&2; exit 2 ;;
+    esac
+    shift
+  done
+  CACHE_DIR=${KUBEROS_CACHE_DIR:-${HOME:?HOME is not set}/.cache/kuberos}
+  [[ $CACHE_DIR == /* ]] || CACHE_DIR="$PWD/$CACHE_DIR"   # go needs absolute paths
+  BIN_DIR="$CACHE_DIR/bin"
+  WORK_DIR="$CACHE_DIR/work"
+}
+log() { printf '[%s] %s\n' "$(date +%H:%M:%S)" "$*"; }
+die() { printf '[%s] %s: ERROR: %s\n' "$(date +%H:%M:%S)" "$SCRIPT_NAME" "$*" >&2; exit 1; }
 
 go_build_setup() {
   if [[ $PRINT_PATHS == 1 ]]; then
