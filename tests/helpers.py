@@ -355,3 +355,23 @@ class MotoServer:
         return boto3.client(
             "ec2", endpoint_url=self.url, region_name=self.REGION, aws_access_key_id="testing", aws_secret_access_key="testing"
         )
+
+
+def remove_objects(dyn, core, objects: list[dict], selector: str, namespace: str = "kube-system") -> None:
+    """Delete ``objects`` newest first (those already gone are no matter), then wait up to two minutes until no pod of
+    ``selector`` is left in ``namespace`` (and delete what is)."""
+    import time
+
+    from kubernetes.dynamic.exceptions import NotFoundError, ResourceNotFoundError
+
+    for obj in reversed(objects):
+        try:
+            resource = dyn.resources.get(api_version=obj["apiVersion"], kind=obj["kind"])
+            resource.delete(name=obj["metadata"]["name"], namespace=obj["metadata"].get("namespace"))
+        except (NotFoundError, ResourceNotFoundError):
+            pass
+    deadline = time.monotonic() + 120
+    while core.list_namespaced_pod(namespace, label_selector=selector).items and time.monotonic() < deadline:
+        time.sleep(1)
+    for pod in core.list_namespaced_pod(namespace, label_selector=selector).items:
+        core.delete_namespaced_pod(pod.metadata.name, namespace, grace_period_seconds=0)

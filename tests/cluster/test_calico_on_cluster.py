@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import hashlib
 import json
-import time
 
 import pytest
 import yaml
 from helpers import CALICO_RELEASE as RELEASE
-from helpers import calico_published_manifest, playbook
+from helpers import calico_published_manifest, playbook, remove_objects
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.calico import CalicoSettings, calico_objects
 
@@ -94,7 +93,7 @@ def test_calico_release_check_apply_idempotent_and_refusals(cluster, tmp_path):
         }
         assert env["CALICO_IPV4POOL_CIDR"] == POD_CIDR  # nothing was written
     finally:
-        _remove_calico(dyn, core, manifest)
+        remove_objects(dyn, core, _objects(manifest), "k8s-app in (calico-node, calico-kube-controllers)")
 
 
 def _objects(manifest: str) -> list[dict]:
@@ -110,21 +109,3 @@ def _crd_names(dyn, manifest: str, expected=False):
     crds = dyn.resources.get(api_version="apiextensions.k8s.io/v1", kind="CustomResourceDefinition")
     present = {item["metadata"]["name"] for item in crds.get().to_dict()["items"]}
     return [name for name in names if name in present]
-
-
-def _remove_calico(dyn, core, manifest: str):
-    """Delete every object the role creates, newest first, and wait until calico's pods are gone."""
-    from kubernetes.dynamic.exceptions import NotFoundError, ResourceNotFoundError
-
-    for obj in reversed(_objects(manifest)):
-        try:
-            resource = dyn.resources.get(api_version=obj["apiVersion"], kind=obj["kind"])
-            resource.delete(name=obj["metadata"]["name"], namespace=obj["metadata"].get("namespace"))
-        except (NotFoundError, ResourceNotFoundError):
-            pass
-    deadline = time.monotonic() + 120
-    selector = "k8s-app in (calico-node, calico-kube-controllers)"
-    while core.list_namespaced_pod("kube-system", label_selector=selector).items and time.monotonic() < deadline:
-        time.sleep(1)
-    for pod in core.list_namespaced_pod("kube-system", label_selector=selector).items:
-        core.delete_namespaced_pod(pod.metadata.name, "kube-system", grace_period_seconds=0)

@@ -6,10 +6,9 @@ removed afterwards: the other tests share the cluster."""
 from __future__ import annotations
 
 import json
-import time
 
 import pytest
-from helpers import playbook
+from helpers import playbook, remove_objects
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.cilium import CiliumSettings, cilium_objects
 
@@ -63,22 +62,4 @@ def test_cilium_check_apply_idempotent_and_bad_cidr(cluster, tmp_path):
         assert "cilium_pod_cidr: '10.78.0.1/33'" in bad.stdout, bad.stdout[-4000:]
         assert core.read_namespaced_config_map("cilium-config", "kube-system").data["cluster-pool-ipv4-cidr"] == POD_CIDR
     finally:
-        _remove_cilium(dyn, core)
-
-
-def _remove_cilium(dyn, core):
-    """Delete every object the role creates, newest first, and wait until Cilium's pods are gone."""
-    from kubernetes.dynamic.exceptions import NotFoundError, ResourceNotFoundError
-
-    for obj in reversed(cilium_objects(CiliumSettings(POD_CIDR))):
-        try:
-            resource = dyn.resources.get(api_version=obj["apiVersion"], kind=obj["kind"])
-            resource.delete(name=obj["metadata"]["name"], namespace=obj["metadata"].get("namespace"))
-        except (NotFoundError, ResourceNotFoundError):
-            pass
-    deadline = time.monotonic() + 120
-    selector = "k8s-app in (cilium, cilium-operator)"
-    while core.list_namespaced_pod("kube-system", label_selector=selector).items and time.monotonic() < deadline:
-        time.sleep(1)
-    for pod in core.list_namespaced_pod("kube-system", label_selector=selector).items:
-        core.delete_namespaced_pod(pod.metadata.name, "kube-system", grace_period_seconds=0)
+        remove_objects(dyn, core, cilium_objects(CiliumSettings(POD_CIDR)), "k8s-app in (cilium, cilium-operator)")
