@@ -189,3 +189,15 @@ def test_a_bad_inventory_is_refused_before_any_machine_is_touched(site, tmp_path
     assert len(failures(report)) == 1 and problems.count("hosts.cloud-1.kuberos_vpn_address") == 1, problems  # once
     assert set(report["stats"]) == {"localhost"}, report["stats"]  # no machine was contacted
     assert {name: etc_digest(lab, name) for name in lab.hosts} == before
+
+
+def test_an_unknown_cni_is_refused_before_any_machine_is_touched(site, tmp_path_factory):
+    """kuberos_cni names a pod network the collection does not install: the first play stops, naming the variable,
+    the value and the choices; no machine was contacted."""
+    lab, _inventory, kubeadm = site
+    inventory = site_inventory(lab, tmp_path_factory, kubeadm, **{"all": {"kuberos_cni": "flannel"}})
+    done, report = run_site(inventory)
+    problems = "\n".join(failures(report))
+    assert done.returncode != 0
+    assert 'kuberos_cni: "flannel" is not a CNI this collection installs (calico or cilium)' in problems, problems
+    assert set(report["stats"]) == {"localhost"}, report["stats"]
