@@ -33,6 +33,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.c
     DEFAULT_VPN_MTU,
     MIN_POD_MTU,
     _integer,
+    check_cpu_request,
+    check_image_registry,
     settings_of,
 )
 
@@ -89,8 +91,7 @@ def check_settings(settings: CalicoSettings, prefix: str = "calico_") -> dict:
     s = settings
     if not isinstance(s.version, str) or not re.fullmatch(r"v3\.\d+\.\d+", s.version):
         problem("version", f"{describe(s.version)} is not a Calico release tag such as 'v3.31.3'")
-    if not isinstance(s.image_registry, str) or not re.fullmatch(r"[a-z0-9]([a-z0-9._:/-]*[a-z0-9])?", s.image_registry or ""):
-        problem("image_registry", f"{describe(s.image_registry)} is not an image registry path such as 'quay.io/calico'")
+    check_image_registry(s.image_registry, "quay.io/calico", problem)
 
     network = None
     if not isinstance(s.pod_cidr, str):
@@ -149,8 +150,7 @@ def check_settings(settings: CalicoSettings, prefix: str = "calico_") -> dict:
         if not isinstance(getattr(s, field), bool):
             problem(field, f"{describe(getattr(s, field))} is not a boolean (true or false)")
     _check_autodetection(s.ip_autodetection_method, problem)
-    if not isinstance(s.node_cpu_request, str) or not re.fullmatch(r"(0|[1-9][0-9]*m|[0-9]+(\.[0-9]+)?)", s.node_cpu_request):
-        problem("node_cpu_request", f"{describe(s.node_cpu_request)} is not a CPU quantity such as 250m, 1 or 0")
+    check_cpu_request("node_cpu_request", s.node_cpu_request, "250m", problem)
 
     if problems:
         raise SpecError(problems, title="invalid Calico settings")

@@ -32,6 +32,8 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.c
     RBAC_API,
     _integer,
     _rule,
+    check_cpu_request,
+    check_image_registry,
     settings_of,
 )
 
@@ -142,8 +144,7 @@ def check_settings(settings: CiliumSettings, prefix: str = "cilium_") -> dict:
     s = settings
     if not isinstance(s.version, str) or not re.fullmatch(r"v1\.\d+\.\d+(-[0-9A-Za-z.-]+)?", s.version):
         problem("version", f"{describe(s.version)} is not a Cilium release tag such as 'v1.15.19'")
-    if not isinstance(s.image_registry, str) or not re.fullmatch(r"[a-z0-9]([a-z0-9._:/-]*[a-z0-9])?", s.image_registry or ""):
-        problem("image_registry", f"{describe(s.image_registry)} is not an image registry path such as 'quay.io/cilium'")
+    check_image_registry(s.image_registry, "quay.io/cilium", problem)
     network = None
     if not isinstance(s.pod_cidr, str) or "/" not in s.pod_cidr:
         problem("pod_cidr", f"{describe(s.pod_cidr)} is not a network in CIDR notation such as '10.244.0.0/16'")
@@ -179,8 +180,7 @@ def check_settings(settings: CiliumSettings, prefix: str = "cilium_") -> dict:
             )
     if not isinstance(s.namespace, str) or not re.fullmatch(r"[a-z0-9]([a-z0-9-]{0,61}[a-z0-9])?", s.namespace):
         problem("namespace", f"{describe(s.namespace)} is not a namespace name (a DNS label)")
-    if not isinstance(s.agent_cpu_request, str) or not re.fullmatch(r"(0|[1-9][0-9]*m|[0-9]+(\.[0-9]+)?)", s.agent_cpu_request):
-        problem("agent_cpu_request", f"{describe(s.agent_cpu_request)} is not a CPU quantity such as 100m, 1 or 0")
+    check_cpu_request("agent_cpu_request", s.agent_cpu_request, "100m", problem)
     replicas = _integer(s.operator_replicas)
     if replicas is None or not 1 <= replicas <= 5:
         problem("operator_replicas", f"{describe(s.operator_replicas)} is not a number of operator replicas from 1 to 5")

@@ -3,7 +3,9 @@ options, RBAC rules, integers as Ansible passes them, and Kubernetes' toleration
 
 from __future__ import annotations
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, did_you_mean
+import re
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, describe, did_you_mean
 
 RBAC_API = "rbac.authorization.k8s.io/v1"
 # WireGuard over an IPv4 underlay: outer IPv4 (20) + UDP (8) + WireGuard header and tag (32).
@@ -54,3 +56,15 @@ def tolerates(pod_spec: dict, taint: dict) -> bool:
         elif key == taint["key"] and toleration.get("value", "") == taint.get("value", ""):
             return True
     return False
+
+
+def check_image_registry(value, example: str, problem) -> None:
+    """``problem("image_registry", ...)`` unless ``value`` is a registry path such as ``example``."""
+    if not isinstance(value, str) or not re.fullmatch(r"[a-z0-9]([a-z0-9._:/-]*[a-z0-9])?", value or ""):
+        problem("image_registry", f"{describe(value)} is not an image registry path such as '{example}'")
+
+
+def check_cpu_request(field: str, value, example: str, problem) -> None:
+    """``problem(field, ...)`` unless ``value`` is a CPU quantity (``0`` for none)."""
+    if not isinstance(value, str) or not re.fullmatch(r"(0|[1-9][0-9]*m|[0-9]+(\.[0-9]+)?)", value):
+        problem(field, f"{describe(value)} is not a CPU quantity such as {example}, 1 or 0")
