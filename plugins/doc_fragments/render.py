@@ -38,7 +38,16 @@ options:
   registry_mirrors:
     description:
       - The site's registry mirrors, asked before a registry itself, in the form of C(node_prereqs_registry_mirrors)
-        (registry host to a list of C(url) and C(ca)).
+        (registry host to a list of C(url) and C(ca); C(insecure=true) allows a plain C(http://) mirror).
+      - A registry's credentials (from the pull secrets) go only to that registry's own address; a mirror is sent
+        only the credentials given under its own address.
+    type: dict
+    default: {}
+  registry_token_realms:
+    description:
+      - Registry address (host[:port]) to the token services (realm URLs or hosts) on another host that may be sent
+        its credentials when the registry's bearer challenge names them. Any other realm is asked without them.
+        Docker Hub's (C(auth.docker.io) for C(registry-1.docker.io)) is known.
     type: dict
     default: {}
 """

@@ -12,7 +12,7 @@ the registry serves is the archive's own, and checks that an image exists. Every
 whose message names the registry and the image and says why (refused credentials, unknown image, no
 connection, an untrusted certificate).
 
-No Kubernetes client: Ansible's ``open_url`` (the collection's one HTTP client), ``cryptography`` (the one PKI)
+No Kubernetes client: the registry API client of deploy (``kuberos_deploy/registry_api.py``), ``cryptography`` (the one PKI)
 and ``bcrypt``.
 """
 
@@ -26,11 +26,11 @@ import secrets
 import shutil
 import tarfile
 import time
-import urllib.error
 import urllib.parse
 from dataclasses import dataclass
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.registry_api import (
+    DEADLINE_S,
     MANIFEST_TYPES,
     RegistryApi,
     RegistryError,
@@ -42,6 +42,7 @@ PROGRAM = "docker-registry"
 CERT_DAYS = 365
 START_TIMEOUT = 30.0
 CHUNK = 1 << 20
+UPLOAD_BYTES_PER_S = 1 << 20  # the slowest upload a blob's deadline allows for (beyond the usual deadline)
 
 
 def image_reference(address: str, repository: str, digest: str) -> str:
@@ -136,6 +137,7 @@ class RegistryClient(RegistryApi):
         self._request(
             "PUT", url, image, body=stream, ok=(201,),
             headers={"Content-Type": "application/octet-stream", "Content-Length": str(size)},
+            deadline_s=DEADLINE_S + size / UPLOAD_BYTES_PER_S,
         )  # fmt: skip
 
     def push_archive(

@@ -1,0 +1,162 @@
+"""The registry client's trust (kuberos_deploy/registry_api.py, image_digests.py) against a hostile registry on
+loopback (tests/hostile_registry.py): credentials go only to the origin they were given for, every answer has a size
+cap and every request an overall deadline, plain http only where a registry is marked insecure, and a malformed pull
+Secret is one sentence naming it."""
+
+from __future__ import annotations
+
+import base64
+import json
+import time
+import tracemalloc
+
+import pytest
+from hostile_registry import (
+    DIGEST,
+    HostileRegistry,
+    huge,
+    huge_declared,
+    manifest,
+    manifest_basic,
+    redirect_to,
+    token,
+    trickle,
+)
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import image_digests
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import registry_api as api
+
+REPO = "/v2/app/manifests/1.0"
+
+
+@pytest.fixture
+def hostile(tmp_path):
+    with HostileRegistry(str(tmp_path)) as server:
+        yield server
+
+
+def client(server, **extra) -> api.RegistryApi:
+    return api.RegistryApi(server.address, "alice", "s3cret", server.ca_file, **extra)
+
+
+def test_a_realm_on_another_host_is_asked_without_the_credentials(hostile):
+    hostile.routes = {REPO: manifest, "/token": token}
+    hostile.realm = hostile.url("localhost", "/token")  # another origin than 127.0.0.1
+    assert client(hostile).manifest_digest("app", "1.0") == DIGEST
+    assert hostile.credentials_sent("localhost") == 0
+    assert [r for r in hostile.requests if r[1] == "localhost"], "the realm was asked (anonymously)"
+
+
+def test_a_realm_the_site_names_is_sent_the_credentials(hostile):
+    hostile.routes = {REPO: manifest, "/token": token}
+    hostile.realm = hostile.url("localhost", "/token")
+    assert client(hostile, realms=("localhost",)).manifest_digest("app", "1.0") == DIGEST
+    assert hostile.credentials_sent("localhost") == 1
+
+
+def test_the_registrys_own_realm_is_sent_the_credentials(hostile):
+    hostile.routes = {REPO: manifest, "/token": token}
+    hostile.realm = hostile.url("127.0.0.1", "/token")
+    assert client(hostile).manifest_digest("app", "1.0") == DIGEST
+    token_requests = [r for r in hostile.requests if r[2] == "/token"]
+    assert token_requests and token_requests[0][3].startswith("Basic ")
+
+
+def test_a_realm_redirecting_to_another_host_does_not_carry_the_credentials_there(hostile):
+    hostile.routes = {REPO: manifest, "/token": redirect_to(hostile.url("localhost", "/stolen")), "/stolen": token}
+    hostile.realm = hostile.url("127.0.0.1", "/token")
+    assert client(hostile).manifest_digest("app", "1.0") == DIGEST
+    assert [r for r in hostile.requests if r[2] == "/stolen"], "the redirect was followed"
+    assert hostile.credentials_sent("localhost") == 0
+
+
+def test_a_redirect_to_plain_http_is_refused(hostile):
+    hostile.routes = {REPO: manifest, "/token": redirect_to(f"http://localhost:{hostile.port}/stolen")}
+    hostile.realm = hostile.url("127.0.0.1", "/token")
+    with pytest.raises(api.RegistryError, match=r"refused its redirect to 'http://localhost:\d+/stolen': not https"):
+        client(hostile).manifest_digest("app", "1.0")
+    assert not [r for r in hostile.requests if r[2] == "/stolen"]
+
+
+def test_a_plain_http_realm_is_refused(hostile):
+    hostile.routes = {REPO: manifest}
+    hostile.realm = f"http://127.0.0.1:{hostile.port}/token"
+    with pytest.raises(api.RegistryError, match=r"its token service 'http://127\.0\.0\.1:\d+/token' is not https"):
+        client(hostile).manifest_digest("app", "1.0")
+
+
+def test_a_mirror_without_a_login_of_its_own_is_not_sent_the_upstream_credentials(hostile):
+    hostile.routes = {REPO: manifest_basic}
+    mirrors = {"ghcr.io": [{"url": hostile.url(), "ca": hostile.ca_file}]}
+    logins = {"ghcr.io": ("alice", "s3cret")}
+    assert image_digests.resolve(["ghcr.io/app:1.0"], mirrors, logins) == {"ghcr.io/app:1.0": DIGEST}
+    assert hostile.credentials_sent("127.0.0.1") == 0
+    # its own login, given under its address, is sent
+    image_digests.resolve(["ghcr.io/app:1.0"], mirrors, {hostile.address: ("mirror", "pw")})
+    assert hostile.credentials_sent("127.0.0.1") == 1
+
+
+def test_a_plain_http_mirror_is_refused_unless_marked_insecure(tmp_path):
+    with HostileRegistry(str(tmp_path), plain=True) as plain:
+        plain.routes = {REPO: manifest_basic}
+        with pytest.raises(KuberosError, match=r"registry mirror 'http://127.0.0.1:\d+' of ghcr.io: not https"):
+            image_digests.resolve(["ghcr.io/app:1.0"], {"ghcr.io": [{"url": plain.url()}]}, {})
+        mirrors = {"ghcr.io": [{"url": plain.url(), "insecure": True}]}
+        assert image_digests.resolve(["ghcr.io/app:1.0"], mirrors, {}) == {"ghcr.io/app:1.0": DIGEST}
+
+
+def test_a_huge_token_answer_is_refused_at_its_cap_without_holding_it(hostile):
+    hostile.routes = {REPO: manifest, "/token": huge(200 * 1024 * 1024)}
+    hostile.realm = hostile.url("127.0.0.1", "/token")
+    tracemalloc.start()
+    try:
+        with pytest.raises(api.RegistryError, match=r"answered with more than 256 KiB \(the size limit of one answer\)"):
+            client(hostile).manifest_digest("app", "1.0")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 * 1024 * 1024, f"peak {peak} bytes"
+
+
+def test_a_declared_length_over_the_cap_is_refused_before_reading(hostile):
+    hostile.routes = {"/v2/": huge_declared(10**12)}
+    with pytest.raises(api.RegistryError, match=r"answered with more than 4 MiB"):
+        client(hostile).check()
+
+
+@pytest.mark.parametrize("headers_too", [False, True], ids=["body", "headers"])
+def test_an_answer_that_trickles_ends_at_the_deadline(hostile, headers_too):
+    hostile.routes = {"/v2/": trickle(0.2, 20, headers_too)}
+    started = time.monotonic()
+    with pytest.raises(api.RegistryError, match=r"gave no complete answer within 1.5 s \(the deadline of one request\)"):
+        client(hostile, deadline_s=1.5).check()
+    assert time.monotonic() - started < 4
+
+
+def _secret(config, name="pull", namespace="fleet-a") -> dict:
+    raw = config if isinstance(config, bytes) else json.dumps(config).encode()
+    return {"metadata": {"name": name, "namespace": namespace}, "data": {".dockerconfigjson": base64.b64encode(raw).decode()}}
+
+
+@pytest.mark.parametrize(
+    "config, why",
+    [
+        (b"not json", "is not base64-encoded JSON"),
+        ([1, 2], "has no 'auths' object"),
+        ({"auths": ["x"]}, "has no 'auths' object"),
+        ({"auths": {"ghcr.io": "x"}}, "entry for 'ghcr.io' is not an object"),
+        ({"auths": {"ghcr.io": {"auth": "%%%"}}}, "'auth' for 'ghcr.io' is not base64 of user:password"),
+        ({"auths": {"ghcr.io": {"auth": base64.b64encode(b"nocolon").decode()}}}, "is not base64 of user:password"),
+        ({"auths": {"ghcr.io": {"username": 5, "password": []}}}, "are not strings"),
+    ],
+)
+def test_a_malformed_pull_secret_is_one_sentence_naming_it(config, why):
+    with pytest.raises(KuberosError, match=rf"pull Secret fleet-a/pull: its \.dockerconfigjson.*{why}"):
+        image_digests.credentials([_secret(config)])
+
+
+def test_a_pull_secret_that_is_not_base64_is_named():
+    bad = {"metadata": {"name": "pull", "namespace": "fleet-a"}, "data": {".dockerconfigjson": "not base64 json"}}
+    with pytest.raises(KuberosError, match=r"pull Secret fleet-a/pull: its \.dockerconfigjson is not base64-encoded JSON"):
+        image_digests.credentials([bad])
