@@ -132,3 +132,175 @@ def test_a_development_deployment_names_its_robots():
 def test_who_holds_a_robot_and_why_are_checked_before_anything_is_written(owner, reason, why):
     found = pool.owner_problem(owner) or pool.reason_problem(reason)
     assert (why in found) if why else found == "", found
+
+
+# -- every date and duration bounded; unreadable reservations ignored with a warning (issue 44) ------------------
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [
+        ("100000000d", "more than 90 days"),
+        ("1" * 400 + "d", "more than 90 days"),
+        ("9999999999999h", "more than 90 days"),
+        ("9999-12-31T23:59:59-12:00", "out of range"),
+        ("10000-01-01T00:00:00Z", "is not a time"),
+        ("x" * 10000, "is not a time"),
+        ("4h\n", ""),
+        ("4h\nx", "is not a time"),
+    ],
+)
+def test_a_hold_out_of_range_is_refused_with_the_bound_never_an_overflow(text, why):
+    if not why:
+        assert pool.parse_until(text, NOW) == NOW + datetime.timedelta(hours=4)
+        return
+    with pytest.raises(ValueError, match=why) as caught:
+        pool.parse_until(text, NOW)
+    assert len(str(caught.value)) < 300, "the text is cut, not repeated whole"
+
+
+class PoolKube:
+    """The reads and writes of the pool module's work: ConfigMaps, Namespaces, and the caller's identity."""
+
+    def __init__(self, configmaps=(), identity="alice@example.com"):
+        self.objects = {(c["metadata"]["namespace"], c["metadata"]["name"]): c for c in configmaps}
+        self.identity, self.deleted = identity, []
+
+    def get(self, kind, name, namespace=""):
+        if kind == "Namespace":
+            return {"metadata": {"name": name}}
+        return self.objects.get((namespace, name)) if kind == "ConfigMap" else None
+
+    def list(self, kind, namespace="", selector=""):
+        if kind != "ConfigMap" or selector != f"{pool.LABEL}=true":
+            return []
+        return [c for (ns, _n), c in self.objects.items() if not namespace or ns == namespace]
+
+    def apply(self, obj, manager=None):
+        self.objects[(obj["metadata"].get("namespace", ""), obj["metadata"]["name"])] = obj
+        return obj
+
+    def delete(self, kind, name, namespace=""):
+        self.deleted.append((namespace, name))
+        return self.objects.pop((namespace, name), None) is not None
+
+    def create(self, obj):
+        assert obj["kind"] == "SelfSubjectReview", obj
+        if self.identity is None:
+            from kubernetes.client.exceptions import ApiException
+
+            raise ApiException(status=404, reason="Not Found")
+        return {**obj, "status": {"userInfo": {"username": self.identity, "groups": ["system:authenticated"]}}}
+
+
+def _configmap(**data):
+    base = {"robot": "fetch-2", "fleet": "test-fleet", "owner": "alice", "reason": "tests",
+            "until": "2026-11-28T16:00:00Z", "since": "2026-11-28T10:00:00Z"}  # fmt: skip
+    merged = {k: v for k, v in {**base, **data}.items() if v is not None}
+    robot = merged.get("robot") if isinstance(merged.get("robot"), str) else "x"
+    return {"metadata": {"name": f"kuberos-reservation-{robot}", "namespace": "kuberos-test-fleet",
+                         "labels": {pool.LABEL: "true"}}, "data": merged}  # fmt: skip
+
+
+BAD_RESERVATIONS = [
+    (_configmap(robot="r1", until="9999-12-31T23:59:59-12:00"), "until: '9999-12-31T23:59:59-12:00' is out of range"),
+    (_configmap(robot="r2", since="0001-01-01T00:00:00+01:00"), "since: '0001-01-01T00:00:00+01:00' is out of range"),
+    (_configmap(robot="r3", until="tomorrow"), "until: 'tomorrow' is not a time"),
+    (_configmap(robot="r4", owner=None), "has no owner"),
+    (_configmap(robot="r5", owner="alice\n"), "owner: 'alice\\n' cannot be"),
+    (_configmap(robot="r6", reason="\x1b[2J"), "reason: has control character U+001B (ESC)"),
+    (_configmap(robot="r7", until=5), "until: is not text"),
+    ({"metadata": {"name": "kuberos-reservation-r8", "namespace": "kuberos-test-fleet", "labels": {pool.LABEL: "true"}},
+      "data": ["robot"]},
+     "its data is not a mapping"),
+]  # fmt: skip
+
+
+def test_an_unreadable_reservation_is_ignored_with_a_warning_naming_it_and_why():
+    good = _configmap()
+    found, warnings = pool.read([good, *(c for c, _why in BAD_RESERVATIONS)])
+    assert [r.robot for r in found] == ["fetch-2"]
+    assert len(warnings) == len(BAD_RESERVATIONS), warnings
+    for (configmap, why), warning in zip(BAD_RESERVATIONS, warnings, strict=True):
+        name = configmap["metadata"]["name"]
+        assert warning.startswith(f"reservation kuberos-test-fleet/{name} ignored (it holds nothing): "), warning
+        assert why in warning, (why, warning)
+    assert pool.readable([c for c, _why in BAD_RESERVATIONS]) == []
+
+
+def test_an_owner_with_a_trailing_line_break_is_refused_and_the_reason_rule_is_said_as_it_is():
+    assert "cannot be a RosDeployment's metadata.developer" in pool.owner_problem("alice\n")
+    why = pool.reason_problem("line one\tline two")
+    assert "control character U+0009" in why and "one printable line" in why and "only tab" not in why, why
+
+
+def test_the_pool_module_refuses_a_huge_hold_naming_the_option_not_as_a_cluster_failure():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import robot_pool
+
+    kube = PoolKube()
+    for hold in ("100000000d", "9999-12-31T23:59:59-12:00"):
+        with pytest.raises(KuberosError, match=r"^until \(playbooks/pool.yml: -e hold=\): ") as caught:
+            robot_pool.reserve(kube, "test-fleet", "fetch-2", "alice", "", hold, check_mode=False)
+        assert "at most 90 days" in str(caught.value) or "out of range" in str(caught.value), str(caught.value)
+    assert not kube.objects
+
+
+def test_every_reader_of_the_pool_skips_an_unreadable_reservation_and_says_so():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import robot_pool
+
+    kube = PoolKube([_configmap(), *(c for c, _why in BAD_RESERVATIONS)])
+    said = []
+    found = robot_pool.reservations(kube, "test-fleet", warn=said.append)
+    assert [r.robot for r in found] == ["fetch-2"] and len(said) == len(BAD_RESERVATIONS), said
+    listed = robot_pool.listing(kube, NOW)
+    assert [r["robot"] for r in listed["reservations"]] == ["fetch-2"] and len(listed["ignored"]) == len(BAD_RESERVATIONS)
+    # an unreadable reservation holds nothing: reserving replaces it, releasing removes it
+    done = robot_pool.reserve(kube, "test-fleet", "r1", "bob", "", "4h", check_mode=False)
+    assert done["changed"] and done["before"] is None and done["after"].owner == "bob"
+    done = robot_pool.release(kube, "test-fleet", "r3", "bob", force=False, check_mode=False)
+    assert done["changed"] and ("kuberos-test-fleet", "kuberos-reservation-r3") in kube.deleted
+
+
+def test_a_reservation_records_who_the_cluster_says_wrote_it_and_only_they_renew_or_release_it():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import robot_pool
+
+    kube = PoolKube(identity="alice@example.com")
+    done = robot_pool.reserve(kube, "test-fleet", "fetch-2", "alice", "tests", "4h", check_mode=False)
+    assert done["identity"] == "alice@example.com" and done["after"].identity == "alice@example.com"
+    written = kube.objects[("kuberos-test-fleet", "kuberos-reservation-fetch-2")]
+    assert written["data"]["identity"] == "alice@example.com"
+    assert "advisory" in done["ownership"] and "alice@example.com" in done["ownership"]
+    kube.identity = "bob@example.com"  # bob says -e owner=alice
+    with pytest.raises(robot_pool.PoolRefused, match=r"written by Kubernetes user alice@example\.com; you are bob@example\.com"):
+        robot_pool.reserve(kube, "test-fleet", "fetch-2", "alice", "mine now", "8h", check_mode=False)
+    with pytest.raises(robot_pool.PoolRefused, match=r"written by Kubernetes user alice@example\.com"):
+        robot_pool.release(kube, "test-fleet", "fetch-2", "alice", force=False, check_mode=False)
+    assert robot_pool.release(kube, "test-fleet", "fetch-2", "alice", force=True, check_mode=False)["changed"]
+    kube.identity = None  # an API server that cannot say (before Kubernetes 1.28): the name alone, said so
+    done = robot_pool.reserve(kube, "test-fleet", "fetch-2", "alice", "tests", "4h", check_mode=False)
+    written = kube.objects[("kuberos-test-fleet", "kuberos-reservation-fetch-2")]
+    assert done["identity"] == "" and "identity" not in written["data"]
+    assert "cannot tell" in done["ownership"]
+
+
+def test_the_deploy_and_the_rollout_leave_an_unreadable_reservation_out_and_say_so(monkeypatch):
+    """What raised OverflowError in both (a reservation whose until is in year 10000 in UTC) holds nothing."""
+    import types
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import deploy_pass, rollout_runner
+
+    good = _configmap(until="2099-01-01T00:00:00Z")
+    configmaps = [good, *(c for c, _why in BAD_RESERVATIONS)]
+    work = deploy_pass.DeployPass({}, check_mode=False, diff_mode=False)
+    work.cluster_read = True
+    work.local = types.SimpleNamespace(live={("ConfigMap", c["metadata"]["namespace"], c["metadata"]["name"]): c
+                                             for c in configmaps})  # fmt: skip
+    assert list(work.reservations()) == ["fetch-2"]
+    assert len(work.pool_warnings) == len(BAD_RESERVATIONS) and "until: '9999-12-31T23:59:59-12:00'" in work.pool_warnings[0]
+
+    monkeypatch.setattr(rollout_runner, "Kube", lambda clients: PoolKube(configmaps))
+    said = []
+    assert list(rollout_runner._reserved({}, "test-fleet", said.append)) == ["fetch-2"]
+    assert len(said) == len(BAD_RESERVATIONS)
+    assert said[0].startswith("reservation kuberos-test-fleet/kuberos-reservation-r1 ignored"), said[0]

@@ -179,6 +179,7 @@ class DeployPass:
         self.diff_mode = diff_mode
         self.workers = max(1, int(params.get("workers") or 8))
         self.timings: dict[str, float] = {}
+        self.pool_warnings: list[str] = []  # the robot pool's reservations that cannot be read (they hold nothing)
         self._started = time.monotonic()
 
     def _lap(self, step: str) -> None:
@@ -214,7 +215,7 @@ class DeployPass:
         return {
             **result,
             "left_out": left_out,
-            "notes": [note for dep in self.deployments for note in dep.notes],
+            "notes": [note for dep in self.deployments for note in dep.notes] + self.pool_warnings,
             "placement": self.placement.to_dict(),
             "dest": self.rendered["dest"],
             "files": self.rendered["files"],
@@ -350,12 +351,13 @@ class DeployPass:
 
     def reservations(self) -> dict:
         """The robot pool's reservations that hold now, from the fleets' objects read (robot -> Reservation); None
-        when no cluster was read (a render only)."""
+        when no cluster was read (a render only). One that cannot be read holds nothing: its warning joins the notes."""
         if not getattr(self, "cluster_read", False):
             return None
         found = [obj for (kind, _ns, _name), obj in self.local.live.items()
                  if kind == "ConfigMap" and (obj["metadata"].get("labels") or {}).get(robot_pool.LABEL) == "true"]  # fmt: skip
-        return robot_pool.held(robot_pool.readable(found), datetime.datetime.now(datetime.UTC))
+        readable, self.pool_warnings = robot_pool.read(found)
+        return robot_pool.held(readable, datetime.datetime.now(datetime.UTC))
 
     def place(self) -> None:
         previous = self.previous if (self.previous.get("instances") or self.previous.get("discovery")) else None

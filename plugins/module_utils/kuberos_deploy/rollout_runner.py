@@ -551,12 +551,13 @@ def _target(clients, params: dict, namespace_of):
     return dep, text, params["src"], used, "rollout"
 
 
-def _reserved(clients, fleet: str) -> dict:
-    """The robot pool's reservations of ``fleet`` that hold now (robot -> Reservation)."""
+def _reserved(clients, fleet: str, progress=None) -> dict:
+    """The robot pool's reservations of ``fleet`` that hold now (robot -> Reservation); ``progress`` hears of each one
+    that cannot be read (it holds nothing)."""
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import pool as robot_pool
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.robot_pool import now, reservations
 
-    return robot_pool.held(reservations(Kube(clients), fleet), now())
+    return robot_pool.held(reservations(Kube(clients), fleet, warn=progress), now())
 
 
 def _graph_check(clients, params: dict, dep, namespace: str, field_manager: str, progress):
@@ -599,7 +600,7 @@ def execute(clients, params: dict, check_mode: bool, progress) -> dict:
     inventory = load_inventory(params["inventory"])
     allocated = cluster_state.node_allocations(clients, [dep.name], [dep.fleet])
     unavailable = cluster_state.unavailable_nodes(clients, list(inventory.nodes))
-    reserved = _reserved(clients, dep.fleet)
+    reserved = _reserved(clients, dep.fleet, progress)
     placement = place_modules([dep], inventory, allocated, unavailable, record.placement, reserved=reserved)
     left_out = placement.deployments[0].get("left_out") or {}
     if left_out:

@@ -58,6 +58,8 @@ KINDS = {
     # who a bearer token is, and whether it may read a path (the dashboard's authentication)
     "TokenReview": Kind("authentication", "token_review", False, "authentication.k8s.io/v1", ("create",)),
     "SubjectAccessReview": Kind("authorization", "subject_access_review", False, "authorization.k8s.io/v1", ("create",)),
+    # who the caller is, as the API server says (Kubernetes 1.28+): the robot pool records it with a reservation
+    "SelfSubjectReview": Kind("authentication", "self_subject_review", False, "authentication.k8s.io/v1", ("create",)),
 }
 # The resource metrics API (metrics-server): a pod's CPU use, for scaling on cpu.
 POD_METRICS = ("metrics.k8s.io", "v1beta1", "pods")
