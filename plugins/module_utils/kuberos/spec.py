@@ -498,9 +498,11 @@ def _parse_document(doc: Document, catalog: Catalog | None = None, read_file=Non
 
 def _topic_problems(doc: Document, modules: list[RosModule]) -> list[Problem]:
     """The declared topics that cannot match (``kuberos.topics``), each at its declaration, or at ``module`` with the
-    catalog entry named when the catalog declares it."""
+    catalog entry named when the catalog declares it: the first ``topics.MAX_FINDINGS``, then one line counting the
+    others (after the last one listed)."""
     problems = []
-    for finding in declaration_findings(modules):
+    findings = declaration_findings(modules)
+    for finding in findings.shown:
         module, topic = finding.module, finding.topic
         if topic.origin:
             parts = ("rosModules", module.index, "module")
@@ -508,6 +510,11 @@ def _topic_problems(doc: Document, modules: list[RosModule]) -> list[Problem]:
         else:
             parts, message = ("rosModules", module.index, "topics", topic.direction, topic.position), finding.message
         problems.append(_problem(doc, parts, message))
+    if findings.more:
+        # At the place of the last one listed, so that it follows them once the problems are sorted by line.
+        last = max(problems, key=lambda p: (p.line or 0, p.path))
+        message = f"... and {findings.more} more problems of declared topics like these (the first {findings.limit} are listed)"
+        problems.append(Problem(last.source, last.path, message, last.line))
     return problems
 
 
