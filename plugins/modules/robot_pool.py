@@ -22,39 +22,52 @@ description:
   - C(passes) names the production deployments whose pass changes what runs for the robot now (their records say
     so), with their current revision; P(kuberos.platform.rosdeployment_rollout#module) at that revision is the pass,
     and C(playbooks/pool.yml) runs it at once.
+  - With O(state=list), reads the reservations of every fleet (C(reservations)); O(robot), O(owner) and O(inventory)
+    are not needed.
+  - A reservation that cannot be read (a field missing, a time out of range, an owner or a reason the pool would not
+    write) holds nothing; each one is a warning naming its ConfigMap and why, and is left out. Reserving the robot
+    replaces it; giving the robot back removes it.
+  - Ownership is advisory. The API server is asked who the caller is (a SelfSubjectReview, Kubernetes 1.28+), and the
+    reservation records that Kubernetes user (C(identity)); a reservation that records one is renewed or given back
+    (without O(force)) only by that user. O(owner) is a name the caller gives, not checked against that user, and
+    whoever may write ConfigMaps in the fleet's namespace can change or remove a reservation. C(ownership) says so in
+    every answer (docs/security.md).
   - Robots are the inventory's; the fleet is the robot's fleet there.
 options:
   robot:
-    description: The robot, as the inventory names it.
+    description: The robot, as the inventory names it (required unless O(state=list)).
     type: str
-    required: true
   owner:
-    description: Who holds it (the name a development deployment gives in C(metadata.developer)).
+    description:
+      - Who holds it (the name a development deployment gives in C(metadata.developer)); required unless O(state=list).
+      - Letters and digits with C(-), C(_), C(.) and C(@) inside, at most 63 characters.
     type: str
-    required: true
   reason:
-    description: Why, for the others who see the reservation (status, dashboard).
+    description: Why, for the others who see the reservation (status, dashboard); one printable line (no tab, line
+      break or other control character), at most 200 characters.
     type: str
     default: ""
   until:
     description:
       - When the reservation ends - a duration from now (C(90m), C(4h), C(2d)) or a time (C(2026-11-28T18:00:00Z)).
-      - At most 90 days ahead.
+      - At most 90 days ahead (C(90d), C(2160h)); a time is RFC 3339 with a zone. Anything else is refused, naming
+        the option and the bound.
     type: str
     default: 8h
   state:
-    description: C(present) reserves (or renews), C(absent) releases.
+    description: C(present) reserves (or renews), C(absent) releases, C(list) reads every reservation.
     type: str
-    choices: [present, absent]
+    choices: [present, absent, list]
     default: present
   force:
     description: With O(state=absent), release a robot that someone else holds.
     type: bool
     default: false
   inventory:
-    description: The fleet inventory, as returned by the P(kuberos.platform.fleet_inventory#filter) filter.
+    description:
+      - The fleet inventory, as returned by the P(kuberos.platform.fleet_inventory#filter) filter (required unless
+        O(state=list)).
     type: dict
-    required: true
 attributes:
   check_mode:
     support: full
@@ -78,6 +91,11 @@ EXAMPLES = r"""
     owner: alice
     reason: testing the new grasp planner
     until: 4h
+
+- name: Who holds what
+  kuberos.platform.robot_pool:
+    kubeconfig: ~/.cache/kuberos/cluster/kubeconfig
+    state: list
 
 - name: Give it back
   kuberos.platform.robot_pool:
@@ -111,9 +129,27 @@ passes:
   type: list
   elements: dict
 message:
-  description: One line saying what holds now.
+  description: One line saying what holds now (with O(state=list), one line per reservation).
   returned: always
   type: str
+identity:
+  description: The Kubernetes user the API server says the caller is (a SelfSubjectReview); empty when it cannot tell.
+  returned: unless O(state=list)
+  type: str
+ownership:
+  description: What the owner's name guarantees and what it does not (advisory), in one sentence.
+  returned: always
+  type: str
+reservations:
+  description: With O(state=list), every reservation that can be read, with C(active) (false when its time has passed).
+  returned: when O(state=list)
+  type: list
+  elements: dict
+ignored:
+  description: The reservations that cannot be read (they hold nothing), one warning each naming the ConfigMap and why.
+  returned: always
+  type: list
+  elements: str
 """
 
 import datetime
@@ -123,7 +159,13 @@ from ansible.module_utils.basic import AnsibleModule
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.robot_pool import PoolRefused, release, reserve
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.robot_pool import (
+    PoolRefused,
+    listing,
+    release,
+    reservations,
+    reserve,
+)
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import KUBECONFIG_ARG, Kube, api_clients
 
 
@@ -133,29 +175,54 @@ def _text(reservation) -> str:
     return "\n".join(f"{k}: {v}" for k, v in reservation.to_dict().items()) + "\n"
 
 
+ADVISORY = ("ownership is advisory: owner is a name; a reservation records the Kubernetes user who wrote it, and whoever "
+            "may write ConfigMaps in a fleet's namespace can change or remove it (docs/security.md)")  # fmt: skip
+
+
+def _listed(module, kube) -> None:
+    now = datetime.datetime.now(datetime.UTC)
+    found = listing(kube, now)
+    for warning in found["ignored"]:
+        module.warn(warning)
+    lines = [
+        f"{r['robot']} ({r['fleet']}): {r['owner']} until {r['until']}{'' if r['active'] else ' (ended)'}"
+        + (f" [Kubernetes user {r['identity']}]" if r.get("identity") else "") + (f": {r['reason']}" if r["reason"] else "")
+        for r in sorted(found["reservations"], key=lambda r: (r["robot"], r["fleet"]))
+    ]  # fmt: skip
+    module.exit_json(changed=False, reservations=found["reservations"], ignored=found["ignored"], ownership=ADVISORY,
+                     message="\n".join(lines) or "no robot is reserved")  # fmt: skip
+
+
 def main():
     module = AnsibleModule(
         argument_spec=dict(
             **KUBECONFIG_ARG,
-            robot=dict(type="str", required=True),
-            owner=dict(type="str", required=True),
+            robot=dict(type="str"),
+            owner=dict(type="str"),
             reason=dict(type="str", default=""),
             until=dict(type="str", default="8h"),
-            state=dict(type="str", choices=["present", "absent"], default="present"),
+            state=dict(type="str", choices=["present", "absent", "list"], default="present"),
             force=dict(type="bool", default=False),
-            inventory=dict(type="dict", required=True),
+            inventory=dict(type="dict"),
         ),
+        required_if=[("state", "present", ("robot", "owner", "inventory")), ("state", "absent", ("robot", "owner", "inventory"))],
         supports_check_mode=True,
     )
     require_packages(module)
     p = module.params
+    ignored: list[str] = []
     try:
+        kube = Kube(api_clients(p["kubeconfig"]), "kuberos-pool")
+        if p["state"] == "list":
+            _listed(module, kube)
         inventory = load_inventory(p["inventory"])
         if p["robot"] not in inventory.robots:
             known = ", ".join(sorted(inventory.robots)[:20]) or "none"
             raise PoolRefused(f"{p['robot']} is not a robot of the inventory; its robots: {known}")
         fleet = inventory.robots[p["robot"]].fleet
-        kube = Kube(api_clients(p["kubeconfig"]), "kuberos-pool")
+        reservations(kube, fleet, warn=ignored.append)
+        for warning in ignored:
+            module.warn(warning)
         if p["state"] == "present":
             done = reserve(kube, fleet, p["robot"], p["owner"], p["reason"], p["until"], module.check_mode)
         else:
@@ -177,6 +244,9 @@ def main():
         "production": done["production"],
         "passes": done["passes"],
         "message": message,
+        "identity": done["identity"],
+        "ownership": done["ownership"],
+        "ignored": ignored,
     }
     if module._diff:
         result["diff"] = {"before": _text(before), "after": _text(after)}

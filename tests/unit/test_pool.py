@@ -4,6 +4,7 @@ a development deployment may run on; placement with the pool."""
 from __future__ import annotations
 
 import datetime
+import json
 
 import pytest
 
@@ -304,3 +305,32 @@ def test_the_deploy_and_the_rollout_leave_an_unreadable_reservation_out_and_say_
     assert list(rollout_runner._reserved({}, "test-fleet", said.append)) == ["fetch-2"]
     assert len(said) == len(BAD_RESERVATIONS)
     assert said[0].startswith("reservation kuberos-test-fleet/kuberos-reservation-r1 ignored"), said[0]
+
+
+def _run_module(monkeypatch, capsys, kube, **args) -> dict:
+    from ansible.module_utils.testing import patch_module_args
+
+    from ansible_collections.kuberos.platform.plugins.modules import robot_pool as module
+
+    monkeypatch.setattr(module, "api_clients", lambda kubeconfig: {})
+    monkeypatch.setattr(module, "Kube", lambda clients, manager: kube)
+    monkeypatch.setattr(module, "require_packages", lambda m: None)
+    with patch_module_args({"kubeconfig": "/nowhere", **args}), pytest.raises(SystemExit):
+        module.main()
+    return json.loads(capsys.readouterr().out)
+
+
+def test_the_pool_module_lists_every_reservation_warns_of_the_unreadable_and_says_ownership_is_advisory(
+    monkeypatch, capsys, local_raw
+):
+    kube = PoolKube([_configmap(until="2099-01-01T00:00:00Z", identity="alice@example.com"), BAD_RESERVATIONS[0][0]])
+    listed = _run_module(monkeypatch, capsys, kube, state="list")
+    said = "fetch-2 (test-fleet): alice until 2099-01-01T00:00:00Z [Kubernetes user alice@example.com]: tests"
+    assert listed["message"] == said
+    assert "kuberos-reservation-r1 ignored" in json.dumps(listed["warnings"]) and len(listed["ignored"]) == 1
+    assert "ownership is advisory" in listed["ownership"]
+    refused = _run_module(monkeypatch, capsys, kube, robot="fetch-1", owner="alice", until="100000000d", inventory=local_raw)
+    assert refused["failed"]
+    assert refused["msg"].startswith("until (playbooks/pool.yml: -e hold=): '100000000d' is more than 90 days"), refused
+    held = _run_module(monkeypatch, capsys, kube, robot="fetch-1", owner="alice", inventory=local_raw)
+    assert held["changed"] and held["identity"] == "alice@example.com" and "advisory" in held["ownership"], held
