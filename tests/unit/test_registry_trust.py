@@ -1,7 +1,8 @@
 """The registry client's trust (kuberos_deploy/registry_api.py, image_digests.py) against a hostile registry on
 loopback (tests/hostile_registry.py): credentials go only to the origin they were given for, every answer has a size
 cap and every request an overall deadline, plain http only where a registry is marked insecure, and a malformed pull
-Secret is one sentence naming it."""
+Secret is one sentence naming it. The Kubernetes layer's reads of clusters KubeROS does not run are bounded the
+same way."""
 
 from __future__ import annotations
 
@@ -26,6 +27,8 @@ from hostile_registry import (
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import image_digests
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import registry_api as api
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube import api as kube_api
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.bounded import ReadBoundExceeded
 
 REPO = "/v2/app/manifests/1.0"
 
@@ -160,3 +163,48 @@ def test_a_pull_secret_that_is_not_base64_is_named():
     bad = {"metadata": {"name": "pull", "namespace": "fleet-a"}, "data": {".dockerconfigjson": "not base64 json"}}
     with pytest.raises(KuberosError, match=r"pull Secret fleet-a/pull: its \.dockerconfigjson is not base64-encoded JSON"):
         image_digests.credentials([bad])
+
+
+# The Kubernetes layer's bounds for clusters KubeROS does not run (kuberos_kube.api: a third-party cluster, the
+# metrics API), against the same hostile server speaking as an API server.
+
+
+def _far_cluster(server, bounds=None):
+    from kubernetes import client as k8s
+
+    configuration = k8s.Configuration()
+    configuration.host = server.url()
+    configuration.retries = 0
+    return kube_api.Kube(kube_api.clients_of(k8s.ApiClient(configuration)), name="far", bounds=bounds)
+
+
+def test_a_third_party_clusters_huge_answer_is_refused_at_its_cap(tmp_path):
+    with HostileRegistry(str(tmp_path), plain=True) as server:
+        server.routes = {"/api/v1/namespaces/fleet/configmaps": huge(200 * 1024 * 1024)}
+        far = _far_cluster(server, kube_api.Bounds(30, 1024 * 1024))
+        with pytest.raises(ReadBoundExceeded, match=r"cluster far answered with more than 1 MiB"):
+            far.list("ConfigMap", "fleet")
+        assert kube_api.Kube({}, name="far").bounds == kube_api.REMOTE_BOUNDS, "a named cluster is bounded by default"
+
+
+@pytest.mark.parametrize("headers_too", [False, True], ids=["body", "headers"])
+def test_a_third_party_cluster_that_trickles_ends_at_the_deadline(tmp_path, headers_too):
+    with HostileRegistry(str(tmp_path), plain=True) as server:
+        server.routes = {"/api/v1/namespaces/fleet/configmaps": trickle(0.2, 20, headers_too)}
+        far = _far_cluster(server, kube_api.Bounds(1.5, 1024 * 1024))
+        started = time.monotonic()
+        with pytest.raises(ReadBoundExceeded, match=r"cluster far gave no complete answer within 1.5 s"):
+            far.list("ConfigMap", "fleet")
+        assert time.monotonic() - started < 4
+        assert "within 1.5 s" in kube_api.message(ReadBoundExceeded("cluster far gave no complete answer within 1.5 s"))
+
+
+def test_the_metrics_api_that_trickles_ends_at_its_timeout(tmp_path):
+    with HostileRegistry(str(tmp_path), plain=True) as server:
+        server.routes = {"/apis/metrics.k8s.io/v1beta1/namespaces/fleet/pods": trickle(0.2, 20)}
+        own = _far_cluster(server)
+        own.name, own.bounds = "", None  # the site's own API server: only the metrics API is bounded
+        started = time.monotonic()
+        with pytest.raises(ReadBoundExceeded, match=r"the API server gave no complete answer within 1 s"):
+            own.pod_metrics("fleet", timeout=1)
+        assert time.monotonic() - started < 3.5

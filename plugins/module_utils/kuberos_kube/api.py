@@ -13,11 +13,17 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from dataclasses import dataclass
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.applied import stamped
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.labels import FIELD_MANAGER
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming import object_key
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.bounded import (
+    Deadline,
+    ReadBoundExceeded,
+    read_capped,
+)
 
 APPLY_TYPE = "application/apply-patch+yaml"
 # The argument every module that talks to a cluster takes (documented by the kuberos.platform.cluster fragment).
@@ -69,6 +75,21 @@ RENDERED_KINDS = ("Namespace", "ConfigMap", "Service", "Secret", "Deployment", "
 MANAGED_KINDS = ("Deployment", "Service", "ConfigMap", "Secret", "NetworkPolicy")
 
 
+@dataclass(frozen=True)
+class Bounds:
+    """An overall deadline (seconds) for each request and a size cap (bytes) for each answer."""
+
+    deadline_s: float
+    max_bytes: int
+
+
+# A cluster KubeROS does not run (a third-party cluster, reached by its inventory name) and the metrics API
+# (metrics-server, an aggregated API) answer within these; the site's own API server is trusted as it is.
+REMOTE_BOUNDS = Bounds(60.0, 64 * 1024 * 1024)
+METRICS_BOUNDS = Bounds(10.0, 16 * 1024 * 1024)
+_ACTIVE = threading.local()  # the Deadline of the request this thread is making, if bounded
+
+
 class ClusterUnreachable(Exception):
     """The cluster cannot be reached; the message says which and what to do."""
 
@@ -97,10 +118,45 @@ def bearer_clients(host: str, token: str, ca_cert: str | None = None) -> dict:
     return clients_of(client.ApiClient(configuration))
 
 
+def _bounded_pools(api) -> None:
+    """Make the connections of ``api`` register their sockets with the thread's active ``Deadline`` (a new socket
+    when it is opened, a kept-alive one when it is taken from the pool), so a deadline ends a blocked read at once."""
+    from urllib3.connection import HTTPConnection, HTTPSConnection
+    from urllib3.connectionpool import HTTPConnectionPool, HTTPSConnectionPool
+
+    def watch(sock) -> None:
+        deadline = getattr(_ACTIVE, "deadline", None)
+        if deadline is not None and sock is not None:
+            deadline.watch(sock)
+
+    class Watched:
+        def _new_conn(self):
+            sock = super()._new_conn()
+            watch(sock)
+            return sock
+
+    class WatchedPool:
+        def _get_conn(self, timeout=None):
+            conn = super()._get_conn(timeout)
+            watch(getattr(conn, "sock", None))
+            return conn
+
+    http_conn = type("WatchedHTTPConnection", (Watched, HTTPConnection), {})
+    https_conn = type("WatchedHTTPSConnection", (Watched, HTTPSConnection), {})
+    pools = {
+        "http": type("WatchedHTTPConnectionPool", (WatchedPool, HTTPConnectionPool), {"ConnectionCls": http_conn}),
+        "https": type("WatchedHTTPSConnectionPool", (WatchedPool, HTTPSConnectionPool), {"ConnectionCls": https_conn}),
+    }
+    manager = getattr(getattr(api, "rest_client", None), "pool_manager", None)
+    if manager is not None and hasattr(manager, "pool_classes_by_scheme"):
+        manager.pool_classes_by_scheme = pools
+
+
 def clients_of(api) -> dict:
-    """The typed clients over one ``kubernetes.client.ApiClient``."""
+    """The typed clients over one ``kubernetes.client.ApiClient`` (its connections can be bounded: ``Bounds``)."""
     from kubernetes import client
 
+    _bounded_pools(api)
     return {
         "core": client.CoreV1Api(api),
         "apps": client.AppsV1Api(api),
@@ -133,7 +189,7 @@ def message(exc: BaseException, kubeconfig: str = "") -> str:
     from urllib3.exceptions import HTTPError
 
     where = kubeconfig or "(no kubeconfig)"
-    if isinstance(exc, ClusterUnreachable):
+    if isinstance(exc, (ClusterUnreachable, ReadBoundExceeded)):
         return str(exc)
     if status_of(exc) is not None:
         return f"the API server refused: {exc.status} {exc.reason}: {(exc.body or '')[:500]}"
@@ -149,14 +205,38 @@ class Kube:
     ``name`` is '' for this cluster, else the third-party cluster's inventory name (for messages).
     ``timeout`` (seconds, or a callable giving them before each write) bounds each write: the controller's fence
     gives its lease's remaining time there, and refuses a write it may not make by raising. ``read_timeout``
-    (seconds) bounds each read."""
+    (seconds) bounds each read. ``bounds``: an overall deadline and a size cap for every request and answer
+    (``REMOTE_BOUNDS`` by default for a third-party cluster: one that is named)."""
 
-    def __init__(self, clients: dict, field_manager: str = FIELD_MANAGER, name: str = "", timeout=None, read_timeout=None):
+    def __init__(self, clients: dict, field_manager: str = FIELD_MANAGER, name: str = "", timeout=None, read_timeout=None,
+                 bounds: Bounds | None = None):  # fmt: skip
         self.clients = clients
         self.field_manager = field_manager
         self.name = name
         self.timeout = timeout
         self.read_timeout = read_timeout
+        self.bounds = bounds if bounds is not None else (REMOTE_BOUNDS if name else None)
+
+    def _answer(self, call, *args, bounds: Bounds | None = None, **kwargs) -> bytes:
+        """The body of ``call(*args, **kwargs)`` (a typed client's method, ``_preload_content=False``), within
+        ``bounds`` (else this Kube's) when there are any: ReadBoundExceeded names the cluster and the limit."""
+        bounds = bounds or self.bounds
+        if bounds is None:
+            return call(*args, **kwargs).data
+        where = f"cluster {self.name}" if self.name else "the API server"
+        with Deadline(where, bounds.deadline_s) as deadline:
+            _ACTIVE.deadline = deadline
+            try:
+                response = call(*args, **kwargs)
+                try:
+                    return read_capped(response, where, bounds.max_bytes, deadline)
+                finally:
+                    getattr(response, "release_conn", lambda: None)()
+            except Exception:
+                deadline.check()
+                raise
+            finally:
+                _ACTIVE.deadline = None
 
     def _method(self, kind: str, verb: str):
         found = KINDS.get(kind)
@@ -194,12 +274,13 @@ class Kube:
     def get(self, kind: str, name: str, namespace: str = "") -> dict | None:
         """One object, or None when there is no such object (or namespace)."""
         try:
-            response = self._method(kind, "read")(*self._where(kind, name, namespace), _preload_content=False, **self._reads())
+            data = self._answer(self._method(kind, "read"), *self._where(kind, name, namespace), _preload_content=False,
+                                **self._reads())  # fmt: skip
         except Exception as exc:
             if status_of(exc) == 404:
                 return None
             raise
-        return {**self._head(kind), **json.loads(response.data)}
+        return {**self._head(kind), **json.loads(data)}
 
     def list(self, kind: str, namespace: str = "", selector: str = "", field_selector: str = "") -> list[dict]:
         """Every object of ``kind`` (in ``namespace``; in all namespaces when a namespaced kind is given none), with
@@ -211,21 +292,23 @@ class Kube:
         namespaced = kind in KINDS and KINDS[kind].namespaced
         try:
             if namespaced and not namespace:
-                response = self._method(kind, "list_all")(_preload_content=False, **query)
+                data = self._answer(self._method(kind, "list_all"), _preload_content=False, **query)
             else:
-                response = self._method(kind, "list")(*((namespace,) if namespaced else ()), _preload_content=False, **query)
+                data = self._answer(self._method(kind, "list"), *((namespace,) if namespaced else ()), _preload_content=False,
+                                    **query)  # fmt: skip
         except Exception as exc:
             if status_of(exc) == 404:
                 return []
             raise
         head = self._head(kind)  # first, as the server writes single objects
-        return [{**head, **item} for item in json.loads(response.data).get("items") or []]
+        return [{**head, **item} for item in json.loads(data).get("items") or []]
 
     def apply(self, obj: dict, dry_run: bool = False, manager: str | None = None) -> dict:
         """Server-side apply of ``obj`` (its fields owned by ``manager``, conflicts forced), stamped with the digest of
         what was applied (``kuberos.applied``); what the server holds."""
         extra = {"dry_run": "All"} if dry_run else {}
-        response = self._method(obj["kind"], "patch")(
+        data = self._answer(
+            self._method(obj["kind"], "patch"),
             *self._at(obj),
             stamped(obj),  # plain data: the client serialises nothing else
             field_manager=manager or self.field_manager,
@@ -235,38 +318,41 @@ class Kube:
             **extra,
             **self._limits(),
         )
-        return json.loads(response.data)
+        return json.loads(data)
 
     def patch(self, kind: str, name: str, namespace: str, patch, content_type: str | None = None) -> dict:
         """A merge (or ``content_type``) patch of one object; what the server holds."""
         extra = {"_content_type": content_type} if content_type else {}
-        response = self._method(kind, "patch")(
-            *self._where(kind, name, namespace), patch, _preload_content=False, **extra, **self._limits()
-        )
-        return json.loads(response.data)
+        data = self._answer(
+            self._method(kind, "patch"), *self._where(kind, name, namespace), patch, _preload_content=False, **extra,
+            **self._limits(),
+        )  # fmt: skip
+        return json.loads(data)
 
     def replace(self, obj: dict) -> dict:
         """Replace ``obj`` as a whole (its ``resourceVersion`` makes the API server refuse a stale one: 409)."""
-        response = self._method(obj["kind"], "replace")(
-            *self._at(obj), json.loads(json.dumps(obj)), _preload_content=False, **self._limits()
-        )
-        return json.loads(response.data)
+        data = self._answer(
+            self._method(obj["kind"], "replace"), *self._at(obj), json.loads(json.dumps(obj)), _preload_content=False,
+            **self._limits(),
+        )  # fmt: skip
+        return json.loads(data)
 
     def create(self, obj: dict) -> dict:
         """Create ``obj``; the API server's refusal (409 when it exists) is raised."""
         meta = obj.get("metadata") or {}
         args = (meta["namespace"],) if KINDS[obj["kind"]].namespaced else ()
         body = json.loads(json.dumps(obj))
-        response = self._method(obj["kind"], "create")(*args, body, _preload_content=False, **self._limits())
-        return json.loads(response.data)
+        data = self._answer(self._method(obj["kind"], "create"), *args, body, _preload_content=False, **self._limits())
+        return json.loads(data)
 
     def delete(self, kind: str, name: str, namespace: str = "", grace_seconds: int | None = None) -> bool:
         """Delete one object (its dependents in the background); False when it was already gone."""
         extra = {} if grace_seconds is None else {"grace_period_seconds": grace_seconds}
         try:
-            self._method(kind, "delete")(
-                *self._where(kind, name, namespace), propagation_policy="Background", **extra, **self._limits()
-            )
+            self._answer(
+                self._method(kind, "delete"), *self._where(kind, name, namespace), propagation_policy="Background",
+                _preload_content=False, **extra, **self._limits(),
+            )  # fmt: skip
         except Exception as exc:
             if status_of(exc) == 404:
                 return False
@@ -283,10 +369,12 @@ class Kube:
         metrics-server serves it, is raised)."""
         group, version, plural = POD_METRICS
         extra = {} if timeout is None else {"_request_timeout": timeout}
-        response = self.clients["custom"].list_namespaced_custom_object(
-            group, version, namespace, plural, _preload_content=False, **extra
-        )
-        return json.loads(response.data).get("items") or []
+        bounds = METRICS_BOUNDS if timeout is None else Bounds(float(timeout), METRICS_BOUNDS.max_bytes)
+        data = self._answer(
+            self.clients["custom"].list_namespaced_custom_object, group, version, namespace, plural,
+            _preload_content=False, bounds=bounds, **extra,
+        )  # fmt: skip
+        return json.loads(data).get("items") or []
 
     def log(self, pod: str, namespace: str, container: str = "", tail_lines: int | None = None, since_seconds: int | None = None,
             timestamps: bool = False, previous: bool = False) -> str:  # fmt: skip
@@ -302,5 +390,5 @@ class Kube:
             extra["timestamps"] = True
         if previous:
             extra["previous"] = True
-        response = self.clients["core"].read_namespaced_pod_log(pod, namespace, _preload_content=False, **extra)
-        return response.data.decode("utf-8", errors="replace")
+        data = self._answer(self.clients["core"].read_namespaced_pod_log, pod, namespace, _preload_content=False, **extra)
+        return data.decode("utf-8", errors="replace")
