@@ -405,7 +405,7 @@ def test_a_change_reaches_an_open_stream_within_the_update_window(served, deploy
 
     async def listen():
         reader, writer = await asyncio.open_connection("127.0.0.1", dashboard.port)
-        writer.write(b"GET /api/stream HTTP/1.1\r\nHost: x\r\n\r\n")
+        writer.write(f"GET /api/stream HTTP/1.1\r\nHost: 127.0.0.1:{dashboard.port}\r\n\r\n".encode())
         await writer.drain()
         seen = []
         changed_at = None
@@ -548,3 +548,94 @@ def test_the_ros_graph_view_shows_each_robots_last_check_and_a_reservation_shows
     assert found["deployment"] == "kuberos-f/pnp" and found["total"] == 2 and list(found["robots"]) == ["fetch-1"]
     assert found["robots"]["fetch-1"]["problems"] == ["/fetch_1/a: nobody publishes it"]
     assert b"renderGraph" in fetch(base + "/static/app.js")[2] and b'data-tab="graph"' in fetch(base + "/")[2]
+
+
+# -- issue 44: the auth-less dashboard answers only under its own loopback name; a bad reservation stops nothing --
+def ask(port: int, path: str, host: str | None) -> tuple[int, dict, bytes]:
+    """A real HTTP request to the dashboard on 127.0.0.1:``port`` with the ``Host`` header ``host`` (None: none)."""
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=5)
+    try:
+        connection.putrequest("GET", path, skip_host=True)
+        if host is not None:
+            connection.putheader("Host", host)
+        connection.endheaders()
+        response = connection.getresponse()
+        return response.status, dict(response.headers), response.read()
+    finally:
+        connection.close()
+
+
+def test_without_a_login_the_dashboard_refuses_any_host_but_its_own_loopback_address_and_port(served):
+    _controller, dashboard, _base = served
+    port = dashboard.port
+    for host in (f"evil.example:{port}", "evil.example", f"127.0.0.1.evil.example:{port}", f"127.0.0.1:{port + 1}",
+                 "127.0.0.1", f"localhost:{port}:x", f"[::1]x:{port}", f"attacker.test:{port}", ""):  # fmt: skip
+        for path in ("/api/logs?instance=x", "/api/summary", "/", "/metrics"):
+            status, headers, body = ask(port, path, host)
+            assert status == 421, (host, path, status, body[:200])
+            assert b"this dashboard answers only as 127.0.0.1:" in body and b"DNS rebinding" in body, body
+            assert "default-src 'none'" in headers["Content-Security-Policy"] and headers["X-Frame-Options"] == "DENY"
+    assert ask(port, "/api/summary", None)[0] == 400, "no Host header at all: HTTP/1.1 requires one (aiohttp says so)"
+    assert dashboard.view.generation == 0, "a refused request builds nothing"
+    for host in (f"127.0.0.1:{port}", f"localhost:{port}", f"LOCALHOST:{port}", f"[::1]:{port}"):
+        status, headers, body = ask(port, "/api/summary", host)
+        assert status == 200 and json.loads(body)["rows"] > 0, (host, status, body[:200])
+        assert "default-src 'none'" in headers["Content-Security-Policy"]
+
+
+def test_the_host_rule_is_the_auth_less_dashboards_alone(deployed):
+    """In a cluster the dashboard checks tokens and is reached under any name (a Service, a port-forward, an
+    ingress): there the Host header is not checked, the token is."""
+
+    class Refusing:
+        def check(self, token, path):
+            from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.auth import Verdict
+
+            return Verdict(200, "alice") if token == "good" else Verdict(401, why="no bearer token")
+
+        def session_token(self, session):
+            return ""
+
+    controller = HandFed(deployed)
+    dashboard = Dashboard(controller, "127.0.0.1", 0, auth=Refusing(), watch_extra=False)
+    dashboard.start()
+    try:
+        assert ask(dashboard.port, "/api/summary", "kuberos-controller.kuberos-system.svc:8611")[0] == 401
+        connection = http.client.HTTPConnection("127.0.0.1", dashboard.port, timeout=5)
+        connection.request("GET", "/api/summary", headers={"Host": "dashboard.example.org", "Authorization": "Bearer good"})
+        assert connection.getresponse().status == 200
+        connection.close()
+    finally:
+        controller.stop_event.set()
+        dashboard.stop()
+    assert Dashboard(controller, "127.0.0.1", 443, watch_extra=False, tls=object()).own_host("localhost")
+    assert not Dashboard(controller, "127.0.0.1", 8611, watch_extra=False).own_host("localhost")
+
+
+def _reservation(robot: str, until: str, owner: str = "alice") -> dict:
+    return {"metadata": {"name": f"kuberos-reservation-{robot}", "namespace": "kuberos-f", "resourceVersion": "1"},
+            "data": {"robot": robot, "fleet": "f", "owner": owner, "reason": "", "until": until,
+                     "since": "2026-11-28T10:00:00Z"}}  # fmt: skip
+
+
+def test_a_reservation_out_of_range_is_ignored_with_a_warning_and_the_view_stays_fresh(served, caplog):
+    _controller, dashboard, base = served
+    extra = tuple(Store(name, None, threading.Event()) for name in ("statuses", "catalogs", "events", "reservations", "graphs"))
+    dashboard.extra = extra
+    bad = _reservation("fetch-9", "9999-12-31T23:59:59-12:00")
+    HandFed.put(extra[3], _reservation("fetch-2", "2099-01-01T00:00:00Z"), bad)
+    with caplog.at_level("WARNING", logger="kuberos.controller"):
+        status, _headers, body = fetch(base + "/api/fleets")
+        fetch(base + "/api/fleets")
+    assert status == 200
+    fleet = next(f for f in json.loads(body)["fleets"] if f["fleet"] == "f")
+    assert [r["robot"] for r in fleet["reservations"]] == ["fetch-2"]
+    (warning,) = json.loads(fetch(base + "/api/summary")[2])["unreadable_reservations"]
+    assert warning.startswith("reservation kuberos-f/kuberos-reservation-fetch-9 ignored (it holds nothing): until:")
+    assert [r.getMessage() for r in caplog.records] == [f"dashboard: {warning}"], "logged once, not at every rebuild"
+    generation = dashboard.view.generation
+    HandFed.put(extra[3], _reservation("fetch-3", "2099-01-01T00:00:00Z", owner="bob"))
+    found = json.loads(fetch(base + "/api/fleets")[2])
+    assert found["generation"] > generation, "a fresh view, not the last one kept"
+    fleet = next(f for f in found["fleets"] if f["fleet"] == "f")
+    assert [r["robot"] for r in fleet["reservations"]] == ["fetch-2", "fetch-3"]

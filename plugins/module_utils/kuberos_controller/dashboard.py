@@ -12,6 +12,12 @@ Routes (docs/dashboard.md): ``/`` the page; ``/api/summary``, ``/api/resources``
 
 On 127.0.0.1 (the local default) it needs no login. Anywhere else it requires ``KubernetesAuth``: the
 command line refuses to serve a non-loopback address without it. With an ``ssl.SSLContext`` it serves HTTPS.
+
+Without a login it answers only requests whose ``Host`` header is its own loopback address and port
+(``127.0.0.1:PORT``, ``localhost:PORT``, ``[::1]:PORT``); any other gets 421 and a short text. A web page open in
+the developer's browser can make its own name resolve to 127.0.0.1 (DNS rebinding), but its requests still carry its
+own name as ``Host``, so it cannot read the dashboard or ``/api/logs``. With a login (in a cluster, behind a Service,
+a port-forward or an ingress, under any name) every request needs a token instead, which such a page does not have.
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
 EVENT_SOURCE = "kuberos-controller"
 MAX_STREAMS = 64
 MAP_ROBOTS = 12  # robots on one placement map unless the page asks for others
+LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")  # the Host names the dashboard without a login answers to
 log = logging.getLogger("kuberos.controller")
 
 # What each list view filters on: exact-match query keys and the fields the search box looks in.
@@ -109,6 +116,7 @@ class Dashboard:
         self.changed_async: asyncio.Event | None = None
         self.streams = 0
         self.runner = None
+        self.warned: set[str] = set()  # the view's warnings already logged (each once, not at every rebuild)
 
     # -- the view -------------------------------------------------------------------------------
     def current_view(self) -> View:
@@ -200,6 +208,10 @@ class Dashboard:
             view = self.build(signature)
             self.build_s = time.monotonic() - started
             self.view, self.signature = view, signature
+            for warning in view.summary.get("unreadable_reservations", ()):
+                if warning not in self.warned:
+                    log.warning("dashboard: %s", warning)
+            self.warned = set(view.summary.get("unreadable_reservations", ()))
             return True
 
     # -- serving --------------------------------------------------------------------------------
@@ -327,11 +339,36 @@ class Dashboard:
         token = self._token(request)
         return await asyncio.get_running_loop().run_in_executor(None, self.auth.check, token, path)
 
+    def own_host(self, host: str | None) -> bool:
+        """Whether ``host`` (a request's Host header) names this dashboard: one of its loopback names, or the
+        address it is bound to, with its port (the scheme's default port may be left out)."""
+        if not host or len(host) > 300:
+            return False
+        host = host.strip().lower()
+        if host.startswith("["):
+            name, _bracket, rest = host.partition("]")
+            name += "]"
+            if rest and not rest.startswith(":"):
+                return False
+            port = rest[1:]
+        else:
+            name, colon, port = host.partition(":")
+            port = port if colon else ""
+        bound = f"[{self.host.lower()}]" if ":" in self.host else self.host.lower()
+        default = "443" if self.tls else "80"
+        return name in (*LOOPBACK_NAMES, bound) and (port or default) == str(self.port)
+
     def _guard(self):
         from aiohttp import web
 
         @web.middleware
         async def guard(request, handler):
+            if self.auth is None and not self.own_host(request.headers.get("Host")):
+                shown = repr(request.headers.get("Host", "")[:80]) if request.headers.get("Host") else "none"
+                names = ", ".join(f"{name}:{self.port}" for name in LOOPBACK_NAMES)
+                return self._headers(web.Response(status=421, text=(
+                    f"this dashboard answers only as {names} (Host {shown} refused: it has no login, so another "
+                    "name could be a web page reading it through DNS rebinding)\n")))  # fmt: skip
             public = request.path in ("/healthz", "/login", "/logout", "/static/app.css", "/favicon.ico")
             if self.auth is not None and not public:
                 path = METRICS_PATH if request.path == "/metrics" else DASHBOARD_PATH

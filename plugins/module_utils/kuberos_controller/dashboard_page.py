@@ -254,6 +254,9 @@ function renderSummary(s) {
   for (const bad of s.unreadable_records || []) {
     box.appendChild(el('div', { class: 'chip bad' }, el('b', { text: '!' }), `record ${bad.namespace}/${bad.name}: ${bad.error}`));
   }
+  for (const why of s.unreadable_reservations || []) {
+    box.appendChild(el('div', { class: 'chip warn' }, el('b', { text: '!' }), why));
+  }
 }
 
 function renderModules(data) {

@@ -546,6 +546,7 @@ def build_view(snapshot: Snapshot, generation: int = 0, built_at: float = 0.0) -
         "stranded": sum(1 for r in modules if r["phase"] == "Stranded"),
         "over_latency": sum(1 for r in modules if r["over_latency"]),
         "unreadable_records": unreadable,
+        "unreadable_reservations": robot_pool.read(snapshot.reservations)[1],  # each holds nothing; the others show
         "leader": snapshot.leader,
         "controller": snapshot.controller,
     }
