@@ -159,3 +159,21 @@ def test_the_failover_picture_is_drawn_from_the_recorded_benchmark(root):
     with open(f"{root}/docs/images/controller-failover.svg", encoding="utf-8") as handle:
         assert handle.read() == draw(data), "run bench/plot_failover.py again"
     assert data["summary"]["ok"] >= 10 and data["summary"]["failed"] == 0
+
+
+def test_the_controllers_patterns_end_at_the_end_of_the_text_not_before_a_line_break(root):
+    """``$`` also matches before a final line break: the patterns end with ``\\Z``, so '10m\\n' is no duration."""
+    import pytest
+    import yaml
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import monitoring, signals
+
+    with open(f"{root}/roles/controller/files/prometheus/kuberos-rules.yml", encoding="utf-8") as handle:
+        rules = yaml.safe_load(handle)
+    assert monitoring.monitoring_objects("kuberos-system", rules, False, False, True, robot_offline_after="1h30m")
+    for bad in ("10m\n", "1h\n30m"):
+        with pytest.raises(SpecError, match="robot_offline_after: expected a Prometheus duration"):
+            monitoring.monitoring_objects("kuberos-system", rules, False, False, True, robot_offline_after=bad)
+    assert monitoring.DURATION.match("10m\n") is None and signals._CPU_USAGE.match("250m\n") is None
+    assert signals.cpu_millis(" 250m ") == 250.0

@@ -41,7 +41,7 @@ READER_RULES = [{"nonResourceURLs": [PATH], "verbs": ["get"]}]
 SELECTOR = {"matchLabels": {"app.kubernetes.io/name": NAME}}
 ROBOT_OFFLINE_ALERT = "KubeROSRobotOffline"
 ROBOT_OFFLINE_FOR = "10m"  # the rule file's own
-DURATION = re.compile(r"^([0-9]+(ms|s|m|h|d|w|y))+$")  # a Prometheus duration
+DURATION = re.compile(r"^([0-9]+(ms|s|m|h|d|w|y))+\Z")  # a Prometheus duration
 
 
 def _checked_labels(labels) -> dict[str, str]:

@@ -25,7 +25,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api 
 
 log = logging.getLogger("kuberos.controller.signals")
 TIMEOUT_S = 2.0
-_CPU_USAGE = re.compile(r"^([0-9.]+)(n|u|m|)$")
+_CPU_USAGE = re.compile(r"^([0-9.]+)(n|u|m|)\Z")
 
 
 def cpu_millis(usage: str) -> float:
