@@ -386,14 +386,14 @@ ROWS = [
         module("resources: {cpu: 99999999999999999999}"),
         "rosModules[0].resources.cpu",
         8,
-        "is too large for Kubernetes; expected at most 9223372036854775807 millicores",
+        "is not valid: it must be at most 1024 CPUs (1024000m); expected a CPU quantity",
     ),
     row(
         "memory-past-int64",
         module("resources: {memory: 99999999999Ti}"),
         "rosModules[0].resources.memory",
         8,
-        "is too large for Kubernetes",
+        "'99999999999Ti' is not valid: it must be at most 64Ti; expected a memory quantity",
     ),
     row(
         "too-many-documents",

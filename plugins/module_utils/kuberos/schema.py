@@ -50,12 +50,35 @@ _ONE_OR_MORE_STRINGS = {
 }
 # A Prometheus metric name (the module's own load signal), or "cpu".
 METRIC_NAME = r"^[a-zA-Z_:][a-zA-Z0-9_:]*$"
-_DURATION = {
-    "type": ["string", "number"],
-    "pattern": LATENCY,
-    "minimum": 0,
-    "x-expected": "a duration such as '30 s' or '500 ms' (a number means milliseconds)",
-}
+
+
+def at_most(quantity: str, value: int, shown: str) -> dict:
+    """The bound of a quantity written as a number or as text ('30 s', '500m', '2Gi'): ``maximum`` for the number
+    (in the quantity's unit: milliseconds, millicores or bytes... as ``quantities`` parses it), ``x-maximum`` for both
+    (the validator parses the text; validation.py), and how the bound reads in a refusal."""
+    number = value if quantity != "cpu" else value // 1000  # a CPU number is in cores, its text may be in millicores
+    return {"maximum": number, "x-maximum": {"quantity": quantity, "value": value, "shown": shown}}
+
+
+# Durations (milliseconds as numbers): a QoS deadline or lease up to a day, a scaling window up to an hour (the longest
+# stabilization window Kubernetes' HorizontalPodAutoscaler takes), a network latency up to a minute.
+MAX_QOS_DURATION = at_most("latency", 86_400_000, "86400 s (a day)")
+MAX_WINDOW = at_most("latency", 3_600_000, "3600 s (an hour)")
+MAX_LATENCY = at_most("latency", 60_000, "60 s")
+MAX_CPU = at_most("cpu", 1_024_000, "1024 CPUs (1024000m)")
+MAX_MEMORY = at_most("memory", 64 * 1024**4, "64Ti")
+
+
+def _duration(bound: dict) -> dict:
+    return {
+        "type": ["string", "number"],
+        "pattern": LATENCY,
+        "minimum": 0,
+        **bound,
+        "x-expected": "a duration such as '30 s' or '500 ms' (a number means milliseconds)",
+    }
+
+
 SCALING = {
     "type": "object",
     "x-expected": "a mapping with maxInstances and optionally minInstances, metric, target, metricsPort and windows",
@@ -108,15 +131,15 @@ SCALING = {
             "x-expected": "a port number from 1 to 65535",
         },
         "scaleUpWindow": {
-            **_DURATION,
+            **_duration(MAX_WINDOW),
             "description": "Scale up only to the lowest recommendation of this window (default 0 s).",
         },
         "scaleDownWindow": {
-            **_DURATION,
+            **_duration(MAX_WINDOW),
             "description": "Scale down only to the highest recommendation of this window (default 60 s).",
         },
         "drainTime": {
-            **_DURATION,
+            **_duration(MAX_WINDOW),
             "description": "How long a removed instance keeps running after its robots moved away (default 15 s).",
         },
     },
@@ -162,6 +185,7 @@ REQUIREMENTS = {
             "type": ["string", "number"],
             "pattern": LATENCY,
             "minimum": 0,
+            **MAX_LATENCY,
             "description": "Largest network latency allowed between the robot and the node.",
             "x-expected": "a latency such as '200 ms', '0.5 s' or a number of milliseconds",
         },
@@ -196,6 +220,7 @@ RESOURCES = {
             "type": ["string", "number"],
             "pattern": CPU,
             "minimum": 0,
+            **MAX_CPU,
             "default": "100m",
             "description": "CPU requested, e.g. 2 or '500m'.",
             "x-expected": "a CPU quantity such as 2, 0.5 or '500m'",
@@ -204,6 +229,7 @@ RESOURCES = {
             "type": ["string", "integer"],
             "pattern": MEMORY,
             "minimum": 0,
+            **MAX_MEMORY,
             "default": "128Mi",
             "description": "Memory requested and limited to, e.g. '512Mi'.",
             "x-expected": "a memory quantity such as '512Mi', '2Gi' or '1G'",
@@ -365,7 +391,7 @@ def _declared_topic(subscription: bool) -> dict:
                     "x-expected": "a whole number from 1 to 100000",
                 },
                 "deadline": {
-                    **_DURATION,
+                    **_duration(MAX_QOS_DURATION),
                     "description": (
                         "The longest time between two messages: a publisher offers it, a subscription requests it "
                         "(matched when the publisher's is at most the subscription's). Default: none."
@@ -381,7 +407,7 @@ def _declared_topic(subscription: bool) -> dict:
                     "x-expected": "automatic or manual_by_topic",
                 },
                 "lease_duration": {
-                    **_DURATION,
+                    **_duration(MAX_QOS_DURATION),
                     "description": (
                         "The liveliness lease: matched when the publisher's is at most the subscription's. Default: none."
                     ),

@@ -255,6 +255,8 @@ def _semantic_module(module: dict, index: int, doc: Document, problems: list[Pro
         except ValueError as exc:
             problem((section_name, key), f"{describe(section.get(key))} is not valid; {exc}")
             return 0
+        except OverflowError:  # the schema bounds every quantity far below; this keeps a traceback out regardless
+            amount = MAX_QUANTITY + 1
         if amount > MAX_QUANTITY:
             problem(
                 (section_name, key),

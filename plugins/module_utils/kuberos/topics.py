@@ -27,6 +27,7 @@ against it. Both are pure: the probe (``kuberos_deploy/ros_graph_probe.py``) onl
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from .naming import robot_ros_name
@@ -294,8 +295,8 @@ class Expectation:
             raise ValueError(f"{str(data)[:80]!r} is not a topic expectation; expected a mapping with name and type")
         rate = {k: data.get(k) for k in ("rate_min", "rate_max")}
         for key, value in rate.items():
-            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
-                raise ValueError(f"{data['name']}: {key} {value!r} is not a number")
+            if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)):
+                raise ValueError(f"{data['name']}: {key} {value!r} is not a finite number")
         names = {k: data.get(k) or [] for k in ("publishers", "subscribers", "rate_by")}
         if not all(isinstance(v, list) and all(isinstance(x, str) for x in v) for v in names.values()):
             raise ValueError(f"{data['name']}: publishers, subscribers and rate_by must be lists of module names")

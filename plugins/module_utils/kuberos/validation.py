@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import datetime
 import functools
+import math
 import re
 import shlex
 
+from . import quantities
 from .errors import Problem, describe, did_you_mean
 from .third_party import jsonschema, require
 from .yaml_source import Document, format_path
@@ -34,10 +36,41 @@ def _pattern(validator, pattern, instance, schema):
         yield jsonschema.ValidationError(f"{instance!r} does not match {pattern!r}")
 
 
+def _finite_number(checker, instance) -> bool:
+    """JSON's numbers: NaN and the infinities (YAML's ``.nan``, ``.inf``) are none; Python's float takes them."""
+    return jsonschema.Draft202012Validator.TYPE_CHECKER.is_type(instance, "number") and (
+        not isinstance(instance, float) or math.isfinite(instance)
+    )
+
+
+_QUANTITIES = {"latency": quantities.parse_latency_ms, "cpu": quantities.parse_cpu, "memory": quantities.parse_memory}
+
+
+def _maximum_quantity(validator, bound, instance, schema):
+    """``x-maximum``: a quantity (a number or text such as '30 s', '500m', '2Gi') at most ``bound['value']`` in the
+    unit ``quantities`` parses it to. Text the pattern refuses is left to the pattern; 400 digits are too large (as
+    text they parse to infinity, as a number they overflow the float)."""
+    try:
+        amount = _QUANTITIES[bound["quantity"]](instance)
+    except OverflowError:
+        amount = math.inf
+    except ValueError:
+        return
+    if not amount <= bound["value"]:
+        yield jsonschema.ValidationError(f"{instance!r} is more than {bound['shown']}")
+
+
 def strict_validator(schema: dict) -> jsonschema.protocols.Validator:
-    """A Draft 2020-12 validator of ``schema`` whose patterns end where the text ends (see ``_anchored``)."""
+    """A Draft 2020-12 validator of ``schema`` whose patterns end where the text ends (see ``_anchored``), whose
+    numbers are finite (``_finite_number``) and whose quantities are bounded also when written as text
+    (``x-maximum``)."""
     require("jsonschema")
-    cls = jsonschema.validators.extend(jsonschema.Draft202012Validator, {"pattern": _pattern})
+    base = jsonschema.Draft202012Validator
+    cls = jsonschema.validators.extend(
+        base,
+        {"pattern": _pattern, "x-maximum": _maximum_quantity},
+        type_checker=base.TYPE_CHECKER.redefine("number", _finite_number),
+    )
     return cls(schema)
 
 
@@ -80,7 +113,23 @@ def _problems_of(error: jsonschema.ValidationError, doc: Document) -> list[Probl
         return [problem(doc, parts, f"missing required field '{missing}'")]
     if error.validator == "uniqueItems":
         return [problem(doc, parts, f"has repeated entries; expected {expected}")]
+    if isinstance(value, float) and not math.isfinite(value):
+        return [problem(doc, parts, f"{describe(value)} is not valid: not a finite number; expected {expected}")]
+    bound = _bound(error.validator, schema)
+    if bound:
+        return [problem(doc, parts, f"{describe(value)} is not valid: it must be {bound}; expected {expected}")]
     return [problem(doc, parts, f"{describe(value)} is not valid; expected {expected or error.message}")]
+
+
+def _bound(keyword: str, schema: dict) -> str:
+    """The upper bound a value broke (``at most 232``, ``below 100``, ``at most 86400 s``), or ''."""
+    if keyword in ("maximum", "x-maximum") and "x-maximum" in schema:
+        return f"at most {schema['x-maximum']['shown']}"
+    if keyword == "maximum":
+        return f"at most {schema['maximum']}"
+    if keyword == "exclusiveMaximum":
+        return f"below {schema['exclusiveMaximum']}"
+    return ""
 
 
 def schema_problems(validator: jsonschema.protocols.Validator, doc: Document) -> list[Problem]:
@@ -91,7 +140,7 @@ def schema_problems(validator: jsonschema.protocols.Validator, doc: Document) ->
     for error in errors:
         for found in _problems_of(error, doc):
             # A value that is both of the wrong type and fails a pattern is reported once.
-            if found.path in seen and error.validator in ("pattern", "minimum", "type"):
+            if found.path in seen and error.validator in ("pattern", "minimum", "type", "maximum", "x-maximum"):
                 continue
             if (found.path, found.message) not in seen:
                 problems.append(found)

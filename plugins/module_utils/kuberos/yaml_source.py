@@ -22,6 +22,7 @@ MAX_NODES = 100_000  # nodes of one document, each alias counted again as the no
 MAX_FILE_NODES = 50_000  # nodes (keys included) written in one file: bounds the work before a refusal
 MAX_DEPTH = 64
 MAX_DOCUMENTS = 200
+MAX_INTEGER_DIGITS = 1000  # Python reads no longer decimal integer (4300 digits); every field's bound is far below
 # Refused anywhere in a file and in any value (also when written as an escape such as "\\x00"): the C0 controls but
 # tab, line feed and carriage return; DEL; the C1 controls (YAML reads U+0085 as a line break); the Unicode line
 # and paragraph separators (line breaks to YAML, not to most editors); and the bidirectional controls, which make
@@ -104,6 +105,7 @@ class _Walker:
         self.lines.setdefault(path, node.start_mark.line + 1)
         if isinstance(node, yaml.ScalarNode):
             self._check_characters(node, path)
+            _check_integer(node, path)
         if isinstance(node, yaml.MappingNode):
             seen = {}
             for key_node, value_node in node.value:
@@ -123,6 +125,8 @@ class _Walker:
                 seen[key] = key_node.start_mark.line + 1
                 # A field's line is where its key is written, even when its value starts below.
                 self.lines.setdefault((*path, str(key)), key_node.start_mark.line + 1)
+                if isinstance(key_node, yaml.ScalarNode):
+                    _check_integer(key_node, (*path, str(key)[:40]))
                 if self.loader is not None and isinstance(key_node, yaml.ScalarNode) and key_node.tag in _TYPED_KEY_TAGS:
                     # A key YAML reads as another type (yes -> True, ~ -> None) is named by its value in messages.
                     constructed = str(self.loader.construct_object(key_node))
@@ -139,6 +143,13 @@ class _Walker:
             self.escapes += 1
             reason = control_character_reason(found.group(), " (written as an escape)")
             self.problems.append(Problem(self.source, format_path(path), f"{reason}", node.start_mark.line + 1))
+
+
+def _check_integer(node, path) -> None:
+    """Refuse an integer longer than Python reads (``int()`` raises past 4300 decimal digits) at its field."""
+    if node.tag == "tag:yaml.org,2002:int" and len(node.value) > MAX_INTEGER_DIGITS:
+        message = f"an integer of {len(node.value)} characters; expected at most {MAX_INTEGER_DIGITS} digits"
+        raise _TooLarge(message, format_path(path), node.start_mark.line + 1)
 
 
 class _TooLarge(Exception):
