@@ -38,7 +38,7 @@ from .schema import DEVELOPER
 from .yaml_source import character_name
 
 LABEL = "kuberos.io/reservation"
-_DURATION = re.compile(r"\s*(\d+(?:\.\d+)?)\s*(m|min|h|d)\s*\Z")  # fullmatch: nothing after but blanks
+_DURATION = re.compile(r"\s*([0-9]+(?:\.[0-9]+)?)\s*(m|min|h|d)\s*\Z")  # nothing after but blanks (\Z, not $)
 _UNITS = {"m": 60, "min": 60, "h": 3600, "d": 86400}
 MAX_HOLD = datetime.timedelta(days=90)
 MAX_TIME_TEXT = 64  # an RFC 3339 time with nanoseconds and a zone is 35 characters
