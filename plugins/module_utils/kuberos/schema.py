@@ -14,19 +14,27 @@ STRATEGIES = ("dedicated", "shared")
 MAX_MODULES = 100  # modules of one RosDeployment
 MAX_MODULES_PER_FILE = 1000  # modules of all documents of one file: bounds the time a refusal takes
 
-DNS_LABEL = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?$"
-DNS_SUBDOMAIN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*$"
+# The end of the text, read alike by both dialects that read these patterns. JSON Schema's (ECMA-262, the editors that
+# read docs/rosdeployment.schema.json) '$' is the end, but Python's (jsonschema, and code that matches these constants
+# with re) is also the place before a final line feed, so that 'alice\n' would pass '^[a-z]+$'; '(?!\n)' refuses that
+# place. Python's '\Z' is not ECMA-262 (a literal 'Z' there, or an error), so the published schema cannot use it.
+# Quantities allow blanks around them ('200 ms '), spaces and tabs only: a line break is not a blank here.
+END = r"$(?!\n)"
+DNS_LABEL = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?" + END
+DNS_SUBDOMAIN = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*" + END
 # Fleet, robot and device names as the inventory writes them (docs/inventory.md).
-INVENTORY_NAME = r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?$"
-ARCH_NAME = r"^[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?$"
-ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*$"
-LABEL_KEY = r"^([a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*/)?[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?$"
-LABEL_VALUE = r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?$"
-LATENCY = r"^\s*[0-9]+(\.[0-9]+)?\s*(ms|s)?\s*$"
-CPU = r"^\s*[0-9]+(\.[0-9]+)?\s*m?\s*$"
-MEMORY = r"^\s*[0-9]+(\.[0-9]+)?\s*(Ki|Mi|Gi|Ti|k|K|M|G|T)?\s*$"
-ROS_TOPIC = r"^/[A-Za-z0-9_~{}]+(/[A-Za-z0-9_{}]+)*$"
-ROS_TYPE = r"^[A-Za-z][A-Za-z0-9_]*/msg/[A-Z][A-Za-z0-9]*$"
+INVENTORY_NAME = r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?" + END
+ARCH_NAME = r"^[A-Za-z0-9]([-A-Za-z0-9_.]*[A-Za-z0-9])?" + END
+ENV_NAME = r"^[A-Za-z_][A-Za-z0-9_]*" + END
+LABEL_KEY = (
+    r"^([a-z0-9]([-a-z0-9]*[a-z0-9])?(\.[a-z0-9]([-a-z0-9]*[a-z0-9])?)*/)?[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?" + END
+)
+LABEL_VALUE = r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?" + END
+LATENCY = r"^[ \t]*[0-9]+(\.[0-9]+)?[ \t]*(ms|s)?[ \t]*" + END
+CPU = r"^[ \t]*[0-9]+(\.[0-9]+)?[ \t]*m?[ \t]*" + END
+MEMORY = r"^[ \t]*[0-9]+(\.[0-9]+)?[ \t]*(Ki|Mi|Gi|Ti|k|K|M|G|T)?[ \t]*" + END
+ROS_TOPIC = r"^/[A-Za-z0-9_~{}]+(/[A-Za-z0-9_{}]+)*" + END
+ROS_TYPE = r"^[A-Za-z][A-Za-z0-9_]*/msg/[A-Z][A-Za-z0-9]*" + END
 DIRECTIONS = ("to_module", "from_module")
 UPGRADES = ("surge", "recreate")
 RMWS = ("fastdds", "cyclonedds")
@@ -34,13 +42,13 @@ MAP_TYPES = ("key-value", "yaml")
 PULL_POLICIES = ("Always", "IfNotPresent", "Never")
 # A parameter map, registry or resource group name: lowercase letters, digits, '-', '_' and '.' (the reference
 # format's names, e.g. 'publisher-param.yaml'); ConfigMap names are derived from it (naming.parameter_map_name).
-MAP_NAME = r"^[a-z0-9]([-a-z0-9_.]*[a-z0-9])?$"
+MAP_NAME = r"^[a-z0-9]([-a-z0-9_.]*[a-z0-9])?" + END
 # A launch argument's name: what `name:=value` sets in `ros2 launch`.
-LAUNCH_ARGUMENT = r"^[A-Za-z_][A-Za-z0-9_.-]*$"
-ABSOLUTE_PATH = r"^/[^\x00]*$"
+LAUNCH_ARGUMENT = r"^[A-Za-z_][A-Za-z0-9_.-]*" + END
+ABSOLUTE_PATH = r"^/[^\x00-\x1f\x7f]*" + END  # no control character, no line break
 # A catalog module: its name, then optionally '@' and a version range (docs/software.md).
-DEVELOPER = r"^[A-Za-z0-9]([-A-Za-z0-9_.@]*[A-Za-z0-9])?$"  # who holds robots of the pool: 'alice', 'alice@example.com'
-MODULE_REF = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(@.*\S.*)?$"
+DEVELOPER = r"^[A-Za-z0-9]([-A-Za-z0-9_.@]*[A-Za-z0-9])?" + END  # who holds robots of the pool: 'alice', 'alice@example.com'
+MODULE_REF = r"^[a-z0-9]([-a-z0-9]*[a-z0-9])?(@.*\S.*)?" + END
 
 _ONE_OR_MORE_STRINGS = {
     "anyOf": [
@@ -49,7 +57,7 @@ _ONE_OR_MORE_STRINGS = {
     ]
 }
 # A Prometheus metric name (the module's own load signal), or "cpu".
-METRIC_NAME = r"^[a-zA-Z_:][a-zA-Z0-9_:]*$"
+METRIC_NAME = r"^[a-zA-Z_:][a-zA-Z0-9_:]*" + END
 
 
 def at_most(quantity: str, value: int, shown: str) -> dict:
@@ -151,7 +159,7 @@ _TIER = {"type": "string", "enum": list(TIERS), "x-expected": "one of onboard, e
 IMAGE = {
     "type": "string",
     "minLength": 1,
-    "pattern": r"^\S+$",
+    "pattern": r"^\S+" + END,
     "description": "Container image of the module.",
     "x-expected": "a container image reference without spaces, such as 'registry/planner:1.0'",
 }
@@ -333,7 +341,7 @@ UPGRADE = {
 
 # A declared topic's name: relative (in the robot's namespace: 'detections' is /fetch_1/detections) or absolute, where
 # a whole '{robot}' segment stands for the robot ('/{robot}/detections' is the same topic as 'detections').
-DECLARED_TOPIC = r"^/?(\{robot\}|[A-Za-z_][A-Za-z0-9_]*)(/(\{robot\}|[A-Za-z_][A-Za-z0-9_]*))*$"
+DECLARED_TOPIC = r"^/?(\{robot\}|[A-Za-z_][A-Za-z0-9_]*)(/(\{robot\}|[A-Za-z_][A-Za-z0-9_]*))*" + END
 RELIABILITIES = ("reliable", "best_effort")
 DURABILITIES = ("volatile", "transient_local")
 LIVELINESSES = ("automatic", "manual_by_topic")

@@ -235,7 +235,7 @@ def _problem(doc: Document, parts: tuple, message: str) -> Problem:
     return problem(doc, parts, message)
 
 
-_LAST_FIELD = re.compile(r"(\.[^.\[]*|\[\d+\])$")  # metadata.robotSelector.robot[0] -> metadata.robotSelector.robot
+_LAST_FIELD = re.compile(r"(\.[^.\[]*|\[\d+\])\Z")  # metadata.robotSelector.robot[0] -> metadata.robotSelector.robot
 
 
 def _env_value(value) -> str:

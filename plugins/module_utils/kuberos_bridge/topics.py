@@ -33,8 +33,8 @@ MAX_TOPICS = 1000
 MAX_FILE_BYTES = 1 << 20
 
 _TOKEN = r"[A-Za-z_][A-Za-z0-9_]*"
-TOPIC_RE = re.compile(rf"^(/{_TOKEN})+$")
-TYPE_RE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(?:msg/)?([A-Za-z][A-Za-z0-9_]*)$")
+TOPIC_RE = re.compile(rf"^(/{_TOKEN})+\Z")
+TYPE_RE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(?:msg/)?([A-Za-z][A-Za-z0-9_]*)\Z")
 FIELDS = ("name", "type", "direction", "depth")
 
 

@@ -49,7 +49,7 @@ VXLAN_OVERHEAD = 50  # outer IPv4 + UDP + VXLAN headers and the inner Ethernet h
 BLOCK_SIZE_RANGE = (20, 32)
 AUTODETECTION_VALUES = ("first-found", "kubernetes-internal-ip")
 AUTODETECTION_PREFIXES = ("can-reach=", "interface=", "skip-interface=", "cidr=")
-_IMAGE = re.compile(r"^(?:[^/]+/)*calico/(?P<name>[a-z-]+):(?P<tag>[^@\s]+)(?:@sha256:[0-9a-f]{64})?$")
+_IMAGE = re.compile(r"^(?:[^/]+/)*calico/(?P<name>[a-z-]+):(?P<tag>[^@\s]+)(?:@sha256:[0-9a-f]{64})?\Z")
 
 
 @dataclass(frozen=True)

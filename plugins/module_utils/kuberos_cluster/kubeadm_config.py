@@ -42,24 +42,24 @@ JOIN_CONTROL_PLANE = "join-control-plane"
 JOIN_WORKER = "join-worker"
 
 SOURCE = "inventory"
-_VERSION = re.compile(r"^v(0|[1-9]\d*)\.(0|[1-9]\d*)\.(0|[1-9]\d*)(-[0-9A-Za-z.-]+)?(\+[0-9A-Za-z.-]+)?$")
+_VERSION = re.compile(r"^v(0|[1-9]\d*)\.(0|[1-9]\d*)\.(0|[1-9]\d*)(-[0-9A-Za-z.-]+)?(\+[0-9A-Za-z.-]+)?\Z")
 _DNS_LABEL = r"[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?"
-_DNS_NAME = re.compile(rf"^{_DNS_LABEL}(\.{_DNS_LABEL})*$")
+_DNS_NAME = re.compile(rf"^{_DNS_LABEL}(\.{_DNS_LABEL})*\Z")
 # A registry path kubeadm prefixes to its images: host[:port] then path segments, e.g. mirror.site.example:5000/k8s.
-_IMAGE_REPOSITORY = re.compile(r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?(:[0-9]{1,5})?(/[a-z0-9]+([._-][a-z0-9]+)*)*$")
-_IMAGE_TAG = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}$")
+_IMAGE_REPOSITORY = re.compile(r"^[a-z0-9]([-a-z0-9.]*[a-z0-9])?(:[0-9]{1,5})?(/[a-z0-9]+([._-][a-z0-9]+)*)*\Z")
+_IMAGE_TAG = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}\Z")
 CGROUP_DRIVERS = ("systemd", "cgroupfs")
 # The kubelet's eviction signals (evictionHard keys) and a threshold: a quantity such as 500Mi, or a share such as 5%.
 EVICTION_SIGNALS = (
     "memory.available", "nodefs.available", "nodefs.inodesFree", "imagefs.available", "imagefs.inodesFree",
     "containerfs.available", "containerfs.inodesFree", "pid.available",
 )  # fmt: skip
-_EVICTION_THRESHOLD = re.compile(r"^(\d+(\.\d+)?%|\d+(\.\d+)?([KMGTPE]i?|[kmMGTPE])?)$")
+_EVICTION_THRESHOLD = re.compile(r"^(\d+(\.\d+)?%|\d+(\.\d+)?([KMGTPE]i?|[kmMGTPE])?)\Z")
 _TOKEN = re.compile(r"--token[= ]+([a-z0-9]{6}\.[a-z0-9]{16})(?=\s|$)")
 _CA_HASH = re.compile(r"--discovery-token-ca-cert-hash[= ]+(sha256:[a-f0-9]{64})(?=\s|$)")
 _CERT_KEY = re.compile(r"^\s*([a-f0-9]{64})\s*$", re.M)
-_LABEL_NAME = re.compile(r"^[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?$")
-_LABEL_VALUE = re.compile(r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?$")
+_LABEL_NAME = re.compile(r"^[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?\Z")
+_LABEL_VALUE = re.compile(r"^([A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?)?\Z")
 # Kubernetes refuses (kubelet --node-labels and the NodeRestriction admission plugin) labels a kubelet sets on its
 # own Node under these namespaces, except the few below (k8s.io/kubelet/pkg/apis/well_known_labels.go).
 _RESTRICTED_NAMESPACES = ("kubernetes.io", "k8s.io")
@@ -138,7 +138,7 @@ def split_endpoint(value) -> tuple[str, int]:
     """``host:port`` (``[v6]:port`` for IPv6) into its parts; ValueError with the reason."""
     if not isinstance(value, str) or not value:
         raise ValueError("expected host:port, e.g. 10.0.0.10:6443 or k8s.site.example:6443")
-    match = re.match(r"^\[([0-9A-Fa-f:.]+)\]:(\d+)$", value) or re.match(r"^([^:\[\]]+):(\d+)$", value)
+    match = re.match(r"^\[([0-9A-Fa-f:.]+)\]:(\d+)\Z", value) or re.match(r"^([^:\[\]]+):(\d+)\Z", value)
     if not match:
         raise ValueError("expected host:port, e.g. 10.0.0.10:6443 or k8s.site.example:6443 ([v6]:port for IPv6)")
     host, port = match.group(1), int(match.group(2))

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import Problem, SpecError, did_you_mean
 
 SOURCE = "wireguard"
-INTERFACE_NAME = re.compile(r"^[A-Za-z0-9_=+.-]{1,15}$")
-PUBLIC_KEY = re.compile(r"^[A-Za-z0-9+/]{42}[AEIMQUYcgkosw048]=$")  # 32 bytes, base64
+INTERFACE_NAME = re.compile(r"^[A-Za-z0-9_=+.-]{1,15}\Z")
+PUBLIC_KEY = re.compile(r"^[A-Za-z0-9+/]{42}[AEIMQUYcgkosw048]=\Z")  # 32 bytes, base64
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.topics im
 UNNAMED = "_NODE_NAME_UNKNOWN_"  # what rmw reports for an endpoint whose node's name it has not heard yet
 MAX_TOPICS_TEXT = 1 << 20  # KUBEROS_TOPICS or --topics-file: at most 1 MiB of JSON
 
-_ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+_ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+\Z")
 
 
 def expected_nodes(patterns: list[str], robots: list[str]) -> list[str]:
