@@ -163,10 +163,22 @@ def _parse_number(value, parser, source, host, var, problems, default=None):
             return 0
         value = default
     try:
-        return parser(value)
+        return _quantity(parser, value)
     except ValueError as exc:
         problems.append(_host_problem(source, host, var, f"{describe(value)} is not valid; {exc}"))
         return 0
+
+
+def _quantity(parser, value):
+    """``parser(value)``, a finite amount: ``ValueError`` saying what is expected also for a number beyond a float's
+    range (400 digits, which the parser reads as infinity or cannot convert)."""
+    try:
+        amount = parser(value)
+    except OverflowError:
+        amount = math.inf
+    if isinstance(amount, float) and not math.isfinite(amount):
+        raise ValueError(_EXPECTED[parser])
+    return amount
 
 
 _EXPECTED = {
@@ -312,7 +324,7 @@ def _latency_defaults(raw: dict, source: str, problems: list[Problem]) -> dict[s
             )
             continue
         try:
-            defaults[tier] = quantities.parse_latency_ms(value)
+            defaults[tier] = _quantity(quantities.parse_latency_ms, value)
         except ValueError as exc:
             problems.append(Problem(source, f"kuberos_default_latency_ms.{tier}", f"{describe(value)} is not valid; {exc}"))
     return defaults
@@ -474,7 +486,7 @@ class _Loader:
                     self.problem(host, var, f"is not a host or node in the inventory{did_you_mean(target, known)}")
                     continue
                 try:
-                    overrides.append((node_name, quantities.parse_latency_ms(value)))
+                    overrides.append((node_name, _quantity(quantities.parse_latency_ms, value)))
                 except ValueError as exc:
                     self.problem(host, var, f"{describe(value)} is not valid; {exc}")
             resolved[name] = Robot(robot.name, robot.fleet, robot.node, tuple(overrides))
@@ -521,8 +533,16 @@ def _clusters(raw, hosts, source, defaults, known_fleets, node_names, problems) 
         problems.append(Problem(source, f"groups.{CLUSTERS_GROUP}", f"{describe(names)} is not valid; expected a list of names"))
         return {}
     clusters = {}
-    for host in names:
+    for index, host in enumerate(names):
+        if not isinstance(host, str) or not host:
+            problems.append(
+                Problem(source, f"groups.{CLUSTERS_GROUP}[{index}]", f"{describe(host)} is not valid; expected a host name")
+            )
+            continue
         hv = hosts.get(host) or {}
+        if not isinstance(hv, dict):
+            problems.append(_host_problem(source, host, "", f"{describe(hv)} is not valid; expected a mapping of variables"))
+            continue
         name = _name(host, source, host, "", problems, "cluster name")
         if name in node_names:
             problems.append(_host_problem(source, host, "", "is also a node; expected a cluster name that is not a node"))

@@ -1,0 +1,70 @@
+"""What the fuzzing tier found, each as the smallest input that showed it: a row per finding, which failed (a
+traceback) before its fix and is now a located refusal. The tier's own draws may move on; these stay."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+from fuzz_bounds import run_case
+from test_fuzz_inventory import PARTNER, SOURCE, inventory_located
+
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+
+ROBOT = {"kuberos_fleet": "f", "kuberos_cpu": 4, "kuberos_memory": "8Gi"}
+
+
+def _inventory(hosts=None, groups=None, **extra) -> dict:
+    raw = {"hosts": {"r1": dict(ROBOT), "partner": {**PARTNER, "kuberos_fleets": ["f"]}, **(hosts or {})},
+           "groups": {"robots": ["r1"], "clusters": ["partner"], **(groups or {})}, **extra}  # fmt: skip
+    return copy.deepcopy(raw)
+
+
+# (inventory, the refusal's problem: its path and a fragment of its reason)
+INVENTORY_FINDINGS = [
+    pytest.param(
+        _inventory(default_latency_ms={"edge": 10**400}),
+        "kuberos_default_latency_ms.edge",
+        "is not valid; expected a latency",
+        id="a-400-digit-default-latency-OverflowError",
+    ),
+    pytest.param(
+        _inventory(
+            hosts={
+                "r1": {**ROBOT, "kuberos_link_latency_ms": {"e1": 10**400}},
+                "e1": {"kuberos_cpu": 4, "kuberos_memory": "8Gi"},
+            },
+            groups={"edge": ["e1"]},
+        ),
+        "hosts.r1.kuberos_link_latency_ms.e1",
+        "is not valid; expected a latency",
+        id="a-400-digit-link-latency-OverflowError",
+    ),
+    pytest.param(
+        _inventory(hosts={"r1": {**ROBOT, "kuberos_cpu": "9" * 400}}),
+        "hosts.r1.kuberos_cpu",
+        "is not valid; expected a CPU quantity",
+        id="a-400-digit-cpu-text-OverflowError",
+    ),
+    pytest.param(
+        _inventory(groups={"clusters": ["partner", ["x"]]}),
+        "groups.clusters[1]",
+        "is not valid; expected a host name",
+        id="a-list-as-a-cluster-name-TypeError",
+    ),
+    pytest.param(
+        _inventory(hosts={"partner": "x"}),
+        "hosts.partner",
+        "is not valid; expected a mapping of variables",
+        id="a-clusters-variables-as-text-AttributeError",
+    ),
+]
+
+
+@pytest.mark.parametrize(("raw", "path", "reason"), INVENTORY_FINDINGS)
+def test_inventory_findings_are_located_refusals(raw, path, reason):
+    outcome = run_case("findings", lambda: load_inventory(raw, SOURCE), SpecError, inventory_located, raw)
+    assert isinstance(outcome.error, SpecError), outcome.value
+    problems = [p for p in outcome.error.problems if p.path == path]
+    assert problems and reason in problems[0].message, str(outcome.error)
