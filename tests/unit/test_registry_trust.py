@@ -208,3 +208,16 @@ def test_the_metrics_api_that_trickles_ends_at_its_timeout(tmp_path):
         with pytest.raises(ReadBoundExceeded, match=r"the API server gave no complete answer within 1 s"):
             own.pod_metrics("fleet", timeout=1)
         assert time.monotonic() - started < 3.5
+
+
+def test_the_controllers_metrics_reads_have_a_deadline_and_a_cap(tmp_path):
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller import signals
+
+    with HostileRegistry(str(tmp_path), plain=True) as server:
+        server.routes = {"/slow": trickle(0.2, 20), "/big": huge(64 * 1024 * 1024)}
+        started = time.monotonic()
+        with pytest.raises(OSError, match=r"127.0.0.1:\d+ gave no complete answer within 1 s"):
+            signals._get(server.url(path="/slow"), 1.0)
+        assert time.monotonic() - started < 3
+        with pytest.raises(OSError, match=r"answered with more than 4 MiB"):
+            signals._get(server.url(path="/big"), 10.0)

@@ -22,9 +22,15 @@ import urllib.parse
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.scaling import gauge_value
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube, clients_of, status_of
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.bounded import (
+    Deadline,
+    ReadBoundExceeded,
+    read_capped,
+)
 
 log = logging.getLogger("kuberos.controller.signals")
 TIMEOUT_S = 2.0
+MAX_ANSWER = 4 * 1024 * 1024  # a pod's /metrics page or a Prometheus answer
 _CPU_USAGE = re.compile(r"^([0-9.]+)(n|u|m|)\Z")
 
 
@@ -38,23 +44,32 @@ def cpu_millis(usage: str) -> float:
 
 
 def _get(url: str, timeout: float) -> bytes:
-    """GET over plain HTTP (a pod's /metrics, a Prometheus query); at most 4 MiB; OSError unless 200."""
+    """GET over plain HTTP (a pod's /metrics, a Prometheus query): at most ``MAX_ANSWER`` bytes within ``timeout``
+    seconds in all (however slowly it trickles); OSError unless 200, or when a bound is exceeded (naming it)."""
     parts = urllib.parse.urlsplit(url)
     if parts.scheme not in ("http", "https"):
         raise ValueError(f"not an http(s) URL: {url}")
     connection_class = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
-    connection = connection_class(parts.hostname, parts.port, timeout=timeout)
-    try:
-        connection.request("GET", parts.path + (f"?{parts.query}" if parts.query else ""))
-        response = connection.getresponse()
-        body = response.read(4 * 1024 * 1024)
-        if response.status != 200:
-            raise OSError(f"{url}: HTTP {response.status}")
-        return body
-    except http.client.HTTPException as exc:
-        raise OSError(f"{url}: {exc}") from exc
-    finally:
-        connection.close()
+    where = f"{parts.hostname}:{parts.port}" if parts.port else str(parts.hostname)
+    with Deadline(where, timeout) as deadline:
+        connection = connection_class(parts.hostname, parts.port, timeout=timeout)
+        try:
+            connection.connect()
+            deadline.watch(connection.sock)
+            connection.request("GET", parts.path + (f"?{parts.query}" if parts.query else ""))
+            response = connection.getresponse()
+            body = read_capped(response, where, MAX_ANSWER, deadline)
+            if response.status != 200:
+                raise OSError(f"{url}: HTTP {response.status}")
+            return body
+        except ReadBoundExceeded as exc:
+            raise OSError(str(exc)) from None
+        except (http.client.HTTPException, OSError) as exc:
+            if deadline.expired:
+                raise OSError(str(deadline.error())) from None
+            raise OSError(f"{url}: {exc}") from exc
+        finally:
+            connection.close()
 
 
 class Signals:
