@@ -44,7 +44,7 @@ options:
     type: dict
     required: true
   canary:
-    description: How many robots form the canary wave (the first robots of the fleet with a change).
+    description: How many robots form the canary wave (the first robots of the fleet with a change); 0 to 10000.
     type: int
     default: 1
   canary_robots:
@@ -53,15 +53,15 @@ options:
     elements: str
     default: []
   wave_size:
-    description: Robots per wave after the canary.
+    description: Robots per wave after the canary; 1 to 10000.
     type: int
     default: 10
   soak:
-    description: Seconds each wave's new pods must stay Ready without a restart.
+    description: Seconds each wave's new pods must stay Ready without a restart; 0 to 3600.
     type: float
     default: 5
   gate_timeout:
-    description: Seconds a wave's pods have to be Running and Ready on their placed nodes.
+    description: Seconds a wave's pods have to be Running and Ready on their placed nodes; above 0, at most 3600.
     type: float
     default: 120
   ros_probe:
@@ -84,7 +84,9 @@ options:
     elements: str
     default: []
   update_lock_wait:
-    description: Seconds the O(update_lock) command may wait for the robots' locks (it is given no more than this + 30 s).
+    description:
+      - Seconds the O(update_lock) command may wait for the robots' locks (it is given no more than this + 30 s); above 0,
+        at most 3600.
     type: float
     default: 120
   prestage:
@@ -95,11 +97,13 @@ options:
     type: bool
     default: true
   prestage_timeout:
-    description: Seconds the pre-pulls may take in all; robots still pulling then are reported and the waves go on.
+    description:
+      - Seconds the pre-pulls may take in all; robots still pulling then are reported and the waves go on. Above 0, at
+        most 86400.
     type: float
     default: 600
   prestage_parallel:
-    description: Robots pulling at the same time.
+    description: Robots pulling at the same time; 1 to 1000.
     type: int
     default: 10
 attributes:
@@ -202,6 +206,7 @@ rolled_back_robots:
 from ansible.module_utils.basic import AnsibleModule
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.rollout import option_problem
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.python_packages import require_packages
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.render_args import RENDER_ARGS
@@ -290,12 +295,9 @@ def main():
         supports_check_mode=True,
     )
     require_packages(module)
-    if module.params["canary"] < 0 or module.params["wave_size"] < 1:
-        module.fail_json(msg="canary must be 0 or more and wave_size 1 or more")
-    if module.params["prestage_timeout"] <= 0 or module.params["prestage_parallel"] < 1:
-        module.fail_json(msg="prestage_timeout must be above 0 and prestage_parallel 1 or more")
-    if not 0 < module.params["update_lock_wait"] <= 3600:
-        module.fail_json(msg="update_lock_wait must be above 0 and at most 3600 seconds")
+    why = option_problem(module.params)
+    if why:
+        module.fail_json(msg=why)
     progress = []
     try:
         result = execute(api_clients(module.params["kubeconfig"]), module.params, module.check_mode, progress.append)

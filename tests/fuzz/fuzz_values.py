@@ -24,7 +24,7 @@ HOSTILE = [
     "40 ms", "1 h", "-5 ms", "inf ms", "nan ms", "1e400 ms", "100 Mbit", "5 %", "101%", "-1%",
     "é" * 100, "a" * 70_000, "a" * 2_000_000, "$(reboot)", "../../etc", "{{ lookup('pipe', 'id') }}",
     [], {}, [None], ["x\n"], [1, 2], ["a", "a"], [[]], {"": 1}, {1: 2}, {None: 1}, {"a\n": 1}, {"k": float("nan")},
-    ("a", "b"), {"a", "b"}, b"bytes", NESTED, _deep(2000),
+    ("a", "b"), {"a", "b"}, b"bytes", NESTED, _deep(500),
 ]  # fmt: skip
 
 hostile_value = st.one_of(
@@ -35,3 +35,9 @@ hostile_value = st.one_of(
     st.lists(st.text(max_size=8), max_size=4),
     st.dictionaries(st.text(max_size=8), st.one_of(st.none(), st.integers(), st.floats(), st.text(max_size=8)), max_size=3),
 )
+
+
+def mostly(valid, hostile):
+    """``valid`` two times in three, else ``hostile``: with several options drawn, a case where all are valid (and the
+    surface goes on to do its work) stays common."""
+    return st.sampled_from([True, True, False]).flatmap(lambda ok: valid if ok else hostile)

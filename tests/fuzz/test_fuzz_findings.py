@@ -4,9 +4,14 @@ traceback) before its fix and is now a located refusal. The tier's own draws may
 from __future__ import annotations
 
 import copy
+import json
+import os
+import subprocess
+import sys
 
 import pytest
 from fuzz_bounds import run_case
+from helpers import ROOT
 from test_fuzz_inventory import PARTNER, SOURCE, inventory_located
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
@@ -68,3 +73,38 @@ def test_inventory_findings_are_located_refusals(raw, path, reason):
     assert isinstance(outcome.error, SpecError), outcome.value
     problems = [p for p in outcome.error.problems if p.path == path]
     assert problems and reason in problems[0].message, str(outcome.error)
+
+
+# -- the rollout's options: a soak or gate of .inf (or NaN) was taken, and a wave would never end ------------------
+
+
+def _module_message(module: str, args: dict, tmp_path) -> str:
+    """The message ``module`` fails with for ``args``, run as Ansible runs it (its arguments in a file)."""
+    path = tmp_path / "args.json"
+    path.write_text(json.dumps({"ANSIBLE_MODULE_ARGS": args}), encoding="utf-8")
+    env = {**os.environ, "PYTHONPATH": os.path.join(ROOT, ".collections")}
+    done = subprocess.run(
+        [sys.executable, "-m", f"ansible_collections.kuberos.platform.plugins.modules.{module}", str(path)],
+        capture_output=True, text=True, env=env, timeout=60, check=False,
+    )  # fmt: skip
+    return json.loads(done.stdout)["msg"]
+
+
+ROLLOUT_ARGS = {"src": "spec.yml", "inventory": {}, "kubeconfig": "/nonexistent/kubeconfig"}
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        pytest.param("soak", "inf", "soak must be 0 or more and at most 3600 seconds; got inf", id="soak-inf"),
+        pytest.param("gate_timeout", "nan", "gate_timeout must be above 0 and at most 3600 seconds; got nan", id="gate-nan"),
+        pytest.param(
+            "prestage_timeout", "1e400", "prestage_timeout must be above 0 and at most 86400 seconds; got inf", id="prestage-inf"
+        ),
+        pytest.param(
+            "update_lock_wait", "nan", "update_lock_wait must be above 0 and at most 3600 seconds; got nan", id="lock-nan"
+        ),
+    ],
+)
+def test_the_rollouts_unbounded_options_are_refused_by_name(option, value, message, tmp_path):
+    assert _module_message("rosdeployment_rollout", {**ROLLOUT_ARGS, option: value}, tmp_path) == message

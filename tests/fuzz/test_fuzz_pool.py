@@ -9,7 +9,7 @@ from __future__ import annotations
 import datetime
 
 from fuzz_bounds import fuzz_settings, run_case
-from fuzz_values import hostile_value
+from fuzz_values import hostile_value, mostly
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -46,11 +46,6 @@ durations = st.one_of(
     ).map("".join),
     st.sampled_from(["90d", "2160h", "129600m", "129601m", "100000000d", "8h", "0m", "-1h", "1.5h", "nan h", "inf d"]),
 )
-
-
-def mostly(valid, hostile):
-    """``valid`` two times in three: a case with every option valid is common enough to reach the writes."""
-    return st.sampled_from([True, True, False]).flatmap(lambda ok: valid if ok else hostile)
 
 
 until_options = mostly(

@@ -31,6 +31,40 @@ ROLLOUT_KEYS = ("apiVersion", "kind", "metadata", "spec", "data", "binaryData", 
 FAILING_REASONS = ("CrashLoopBackOff", "ErrImagePull", "ImagePullBackOff", "CreateContainerConfigError", "RunContainerError")
 
 
+# The rollout's numeric options (rosdeployment_rollout), each from its least to its most: a count, or seconds (a wave's
+# gate, soak and lock wait, the pre-pulls in all). NaN and infinities are refused with the rest: a soak or gate of
+# .inf would never end.
+OPTION_BOUNDS = {
+    "canary": (0, 10000),
+    "wave_size": (1, 10000),
+    "prestage_parallel": (1, 1000),
+    "soak": (0, 3600),
+    "gate_timeout": (0, 3600),
+    "update_lock_wait": (0, 3600),
+    "prestage_timeout": (0, 86400),
+}
+_ABOVE_ZERO = ("gate_timeout", "update_lock_wait", "prestage_timeout")
+
+
+def option_problem(params: dict) -> str:
+    """Why a rollout's numeric options cannot be used ('' when they can): the first option out of its bounds
+    (``OPTION_BOUNDS``), named, with the bounds and the value given."""
+    for name, (low, high) in OPTION_BOUNDS.items():
+        value = params.get(name)
+        counted = name in ("canary", "wave_size", "prestage_parallel")
+        unit = "" if counted else " seconds"
+        if counted:
+            ok = isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
+        else:
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and low <= value <= high
+            ok = ok and not (name in _ABOVE_ZERO and value == 0)
+        if not ok:
+            least = "above 0" if name in _ABOVE_ZERO else f"{low} or more"
+            shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
+            return f"{name} must be {least} and at most {high}{unit}; got {shown}"
+    return ""
+
+
 @dataclass(frozen=True)
 class Change:
     """One object a rollout creates, updates or removes."""
