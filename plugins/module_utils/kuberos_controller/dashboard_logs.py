@@ -3,7 +3,8 @@ access layer (pods/log in the fleets' namespaces, nothing cluster-wide).
 
 The controller may not read Secrets, so it cannot take their values out of a log: the log of a pod whose containers
 can read a Secret is not shown here (``playbooks/logs.yml``, with the deployer's rights, shows it redacted). Every
-log shown has private keys and bearer tokens taken out (``kuberos.module_logs.redact``).
+log shown has keys, passwords and tokens taken out by their shapes (``kuberos.module_logs.redact``), including the
+body lines of a key whose BEGIN line is above the tail (docs/logs.md).
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
 """Read what one module prints on one robot: the pod that serves it, each container's recent log, and optionally
-what it prints next for a while (``follow``), with the values of the Secrets the pod can read taken out.
+what it prints next for a while (``follow``), with the values of the Secrets the pod can read taken out, and keys,
+passwords and tokens whatever their source. Each container's log is redacted as one stream (a ``Redactor`` each): a
+key whose BEGIN line came in the tail or an earlier poll stays hidden in the next poll.
 
 Used by the ``rosdeployment_logs`` module (``playbooks/logs.yml``). The choices are ``kuberos.module_logs``'s.
 """
@@ -11,10 +13,10 @@ import time
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.module_logs import (
+    Redactor,
     instance_for,
     labelled,
     newest_pod,
-    redact,
     robots_of,
     secret_refs,
     secret_values,
@@ -89,6 +91,7 @@ def read_module_log(kube: Kube, deployment: str, module: str, robot: str, fleet:
         raise LogNotFound(f"{meta['name']} has no container {container}; its containers: {', '.join(names)}")
     chosen = [container] if container else names
     secrets = secrets_of(kube, pod)
+    redactors = {name: Redactor(secrets) for name in chosen}
     several = len(chosen) > 1
     out: list[str] = []
     last: dict[str, str] = {}
@@ -97,7 +100,7 @@ def read_module_log(kube: Kube, deployment: str, module: str, robot: str, fleet:
         stamped = text.splitlines()
         if stamped:
             last[name] = _stamp(stamped[-1])
-        out += labelled(name, redact(_without_stamps(stamped), secrets), several)
+        out += labelled(name, redactors[name].redact(_without_stamps(stamped)), several)
     end = clock() + follow_s
     started = clock()
     while follow_s and not previous and clock() < end:
@@ -108,7 +111,7 @@ def read_module_log(kube: Kube, deployment: str, module: str, robot: str, fleet:
             fresh = [line for line in stamped if _stamp(line) > last.get(name, "")]
             if fresh:
                 last[name] = _stamp(fresh[-1])
-                out += labelled(name, redact(_without_stamps(fresh), secrets), several)
+                out += labelled(name, redactors[name].redact(_without_stamps(fresh)), several)
     return {
         "pod": meta["name"],
         "namespace": meta["namespace"],
