@@ -4,6 +4,7 @@ traceback) before its fix and is now a located refusal. The tier's own draws may
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import os
 import subprocess
@@ -12,11 +13,17 @@ import sys
 import pytest
 from fuzz_bounds import run_case
 from helpers import ROOT
+from hostile_registry import HostileRegistry
 from test_fuzz_inventory import PARTNER, SOURCE, inventory_located
+from test_fuzz_options import FakeKube, logs_located
+from test_fuzz_registry import MANIFEST, answer, loopback_only, registry_located
 
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError, SpecError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import module_log_reader
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import registry_api as api
 
+CHALLENGE = 'Bearer realm="{realm}",service="hostile"'
 ROBOT = {"kuberos_fleet": "f", "kuberos_cpu": 4, "kuberos_memory": "8Gi"}
 
 
@@ -108,3 +115,40 @@ ROLLOUT_ARGS = {"src": "spec.yml", "inventory": {}, "kubeconfig": "/nonexistent/
 )
 def test_the_rollouts_unbounded_options_are_refused_by_name(option, value, message, tmp_path):
     assert _module_message("rosdeployment_rollout", {**ROLLOUT_ARGS, option: value}, tmp_path) == message
+
+
+# -- found in files of other items of issue 44, to be fixed there (these fail until then) -------------------------
+
+
+@pytest.mark.parametrize(
+    ("routes", "fragment"),
+    [
+        pytest.param({MANIFEST: (301, {"Location": "\x80"}, b"")}, "", id="redirect-to-non-ascii-UnicodeEncodeError"),
+        pytest.param({MANIFEST: (301, {"Location": "https://a..b/"}, b"")}, "", id="redirect-to-empty-label-UnicodeError"),
+        pytest.param({MANIFEST: (301, {"Location": "https://[::1/"}, b"")}, "", id="redirect-to-bad-ipv6-ValueError"),
+        pytest.param(
+            {MANIFEST: (401, {"WWW-Authenticate": CHALLENGE}, b""), "/token": (429, {}, b"\x00")},
+            "HTTP 429",
+            id="token-error-body-with-a-control-character",
+        ),
+    ],
+)
+def test_registry_findings_are_refusals_naming_the_registry(routes, fragment, tmp_path):
+    with HostileRegistry(str(tmp_path)) as server, loopback_only(server.port):
+        realm = server.url("127.0.0.1", "/token")
+        server.routes = {
+            path: answer(status, {k: v.replace("{realm}", realm) for k, v in headers.items()}, body)
+            for path, (status, headers, body) in routes.items()
+        }
+        client = api.RegistryApi(server.address, "alice", "s3cret", server.ca_file, deadline_s=5.0)
+        outcome = run_case("findings", lambda: client.manifest_digest("app", "1.0"), api.RegistryError,
+                           registry_located(server.address), routes)  # fmt: skip
+        assert outcome.error is not None and fragment in str(outcome.error)
+
+
+@pytest.mark.parametrize("name", ["deployment", "module"])
+def test_a_log_refusal_shows_a_control_character_escaped(name):
+    chosen = {"deployment": "pnp", "module": "planner", name: "a\x1b[2J"}
+    read = functools.partial(module_log_reader.read_module_log, FakeKube(""), chosen["deployment"], chosen["module"], "fetch-1")
+    outcome = run_case("findings", read, KuberosError, logs_located, chosen)
+    assert "a\\x1b[2J" in str(outcome.error), str(outcome.error)

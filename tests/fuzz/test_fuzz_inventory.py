@@ -90,13 +90,13 @@ def inventory_located(error: SpecError) -> str:
     return ""
 
 
-@fuzz_settings(400)
+@fuzz_settings(800)
 @given(raw=inventories())
 def test_a_hostile_inventory_is_a_model_or_one_located_refusal(raw):
     run_case("inventory", lambda: load_inventory(raw, SOURCE), SpecError, inventory_located, raw)
 
 
-@fuzz_settings(100)
+@fuzz_settings(200)
 @given(raw=hostile_value)
 def test_anything_as_the_inventory_is_refused_in_one_located_line(raw):
     def located(error):

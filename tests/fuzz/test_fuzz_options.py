@@ -158,7 +158,7 @@ def logs_located(error: KuberosError) -> str:
     return f"names none of the options ({', '.join(LOG_OPTIONS)}) nor what it could not find"
 
 
-@fuzz_settings(300)
+@fuzz_settings(500)
 @given(
     deployment=mostly(st.just("pnp"), names),
     module=mostly(st.sampled_from(["planner", "coordinator"]), names),
@@ -220,7 +220,7 @@ def options_located(error: KuberosError) -> str:
     return "" if first in ROLLOUT_DEFAULTS else f"does not start with an option's name ({', '.join(ROLLOUT_DEFAULTS)})"
 
 
-@fuzz_settings(300)
+@fuzz_settings(500)
 @given(params=rollout_params())
 def test_the_rollouts_options_are_taken_bounded_or_refused_naming_the_option(params):
     spec = {name: ROLLOUT_SPEC[name] for name in ROLLOUT_DEFAULTS}

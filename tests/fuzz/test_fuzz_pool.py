@@ -128,7 +128,7 @@ def option_located(error: KuberosError) -> str:
     return "" if message.startswith(OPTIONS) else f"does not start with the option's name ({', '.join(OPTIONS)})"
 
 
-@fuzz_settings(400)
+@fuzz_settings(600)
 @given(
     until=until_options,
     owner=owners,
@@ -153,7 +153,7 @@ def test_reserving_is_done_or_refused_naming_the_option(until, owner, reason, st
         assert not pool.owner_problem(after.owner) and not pool.reason_problem(after.reason), case
 
 
-@fuzz_settings(300)
+@fuzz_settings(400)
 @given(found=st.lists(configmaps(), max_size=4), moment=st.datetimes(timezones=st.just(datetime.UTC)))
 def test_every_reader_reads_each_reservation_or_warns_of_it(found, moment):
     kube = FakeKube(listed=found)

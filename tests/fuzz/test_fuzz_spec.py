@@ -112,19 +112,19 @@ def load_spec(text: str, catalog=None):
     return spec.load_rosdeployments(text, SPEC, catalog)
 
 
-@fuzz_settings(300)
+@fuzz_settings(600)
 @given(text=mutated(SPECS))
 def test_a_mutated_spec_is_deployments_or_one_located_refusal(text):
     run_case("spec", lambda: load_spec(text), SpecError, spec_located, text)
 
 
-@fuzz_settings(150)
+@fuzz_settings(300)
 @given(text=mutated(CATALOG_SPECS))
 def test_a_mutated_spec_of_catalog_modules_is_deployments_or_one_located_refusal(text):
     run_case("spec-catalog", lambda: load_spec(text, LOCAL_CATALOG), SpecError, spec_located, text)
 
 
-@fuzz_settings(150)
+@fuzz_settings(300)
 @given(text=mutated(CATALOG_TEXTS))
 def test_a_mutated_catalog_file_is_a_catalog_or_one_located_refusal(text, tmp_path_factory):
     folder = tmp_path_factory.mktemp("catalog")
@@ -136,7 +136,7 @@ def test_a_mutated_catalog_file_is_a_catalog_or_one_located_refusal(text, tmp_pa
     run_case("catalog", lambda: catalogs.load_catalog(str(folder), CATALOG), SpecError, located, text)
 
 
-@fuzz_settings(200)
+@fuzz_settings(400)
 @given(text=raw_yaml)
 def test_raw_text_is_deployments_or_one_located_refusal(text):
     run_case("spec-raw", lambda: load_spec(text), SpecError, spec_located, text)
