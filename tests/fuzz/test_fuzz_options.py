@@ -11,6 +11,7 @@ from __future__ import annotations
 import base64
 import math
 
+import yaml
 from ansible.module_utils.common.arg_spec import ArgumentSpecValidator
 from fuzz_bounds import fuzz_settings, run_case
 from fuzz_values import hostile_value, mostly
@@ -21,6 +22,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import la
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import KuberosError
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy import module_log_reader
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ros.graph_check import graph_check_problem
+from ansible_collections.kuberos.platform.plugins.modules import rosdeployment_logs
 from ansible_collections.kuberos.platform.plugins.modules.rosdeployment_rollout import ARGUMENT_SPEC as ROLLOUT_SPEC
 
 NAMESPACE = "kuberos-test-fleet"
@@ -133,17 +135,17 @@ follow_option = st.one_of(
     for_float,
 )
 LOG_OPTIONS = ("lines", "follow", "deployment", "module", "robot", "container", "fleet", "previous")
-# rosdeployment_logs's argument_spec (but kubeconfig)
-LOGS_SPEC = dict(
-    deployment=dict(type="str", required=True),
-    module=dict(type="str", required=True),
-    robot=dict(type="str", required=True),
-    fleet=dict(type="str", default=""),
-    container=dict(type="str", default=""),
-    lines=dict(type="int", default=100),
-    follow=dict(type="float", default=0.0),
-    previous=dict(type="bool", default=False),
-)
+
+
+def documented_spec(module) -> dict:
+    """A module's options as Ansible validates them, from its DOCUMENTATION (ansible-test's validate-modules keeps
+    that equal to its argument_spec; the doc fragments' options, such as kubeconfig, are left out)."""
+    options = yaml.safe_load(module.DOCUMENTATION)["options"]
+    keys = ("type", "default", "required", "elements", "choices")
+    return {name: {key: option[key] for key in keys if key in option} for name, option in options.items()}
+
+
+LOGS_SPEC = documented_spec(rosdeployment_logs)
 
 
 def logs_located(error: KuberosError) -> str:
