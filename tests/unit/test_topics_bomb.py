@@ -46,6 +46,16 @@ def test_every_document_of_a_bombed_file_shows_its_own_twenty_lines():
     assert sum("more problems of declared topics" in line for line in lines) == 3
 
 
+def test_a_file_of_many_bombs_is_refused_by_its_total_of_nodes_before_the_schema_sees_them_all():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import yaml_source
+
+    lines = _refusal(bomb_spec(documents=10))
+    assert len(lines) == 1, lines
+    assert lines[0].endswith(
+        f"file too large: more than {yaml_source.MAX_TOTAL_NODES} YAML nodes in the file's documents together (aliases included)"
+    ), lines[0]
+
+
 def test_the_bomb_takes_under_two_seconds_and_200_mib():
     """In a fresh process: the CPU time of the refusal (not its wall time, which other tests running beside it
     stretch) and the process's peak resident memory (VmHWM: getrusage's ru_maxrss keeps the forking test process's

@@ -19,6 +19,7 @@ from .third_party import yaml
 MAX_BYTES = 1024 * 1024
 YAML_EXTENSIONS = (".yml", ".yaml")
 MAX_NODES = 100_000  # nodes of one document, each alias counted again as the nodes it stands for
+MAX_TOTAL_NODES = 200_000  # the same, summed over the documents of one file (aliases bound the work of a file too)
 MAX_FILE_NODES = 50_000  # nodes (keys included) written in one file: bounds the work before a refusal
 MAX_DEPTH = 64
 MAX_DOCUMENTS = 200
@@ -88,18 +89,25 @@ _TYPED_KEY_TAGS = {f"tag:yaml.org,2002:{name}" for name in ("bool", "int", "floa
 
 
 class _Walker:
-    def __init__(self, source: str, loader=None):
+    def __init__(self, source: str, loader=None, file_left: int = MAX_TOTAL_NODES):
         self.source = source
         self.loader = loader
         self.lines: dict = {}
         self.problems: list[Problem] = []
         self.count = 0
+        self.file_left = file_left  # nodes the file's earlier documents left of MAX_TOTAL_NODES
         self.escapes = 0  # control characters written as escapes, reported up to _MAX_REPORTED
 
     def walk(self, node, path, depth):
         self.count += 1
         if self.count > MAX_NODES:
             raise _TooLarge(f"more than {MAX_NODES} YAML nodes (aliases included)")
+        if self.count > self.file_left:
+            raise _TooLarge(
+                f"more than {MAX_TOTAL_NODES} YAML nodes in the file's documents together (aliases included)",
+                "file too large",
+                node.start_mark.line + 1,
+            )
         if depth > MAX_DEPTH:
             raise _TooLarge(f"nested deeper than {MAX_DEPTH} levels")
         self.lines.setdefault(path, node.start_mark.line + 1)
@@ -323,6 +331,7 @@ def load_documents(text: str, source: str) -> list[Document]:
         _check_tokens(text)
         index = 0
         previous_end = 0
+        file_left = MAX_TOTAL_NODES
         while loader.check_node():
             node = loader.get_node()
             if node is None:
@@ -331,8 +340,9 @@ def load_documents(text: str, source: str) -> list[Document]:
                 message = f"file too large: more than {MAX_DOCUMENTS} documents; expected at most {MAX_DOCUMENTS} in one file"
                 problems.append(Problem(source, "", message, node.start_mark.line + 1))
                 break
-            walker = _Walker(source, loader)
+            walker = _Walker(source, loader, file_left)
             walker.walk(node, (), 0)
+            file_left -= walker.count
             problems.extend(walker.problems)
             data = loader.construct_document(node)
             start = node.start_mark.index - node.start_mark.column  # from the start of its line: indentation stays
