@@ -83,7 +83,7 @@ def check_pod(template: dict, name: str, image: str, robots: list[str], wanted: 
     env += [
         {"name": "ROS_SUPER_CLIENT", "value": "TRUE"},
         {"name": "KUBEROS_ROBOTS", "value": ",".join(robots)},
-        {"name": "KUBEROS_TOPICS", "value": json.dumps(wanted, separators=(",", ":"))},
+        {"name": "KUBEROS_TOPICS", "value": json.dumps(wanted, separators=(",", ":"), allow_nan=False)},
     ]
     if not any(e["name"] == "ROS_HOME" for e in env):
         env.append({"name": "ROS_HOME", "value": "/tmp/.ros"})
