@@ -15,9 +15,13 @@ description:
     line starts with C([container]).
   - With O(follow), keeps reading what the module prints for that many seconds before returning (an Ansible task
     returns once, so follow is a window and not a stream).
-  - The values of the Secrets the pod's containers can read (environment and volumes) never appear in the lines, nor
-    what looks like a private key or a bearer token; a Secret that cannot be read fails the task rather than show
-    its values.
+  - The values of the Secrets the pod's containers can read (environment and volumes) are taken out of the lines,
+    as they are, each of their lines alone, and base64-, percent-, JSON- and hex-encoded; a Secret that cannot be
+    read fails the task rather than show its values.
+  - Private keys and PGP private key blocks are taken out whatever line the tail or a O(follow) poll starts at (each
+    container's log is read as one stream); passwords in URLs, C(Authorization) headers, bearer tokens, JWTs, AWS
+    access key ids and values named like credentials (C(*-key), C(*_token), C(password)...) by their shapes, which
+    is best effort. The collection's docs/logs.md says exactly what is taken out and what is not.
 options:
   deployment:
     description: The RosDeployment's name (its C(metadata.name)).

@@ -211,6 +211,7 @@ def test_credentials_are_redacted_and_their_names_kept(line, shown):
         "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855 /opt/ros/humble/setup.bash",
         "/opt/ros/humble/share/robotdescription/urdf/robotwithgripperandcamera",
         "/home/robot/workspace/install/PickAndPlace/share/PickAndPlace/launch/Bringup2",
+        "/opt/ros/Humble/share/MoveIt2/config/RobotArm3/URDF",
         "2b1d6a0e-6f1c-4a51-9c58-1f1e2d3c4b5a",
         "ghcr.io/kuberos/motion-planner:1.4.2@sha256:e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855",
         "http://10.42.0.17:8080/healthz and https://registry.local:5000/v2/",
@@ -228,6 +229,16 @@ def test_ordinary_log_lines_survive(line):
 def test_a_certificate_is_shown_a_private_key_is_not():
     cert = ["-----BEGIN CERTIFICATE-----", *KEY_BODY, "-----END CERTIFICATE-----"]
     assert redact("\n".join(cert), {}) == "\n".join(cert)
+    chain = "\n".join([*cert[:-1], *KEY, "after"])  # a certificate without its END line, then a key
+    assert redact(chain, {}) == "\n".join([*cert[:-1], "[redacted: private key]", "after"])
+
+
+def test_an_empty_read_leaves_the_next_window_first():
+    redactor = Redactor({})
+    assert redactor.redact("") == ""
+    assert redactor.redact("3q2+7wAQIDBAUGBwgJCgsMDQ4P") == "[redacted: base64 block]", "may be a key's last line"
+    assert redactor.redact("-----END PRIVATE KEY-----\nok") == "[redacted: private key]\nok"
+    assert Redactor({}).redact("ok\n") == "ok\n"
 
 
 def test_a_begin_line_without_its_end_hides_a_bounded_number_of_lines():

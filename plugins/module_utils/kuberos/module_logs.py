@@ -101,7 +101,10 @@ MIN_SECRET = 4  # shorter values are not taken out (they would blank ordinary wo
 MIN_CORE = 8  # a value's base64 inside a longer base64 text is matched from this many characters on
 MAX_BLOCK_LINES = 400  # a key block is shorter: past this, its END line was lost and the lines are read as usual
 BASE64_BLOCK = "base64 block"
-CLASS_CHANGES = 0.35  # a body line changes between upper case, lower case and digits more often than this
+# A body line changes between upper case, lower case and digits more often than this: about 0.62 of neighbouring
+# characters in random base64 (one line in a million of 64 characters under 0.31), under 0.25 in words and most paths.
+CLASS_CHANGES = 0.25
+PATH_CLASS_CHANGES = 0.4  # the same for a line with six slashes or more (CamelCase directories with digits)
 _MARKER = re.compile(r"-{4,5} ?(BEGIN|END) ([A-Z0-9][A-Z0-9 ]*?) ?-{4,5}")
 _BODY = re.compile(r"[A-Za-z0-9+/]{40,76}={0,2}")  # a PEM or armored body line (64, 70 or 76 characters)
 _LOOSE = re.compile(r"=?[A-Za-z0-9+/]{1,76}={0,2}")  # a body's last line, or a PGP checksum (=XXXX)
@@ -165,6 +168,8 @@ class Redactor:
         self._started = False
 
     def redact(self, text: str) -> str:
+        if not text:  # nothing read yet: the next window's first line is still the stream's first
+            return text
         lines = text.split("\n")
         newline = len(lines) > 1 and lines[-1] == ""
         out: list[tuple[str, str | None]] = []  # (what shows, the label when it is a redacted block's)
@@ -195,6 +200,9 @@ class Redactor:
         self._block_lines += 1
         marker = _MARKER.search(line)
         label = self._block
+        if marker and marker.group(1) == "BEGIN" and not label:  # a public block's END was lost: read the new one
+            self._block = None
+            return False
         if marker and marker.group(1) == "END":
             self._block = None
             rest = line[marker.end() :]
@@ -275,9 +283,9 @@ def value_forms(value: str) -> set[str]:
             continue
         data = whole.encode()
         forms |= {whole, json.dumps(whole)[1:-1], json.dumps(whole, ensure_ascii=False)[1:-1], repr(whole)[1:-1],
-                  quote(whole), quote_plus(whole), data.hex(), data.hex().upper()}  # fmt: skip
-        percent = quote(whole, safe="")
-        forms |= {percent, _PERCENT.sub(lambda m: m.group(0).lower(), percent)}
+                  data.hex(), data.hex().upper()}  # fmt: skip
+        for percent in (quote(whole, safe=""), quote(whole), quote_plus(whole)):
+            forms |= {percent, _PERCENT.sub(lambda m: m.group(0).lower(), percent)}
         for raw in (data, data + b"\n"):
             for encode in (base64.b64encode, base64.urlsafe_b64encode):
                 encoded = encode(raw).decode()
@@ -307,18 +315,20 @@ def _block_label(kind: str) -> str:
 
 
 def _class_changes(bare: str) -> float:
-    """How often the next letter or digit is of another kind (upper, lower, digit): about 0.65 in random base64,
-    under 0.3 in words, paths and CamelCase names."""
+    """How often the next letter or digit is of another kind (upper, lower, digit)."""
     kinds = [c.isupper() - c.islower() for c in bare if c.isalnum()]
     return sum(a != b for a, b in itertools.pairwise(kinds)) / max(len(kinds) - 1, 1)
 
 
 def _looks_like_path(bare: str) -> bool:
-    return bare.count("/") >= 2 and _class_changes(bare) < CLASS_CHANGES
+    """Words between slashes: few changes of kind, or a little more with many slashes (random base64 has one slash in
+    64 characters, a path one in ten)."""
+    slashes, changes = bare.count("/"), _class_changes(bare)
+    return (slashes >= 2 and changes < CLASS_CHANGES) or (slashes >= 6 and changes < PATH_CLASS_CHANGES)
 
 
 def _is_body(bare: str) -> bool:
-    if not _BODY.fullmatch(bare) or _HEX.fullmatch(bare) or _class_changes(bare) < CLASS_CHANGES:
+    if not _BODY.fullmatch(bare) or _HEX.fullmatch(bare) or _class_changes(bare) < CLASS_CHANGES or _looks_like_path(bare):
         return False
     return any(c.isupper() for c in bare) and any(c.islower() for c in bare) and any(c in "+/" or c.isdigit() for c in bare)
 
