@@ -47,6 +47,12 @@ class RegistryError(RuntimeError):
     """A registry refused or failed a request; the message names the registry, the image and why."""
 
 
+def shown(text, limit: int = 300) -> str:
+    """``text`` as a message may show it: at most ``limit`` characters, control characters escaped."""
+    text = str(text)[:limit]
+    return text if text.isprintable() else ascii(text)[1:-1]
+
+
 def origin(url: str) -> tuple[str, str, int]:
     """(scheme, host, port) of ``url``: what credentials are scoped to."""
     parts = urllib.parse.urlsplit(url)
@@ -103,6 +109,8 @@ class RegistryApi:
         except (OSError, http.client.HTTPException) as error:
             deadline.check()
             raise self._connection_error(error, image) from None
+        except (UnicodeError, ValueError) as error:  # a host or path no request can name (from a redirect)
+            raise RegistryError(f"registry {self.address}: cannot ask {shown(url)!r} ({shown(error)}) (image {image})") from None
         finally:
             connection.close()
 
@@ -131,9 +139,17 @@ class RegistryApi:
                 location = answer.get("Location", "") if status in (301, 302, 303, 307, 308) else ""
                 if not location:
                     return status, answer, data
-                url = urllib.parse.urljoin(url, location)
-                if origin(url)[0] != "https" and not self._insecure:
-                    raise RegistryError(f"registry {self.address}: refused its redirect to {url!r}: not https (image {image})")
+                try:
+                    url = urllib.parse.urljoin(url, location)
+                    scheme = origin(url)[0]
+                except ValueError:
+                    raise RegistryError(
+                        f"registry {self.address}: refused its redirect to {shown(location)!r}: not a URL (image {image})"
+                    ) from None
+                if scheme != "https" and not self._insecure:
+                    raise RegistryError(
+                        f"registry {self.address}: refused its redirect to {shown(url)!r}: not https (image {image})"
+                    )
                 if status == 303:
                     method, body = "GET", None
             raise RegistryError(f"registry {self.address}: more than {MAX_REDIRECTS} redirects (image {image})")
@@ -144,7 +160,7 @@ class RegistryApi:
         fields = dict(re.findall(r'(\w+)="([^"]*)"', challenge))
         realm = fields.pop("realm", "")
         if not realm.startswith("https://") and not (self._insecure and realm.startswith("http://")):
-            raise RegistryError(f"registry {self.address}: its token service {realm!r} is not https (image {image})")
+            raise RegistryError(f"registry {self.address}: its token service {shown(realm)!r} is not https (image {image})")
         query = urllib.parse.urlencode({k: v for k, v in fields.items() if k in ("service", "scope")})
         scope = {self._origin}
         if origin(realm)[1] in self._realms:
@@ -161,7 +177,7 @@ class RegistryApi:
         except (ValueError, AttributeError):
             token = None
         if not token or not isinstance(token, str):
-            raise RegistryError(f"registry {self.address}: its token service {realm} gave no token (image {image})")
+            raise RegistryError(f"registry {self.address}: its token service {shown(realm)} gave no token (image {image})")
         return token
 
     def _request(self, method: str, url: str, image: str, *, body=None, headers: dict | None = None, ok=(200,),
@@ -192,13 +208,13 @@ class RegistryApi:
         with contextlib.suppress(ValueError, AttributeError, TypeError):
             codes = [e.get("code", "") for e in json.loads(body or b"{}").get("errors", [])]
         if status == 401:
-            who = f"user '{self._username}'" if self._username else "anonymous access"
+            who = f"user '{shown(self._username, 100)}'" if self._username else "anonymous access"
             return f"registry {self.address}: refused the credentials ({who}: HTTP 401 Unauthorized) for image {image}"
         if status == 403:
             return f"registry {self.address}: access denied (HTTP 403) to image {image}"
         if status == 404 or "MANIFEST_UNKNOWN" in codes or "NAME_UNKNOWN" in codes:
-            return f"registry {self.address}: image {image} not found ({', '.join(map(str, codes)) or 'HTTP 404'})"
-        text = body[:300].decode(errors="replace").strip()
+            return f"registry {self.address}: image {image} not found ({shown(', '.join(map(str, codes)), 100) or 'HTTP 404'})"
+        text = shown(body[:300].decode(errors="replace").strip())
         return f"registry {self.address}: {method} for image {image} failed: HTTP {status} {text}"
 
     def check(self) -> None:
