@@ -9,6 +9,7 @@ wave's gate or soak ends."""
 from __future__ import annotations
 
 import base64
+import json
 import math
 
 import yaml
@@ -35,8 +36,8 @@ class OptionRefused(KuberosError):
 def validated(spec: dict, params: dict) -> dict:
     """``params`` as Ansible hands them to the module (converted to the options' types), or ``OptionRefused``."""
     result = ArgumentSpecValidator(spec).validate(params)
-    if result.error_messages:
-        raise OptionRefused("; ".join(result.error_messages))
+    if result.error_messages:  # shown as Ansible shows a failed task's msg: in JSON, control characters escaped
+        raise OptionRefused("; ".join(json.dumps(m)[1:-1] for m in result.error_messages))
     return result.validated_parameters
 
 
@@ -152,7 +153,7 @@ def logs_located(error: KuberosError) -> str:
     if isinstance(error, OptionRefused):
         return ansible_located(error, LOG_OPTIONS)
     message = str(error)
-    if message.startswith(("lines must", "follow must")):
+    if message.startswith(("lines must", "follow must", *(f"{option}: " for option in LOG_OPTIONS))):
         return ""
     found = isinstance(error, module_log_reader.LogNotFound)
     if found and (message.startswith(("deployment ", "module ")) or " has no container " in message or " has no pod" in message):

@@ -8,6 +8,7 @@ Used by the ``rosdeployment_logs`` module (``playbooks/logs.yml``). The choices 
 
 from __future__ import annotations
 
+import re
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
@@ -25,6 +26,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.naming im
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api import Kube
 
 MAX_FOLLOW_S = 600
+# What deployment, module, robot, fleet and container names may be: Kubernetes label values (they go into label
+# selectors, so nothing else: a ',' or '=' would change what is selected).
+_NAME = re.compile(r"[A-Za-z0-9]([-A-Za-z0-9_.]{0,61}[A-Za-z0-9])?")
 
 
 class LogNotFound(KuberosError):
@@ -84,6 +88,13 @@ def read_module_log(kube: Kube, deployment: str, module: str, robot: str, fleet:
         raise KuberosError(f"follow must be from 0 to {MAX_FOLLOW_S} seconds")
     if not 1 <= lines <= 10000:
         raise KuberosError("lines must be from 1 to 10000")
+    given = {"deployment": deployment, "module": module, "robot": robot, "fleet": fleet, "container": container}
+    for option, value in given.items():
+        if (value or option in ("deployment", "module", "robot")) and not _NAME.fullmatch(str(value)):
+            raise KuberosError(
+                f"{option}: {str(value)[:80]!a} is not a name (letters, digits, '-', '_' and '.', at most 63, "
+                "starting and ending with a letter or digit)"
+            )
     instance, pod = find_pod(kube, deployment, module, robot, fleet)
     meta = pod["metadata"]
     names = [c["name"] for c in pod["spec"].get("containers") or ()]
