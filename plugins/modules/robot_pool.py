@@ -22,8 +22,7 @@ description:
   - C(passes) names the production deployments whose pass changes what runs for the robot now (their records say
     so), with their current revision; P(kuberos.platform.rosdeployment_rollout#module) at that revision is the pass,
     and C(playbooks/pool.yml) runs it at once.
-  - With O(state=list), reads the reservations of every fleet (C(reservations)); O(robot), O(owner) and O(inventory)
-    are not needed.
+  - P(kuberos.platform.robot_pool_info#module) reads every reservation of every fleet.
   - A reservation that cannot be read (a field missing, a time out of range, an owner or a reason the pool would not
     write) holds nothing; each one is a warning naming its ConfigMap and why, and is left out. Reserving the robot
     replaces it; giving the robot back removes it.
@@ -35,13 +34,15 @@ description:
   - Robots are the inventory's; the fleet is the robot's fleet there.
 options:
   robot:
-    description: The robot, as the inventory names it (required unless O(state=list)).
+    description: The robot, as the inventory names it.
     type: str
+    required: true
   owner:
     description:
-      - Who holds it (the name a development deployment gives in C(metadata.developer)); required unless O(state=list).
+      - Who holds it (the name a development deployment gives in C(metadata.developer)).
       - Letters and digits with C(-), C(_), C(.) and C(@) inside, at most 63 characters.
     type: str
+    required: true
   reason:
     description: Why, for the others who see the reservation (status, dashboard); one printable line (no tab, line
       break or other control character), at most 200 characters.
@@ -55,9 +56,9 @@ options:
     type: str
     default: 8h
   state:
-    description: C(present) reserves (or renews), C(absent) releases, C(list) reads every reservation.
+    description: C(present) reserves (or renews), C(absent) releases.
     type: str
-    choices: [present, absent, list]
+    choices: [present, absent]
     default: present
   force:
     description: With O(state=absent), release a robot that someone else holds.
@@ -65,9 +66,9 @@ options:
     default: false
   inventory:
     description:
-      - The fleet inventory, as returned by the P(kuberos.platform.fleet_inventory#filter) filter (required unless
-        O(state=list)).
+      - The fleet inventory, as returned by the P(kuberos.platform.fleet_inventory#filter) filter.
     type: dict
+    required: true
 attributes:
   check_mode:
     support: full
@@ -91,11 +92,6 @@ EXAMPLES = r"""
     owner: alice
     reason: testing the new grasp planner
     until: 4h
-
-- name: Who holds what
-  kuberos.platform.robot_pool:
-    kubeconfig: ~/.cache/kuberos/cluster/kubeconfig
-    state: list
 
 - name: Give it back
   kuberos.platform.robot_pool:
@@ -129,22 +125,17 @@ passes:
   type: list
   elements: dict
 message:
-  description: One line saying what holds now (with O(state=list), one line per reservation).
+  description: One line saying what holds now.
   returned: always
   type: str
 identity:
   description: The Kubernetes user the API server says the caller is (a SelfSubjectReview); empty when it cannot tell.
-  returned: unless O(state=list)
+  returned: always
   type: str
 ownership:
   description: What the owner's name guarantees and what it does not (advisory), in one sentence.
   returned: always
   type: str
-reservations:
-  description: With O(state=list), every reservation that can be read, with C(active) (false when its time has passed).
-  returned: when O(state=list)
-  type: list
-  elements: dict
 ignored:
   description: The reservations that cannot be read (they hold nothing), one warning each naming the ConfigMap and why.
   returned: always
@@ -161,7 +152,6 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.p
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_ansible.results import fail
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_deploy.robot_pool import (
     PoolRefused,
-    listing,
     release,
     reservations,
     reserve,
@@ -175,37 +165,18 @@ def _text(reservation) -> str:
     return "\n".join(f"{k}: {v}" for k, v in reservation.to_dict().items()) + "\n"
 
 
-ADVISORY = ("ownership is advisory: owner is a name; a reservation records the Kubernetes user who wrote it, and whoever "
-            "may write ConfigMaps in a fleet's namespace can change or remove it (docs/security.md)")  # fmt: skip
-
-
-def _listed(module, kube) -> None:
-    now = datetime.datetime.now(datetime.UTC)
-    found = listing(kube, now)
-    for warning in found["ignored"]:
-        module.warn(warning)
-    lines = [
-        f"{r['robot']} ({r['fleet']}): {r['owner']} until {r['until']}{'' if r['active'] else ' (ended)'}"
-        + (f" [Kubernetes user {r['identity']}]" if r.get("identity") else "") + (f": {r['reason']}" if r["reason"] else "")
-        for r in sorted(found["reservations"], key=lambda r: (r["robot"], r["fleet"]))
-    ]  # fmt: skip
-    module.exit_json(changed=False, reservations=found["reservations"], ignored=found["ignored"], ownership=ADVISORY,
-                     message="\n".join(lines) or "no robot is reserved")  # fmt: skip
-
-
 def main():
     module = AnsibleModule(
         argument_spec=dict(
             **KUBECONFIG_ARG,
-            robot=dict(type="str"),
-            owner=dict(type="str"),
+            robot=dict(type="str", required=True),
+            owner=dict(type="str", required=True),
             reason=dict(type="str", default=""),
             until=dict(type="str", default="8h"),
-            state=dict(type="str", choices=["present", "absent", "list"], default="present"),
+            state=dict(type="str", choices=["present", "absent"], default="present"),
             force=dict(type="bool", default=False),
-            inventory=dict(type="dict"),
+            inventory=dict(type="dict", required=True),
         ),
-        required_if=[("state", "present", ("robot", "owner", "inventory")), ("state", "absent", ("robot", "owner", "inventory"))],
         supports_check_mode=True,
     )
     require_packages(module)
@@ -213,8 +184,6 @@ def main():
     ignored: list[str] = []
     try:
         kube = Kube(api_clients(p["kubeconfig"]), "kuberos-pool")
-        if p["state"] == "list":
-            _listed(module, kube)
         inventory = load_inventory(p["inventory"])
         if p["robot"] not in inventory.robots:
             known = ", ".join(sorted(inventory.robots)[:20]) or "none"

@@ -308,10 +308,12 @@ def test_the_deploy_and_the_rollout_leave_an_unreadable_reservation_out_and_say_
     assert said[0].startswith("reservation kuberos-test-fleet/kuberos-reservation-r1 ignored"), said[0]
 
 
-def _run_module(monkeypatch, capsys, kube, **args) -> dict:
+def _run_module(monkeypatch, capsys, kube, module=None, **args) -> dict:
     from ansible.module_utils.testing import patch_module_args
 
-    from ansible_collections.kuberos.platform.plugins.modules import robot_pool as module
+    from ansible_collections.kuberos.platform.plugins.modules import robot_pool
+
+    module = module or robot_pool
 
     monkeypatch.setattr(module, "api_clients", lambda kubeconfig: {})
     monkeypatch.setattr(module, "Kube", lambda clients, manager: kube)
@@ -327,7 +329,9 @@ def test_the_pool_module_lists_every_reservation_warns_of_the_unreadable_and_say
     monkeypatch, capsys, local_raw
 ):
     kube = PoolKube([_configmap(until="2099-01-01T00:00:00Z", identity="alice@example.com"), BAD_RESERVATIONS[0][0]])
-    listed = _run_module(monkeypatch, capsys, kube, state="list")
+    from ansible_collections.kuberos.platform.plugins.modules import robot_pool_info
+
+    listed = _run_module(monkeypatch, capsys, kube, robot_pool_info)
     said = "fetch-2 (test-fleet): alice until 2099-01-01T00:00:00Z [Kubernetes user alice@example.com]: tests"
     assert listed["message"] == said
     assert listed["warned"] == listed["ignored"] and "kuberos-reservation-r1 ignored" in listed["ignored"][0]

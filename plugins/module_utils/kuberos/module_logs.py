@@ -278,7 +278,7 @@ def value_forms(value: str) -> set[str]:
     with and without padding, with a line break after it, and inside a longer base64 text: the groups made of its
     bytes alone); percent-encoded (as a path, a query or a form), JSON- and Python-escaped, and hex."""
     forms = {line.strip() for line in value.splitlines()}
-    for whole in {value, value.strip()}:
+    for whole in dict.fromkeys((value, value.strip())):
         if len(whole.strip()) < MIN_SECRET:
             continue
         data = whole.encode()

@@ -17,7 +17,7 @@ RENDER_ARGS = {
     "metrics_namespaces": {"type": "list", "elements": "str", "default": list(RenderOptions.metrics_namespaces)},
     "pin_images": {"type": "bool", "default": True},
     "registry_mirrors": {"type": "dict", "default": {}},
-    "registry_token_realms": {"type": "dict", "default": {}},
+    "registry_token_realms": {"type": "dict", "default": {}, "no_log": False},  # realm hosts, not tokens
 }
 
 

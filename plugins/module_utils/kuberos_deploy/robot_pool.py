@@ -40,6 +40,10 @@ def reservations(kube: Kube, fleet: str = "", warn=None) -> list[robot_pool.Rese
     return sorted(readable, key=lambda r: (r.fleet, r.robot))
 
 
+ADVISORY = ("ownership is advisory: owner is a name; a reservation records the Kubernetes user who wrote it, and whoever "
+            "may write ConfigMaps in a fleet's namespace can change or remove it (docs/security.md)")  # fmt: skip
+
+
 def listing(kube: Kube, moment: datetime.datetime) -> dict:
     """The pool as ``playbooks/pool.yml`` and ``status.yml`` show it: every reservation with ``active``, and the
     warnings of those that cannot be read (``ignored``)."""
