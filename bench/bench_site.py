@@ -11,7 +11,9 @@ worker, two robots, a cloud VM behind the WireGuard tunnel):
   file from pods on the edge worker and on the cloud VM, and a pod the NetworkPolicy does not admit;
 - ``ready_to_app_running_s``: ``controller.yml`` (in the cluster) and ``deploy.yml`` of the example until every pod
   is Ready where placed; ``pick_cycles_completed``: the robot's simulated hardware with the real pods;
-- ``register_robot_s``, ``undeploy_s``; ``api_back_after_losing_the_vip_holder_s``: the power of the control
+- ``register_robot_s``, ``undeploy_s``; ``site_run_with_robot_offline_ok`` and ``_s``: ``fetch-02`` powered off and
+  a robot in the inventory where no machine answers, ``site.yml`` succeeds and names both once;
+  ``api_back_after_losing_the_vip_holder_s``: the power of the control
   plane holding the virtual IP cut, until the API answers again through it.
 
 Writes ``bench/results/site.json`` with ``--json``. As root; after ``make test``'s builds.
@@ -65,6 +67,8 @@ def main() -> int:
         step("register_robot.yml", chain.register_robot())
         step("deploy.yml with the new robot", chain.deploy(str(folder / "rendered")))
         step("undeploy.yml", chain.undeploy())
+        step("site.yml with a robot off", chain.site_with_robots_offline("fetch-02", "fetch-09.robots.example.internal",
+                                                                          site_lab.UNUSED_ADDRESS))  # fmt: skip
         chain.lose_vip_holder()
     finally:
         lab.down(remove=True)

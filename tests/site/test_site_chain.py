@@ -7,7 +7,7 @@ behind a keepalived virtual IP, an edge worker, two robots, and a cloud VM that 
 WireGuard tunnel. In order:
 
 1. ``site.yml`` for real: every node Ready with its labels and taints, three etcd members, the virtual IP held by
-   one control plane, the cloud VM's node IP its tunnel address;
+   one control plane, the cloud VM's node IP its tunnel address; admin.conf 0600 here, no join token left;
 2. the pod network for real (Cilium, ``kuberos_cni``, built here from its Go module): a robot's pod reaches pods on
    the edge worker and on the cloud VM (through the tunnel, a file larger than any window: the MTU holds), and a
    NetworkPolicy refuses another pod;
@@ -18,8 +18,10 @@ WireGuard tunnel. In order:
    discovery servers: a pick cycle completes;
 5. ``register_robot.yml`` with the join adds a robot, which gets its onboard module on the next deploy;
 6. undeploy removes every pod of the app;
-7. the control plane that holds the virtual IP is powered off: the API answers through the same endpoint;
-8. teardown leaves this machine as it was.
+7. a robot powered off and one in the inventory that never joined: ``site.yml`` succeeds, names both once, labels
+   what joined and makes no Node for the other;
+8. the control plane that holds the virtual IP is powered off: the API answers through the same endpoint;
+9. teardown leaves this machine as it was.
 
 Needs root, systemd-nspawn, debootstrap, and the programs ``make test`` builds (skipped locally without them, a
 failure in CI). Bounded: every playbook and wait has a timeout; about 20 minutes here.
@@ -33,6 +35,7 @@ import os
 import pytest
 from helpers import ROOT
 
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_cluster.kubeadm_config import INIT_TOKEN_DESCRIPTION
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines as lab_machines
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import site_lab
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import snapshot_host
@@ -42,6 +45,8 @@ pytestmark = pytest.mark.site
 # Node names: the inventory's host names, or kuberos_node_name where the sample gives one.
 ROBOT, OTHER_ROBOT = "fetch-01.robots.example.internal", "fetch-02.robots.example.internal"
 EDGE_WORKER, CLOUD, CONTROL_PLANES = "edge-d", site_lab.CLOUD_VM, site_lab.CONTROL_PLANES
+OTHER_ROBOT_MACHINE = "fetch-02"
+GHOST_ROBOT = "fetch-09.robots.example.internal"  # in the inventory, no machine: a robot that never joined
 
 
 def _missing() -> list[str]:
@@ -126,6 +131,10 @@ def test_site_yml_builds_an_ha_cluster_with_the_cloud_vm_over_the_vpn(chain):
         return static <= running and proxied == set(found) and (running, proxied)
 
     site_lab.wait_for("the control planes' static pods and kube-proxy ready on every node", running_and_proxies, 180)
+    # the administrator's credentials readable by this machine's user only; no join token left to live out its TTL
+    assert os.stat(chain.lab.kubeconfig).st_mode & 0o777 == 0o600, oct(os.stat(chain.lab.kubeconfig).st_mode)
+    joins = [t for t in site_lab.bootstrap_tokens(chain.kube) if t["authenticates"]]
+    assert all(t["description"] == INIT_TOKEN_DESCRIPTION and t["lifetime_s"] <= 15 * 60 for t in joins), joins
 
 
 def test_pods_reach_each_other_across_nodes_and_the_vpn_and_a_policy_refuses(chain):
@@ -192,6 +201,16 @@ def test_undeploy_removes_every_pod_of_the_app(chain):
     site_lab.wait_for(
         "no pod of the app", lambda: not chain.core.list_pod_for_all_namespaces(label_selector="kuberos.io/instance").items, 180
     )
+
+
+def test_site_yml_leaves_a_powered_off_robot_and_one_that_never_joined_and_says_so_once(chain):
+    result = chain.site_with_robots_offline(OTHER_ROBOT_MACHINE, GHOST_ROBOT, site_lab.UNUSED_ADDRESS)
+    assert result.returncode == 0, _tail(result)
+    assert len(result.said) == 1 and OTHER_ROBOT in result.said[0] and GHOST_ROBOT in result.said[0], result.said
+    assert site_lab.NEW_ROBOT not in result.said[0], result.said  # the registered robot is on: reached and finished
+    found = site_lab.nodes(chain.kube)
+    assert GHOST_ROBOT not in found and OTHER_ROBOT in found, sorted(found)  # no Node without a kubelet behind it
+    assert chain.figures["site_run_with_robot_offline_ok"], chain.figures
 
 
 def test_the_api_answers_through_the_virtual_ip_after_losing_its_control_plane(chain):

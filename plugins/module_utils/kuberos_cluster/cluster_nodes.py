@@ -103,3 +103,37 @@ def real_nodes(inventory: Inventory, names: list[str]) -> dict:
 def robot_taints(inventory: Inventory) -> list[dict]:
     """``{name, taints}`` for every robot node: the taints to merge into real nodes."""
     return [{"name": n.name, "taints": labels.node_taints(n)} for n in inventory.nodes.values() if n.tier == "onboard"]
+
+
+def not_joined(inventory: Inventory, existing) -> dict[str, list[str]]:
+    """The inventory's nodes the cluster has no Node for (``existing``: the Node names it has): ``robots`` (powered
+    off or never joined: left for a later run) and ``others`` (edge servers and cloud VMs: a site needs them)."""
+    have = set(existing)
+    missing = [node for node in inventory.nodes.values() if node.name not in have]
+    return {
+        "robots": sorted(n.name for n in missing if n.tier == "onboard"),
+        "others": sorted(n.name for n in missing if n.tier != "onboard"),
+    }
+
+
+def _condition(obj: dict, kind: str) -> str | None:
+    for condition in (obj.get("status") or {}).get("conditions") or ():
+        if condition.get("type") == kind:
+            return condition.get("status")
+    return None
+
+
+def agents_waiting(pods, nodes) -> list[str]:
+    """The nodes still waiting for a node agent (a CNI's DaemonSet pod): every node whose kubelet reports (its Ready
+    condition True or False, or none yet) and that has no Ready agent pod. A node whose kubelet stopped reporting
+    (Ready Unknown: a robot powered off) is not waited for; it runs its agent when it is back."""
+    ready_on = {
+        (pod.get("spec") or {}).get("nodeName")
+        for pod in pods or ()
+        if not (pod.get("metadata") or {}).get("deletionTimestamp") and _condition(pod, "Ready") == "True"
+    }
+    return sorted(
+        node["metadata"]["name"]
+        for node in nodes or ()
+        if _condition(node, "Ready") != "Unknown" and node["metadata"]["name"] not in ready_on
+    )

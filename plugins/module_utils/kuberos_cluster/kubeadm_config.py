@@ -55,6 +55,8 @@ EVICTION_SIGNALS = (
     "containerfs.available", "containerfs.inodesFree", "pid.available",
 )  # fmt: skip
 _EVICTION_THRESHOLD = re.compile(r"^(\d+(\.\d+)?%|\d+(\.\d+)?([KMGTPE]i?|[kmMGTPE])?)\Z")
+INIT_TOKEN_TTL = "15m0s"
+INIT_TOKEN_DESCRIPTION = "made by kubeadm init; KubeROS joins with their own"
 _TOKEN = re.compile(r"--token[= ]+([a-z0-9]{6}\.[a-z0-9]{16})(?=\s|$)")
 _CA_HASH = re.compile(r"--discovery-token-ca-cert-hash[= ]+(sha256:[a-f0-9]{64})(?=\s|$)")
 _CERT_KEY = re.compile(r"^\s*([a-f0-9]{64})\s*$", re.M)
@@ -384,6 +386,9 @@ def init_documents(machine: Machine, settings: ClusterSettings, self_labels: dic
     init = {
         "apiVersion": API_VERSION,
         "kind": "InitConfiguration",
+        # kubeadm init always makes one bootstrap token (24 h unless told); the joins use tokens of their own, deleted
+        # once spent, so this one is never used: it expires soon.
+        "bootstrapTokens": [{"ttl": INIT_TOKEN_TTL, "description": INIT_TOKEN_DESCRIPTION}],
         "localAPIEndpoint": {"advertiseAddress": machine.address, "bindPort": settings.bind_port},
         "nodeRegistration": node_registration(machine, settings, True, self_labels),
     }

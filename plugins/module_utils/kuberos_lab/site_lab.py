@@ -67,6 +67,7 @@ LEFT_OUT = {
 }
 CONTROL_PLANES = ("edge-a", "edge-b", "edge-c")  # machine and node names
 CLOUD_VM = "gpu-vm-1"  # joins with its address inside the WireGuard tunnel as node IP (SiteLab.vpn_address)
+UNUSED_ADDRESS = f"{SUBNET}.99"  # no lab machine has it: a robot there never answers
 NEW_ROBOT = "fetch-03"  # its inventory name, machine and node name: register_robot.yml adds it to the inventory
 RECAP = re.compile(r"^(\S+)\s+: ok=(\d+)\s+changed=(\d+)\s+unreachable=(\d+)\s+failed=(\d+)", re.MULTILINE)
 
@@ -219,6 +220,15 @@ class SiteLab:
             "kuberos_kubeconfig": self.kubeconfig,
             "cilium_render_dir": self.path("rendered", "cilium"),
         }
+        # How this machine reaches a robot that register_robot.yml adds later (its host_vars name its address and
+        # user only): the robots' group has the lab's key and known hosts too, as a site's group_vars would (added
+        # to the sample's robots.yml: a folder group_vars/robots would hide that file).
+        robots_vars = self.path("inventory", "group_vars", "robots.yml")
+        with open(robots_vars, encoding="utf-8") as handle:
+            robots = {**(yaml.safe_load(handle) or {}), **connection}
+        with open(robots_vars, "w", encoding="utf-8") as handle:
+            handle.write("# inventories/sample's robots.yml and how the lab reaches every robot (kuberos_lab.site_lab).\n")
+            yaml.safe_dump(robots, handle, sort_keys=False)
         with open(os.path.join(all_dir, "10-lab.yml"), "w", encoding="utf-8") as handle:
             handle.write("# The lab's choices (kuberos_lab.site_lab): each a documented variable a site may set too.\n")
             yaml.safe_dump(lab, handle, sort_keys=False)
@@ -257,6 +267,32 @@ def kube(kubeconfig: str) -> Kube:
 def _new(kind: str, metadata: dict, **fields) -> dict:
     """An object of ``kind`` to create: its apiVersion and kind, ``metadata`` and the other top-level ``fields``."""
     return {"apiVersion": KINDS[kind].api_version, "kind": kind, "metadata": metadata, **fields}
+
+
+def bootstrap_tokens(kube: Kube) -> list[dict]:
+    """The cluster's bootstrap tokens (Secrets of type bootstrap.kubernetes.io/token): each one's description, whether
+    it authenticates (a join token; kubeadm's proxy for the kubeadm-certs Secret's lifetime does not), and its
+    lifetime (from its creation to its expiration, in seconds)."""
+    import base64
+    import datetime
+
+    def moment(text: str) -> datetime.datetime:
+        return datetime.datetime.fromisoformat(text.replace("Z", "+00:00"))
+
+    found = []
+    for secret in kube.list("Secret", "kube-system"):
+        if secret.get("type") != "bootstrap.kubernetes.io/token":
+            continue
+        data = {key: base64.b64decode(value).decode() for key, value in (secret.get("data") or {}).items()}
+        expires = data.get("expiration")
+        created = secret["metadata"]["creationTimestamp"]
+        found.append({
+            "name": secret["metadata"]["name"],
+            "description": data.get("description", ""),
+            "authenticates": data.get("usage-bootstrap-authentication") == "true",
+            "lifetime_s": (moment(expires) - moment(created)).total_seconds() if expires else None,
+        })  # fmt: skip
+    return found
 
 
 def wait_for(what: str, check, timeout: float, interval: float = 2.0):
@@ -691,6 +727,33 @@ class SiteChain:
         if result.returncode == 0:  # the join returns once the kubelet started; Ready comes with its CNI
             wait_for(f"{NEW_ROBOT} Ready", lambda: nodes(self.kube).get(NEW_ROBOT, {}).get("ready"), 300)
         self.figures["register_robot_s"] = round(time.monotonic() - started, 1)
+        return result
+
+    def site_with_robots_offline(self, robot: str, ghost: str, ghost_address: str) -> subprocess.CompletedProcess:
+        """Power ``robot`` (a machine that joined) off, add ``ghost`` to the inventory (a robot of the picking fleet at
+        an address where no machine answers: one that never joined), and run site.yml: it must succeed, name both
+        once, and make no Node for the ghost. Records ``site_run_with_robot_offline_ok`` and ``..._s``; the ghost's
+        inventory file is removed afterwards, the robot stays off."""
+        import yaml
+
+        self.lab.machines.power_off(robot)
+        ghost_file = self.lab.path("inventory", "offline-robot.yml")
+        variables = {**self.lab.machines.connection_vars(), "ansible_host": ghost_address, "kuberos_address": ghost_address,
+                     "kuberos_robot": ghost.split(".")[0], "kuberos_devices": ["camera", "gripper"],
+                     "kuberos_cpu": "1500m", "kuberos_memory": "8Gi", "kuberos_gpu": 0}  # fmt: skip
+        groups = {"all": {"children": {"robots": {"children": {"fleet_picking": {"hosts": {ghost: variables}}}}}}}
+        with open(ghost_file, "w", encoding="utf-8") as handle:
+            yaml.safe_dump(groups, handle, sort_keys=False)
+        try:
+            result = self._play("site.yml")
+        finally:
+            os.remove(ghost_file)
+        # each time the run says it, up to the next task (the YAML callback folds a long message over lines)
+        said = [part.split("TASK [")[0] for part in result.stdout.split("Robots left out (powered off or unreachable)")[1:]]
+        ok = result.returncode == 0 and len(said) == 1 and robot in said[0] and ghost in said[0]
+        self.figures["site_run_with_robot_offline_ok"] = ok and ghost.split(".")[0] not in str(sorted(nodes(self.kube)))
+        self.figures["site_run_with_robot_offline_s"] = round(result.seconds, 1)
+        result.said = said
         return result
 
     def _nodes_within(self, seconds: float) -> list[dict]:
