@@ -32,6 +32,7 @@ CONTROLLER_METRICS = {
     "kuberos_module_max_latency_ms",
     *(f"kuberos_reconcile_duration_seconds_{suffix}" for suffix in ("bucket", "sum", "count")),
     "kuberos_controller_leader",
+    "kuberos_apiserver_certificate_expiry_seconds",
 }
 
 

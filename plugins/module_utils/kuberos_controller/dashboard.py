@@ -40,6 +40,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controlle
     METRICS_PATH,
     KubernetesAuth,
 )
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.certificates import ApiServerCertificate
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_controller.dashboard_logs import (
     DASHBOARD_LINES,
     instance_log,
@@ -96,7 +97,8 @@ class Dashboard:
         self.parsed: dict[tuple[str, str], tuple[str, object, str]] = {}
         self.node_ready: dict[str, bool] = {}
         self.node_log: list[dict] = []
-        self.metrics = ControllerMetrics(self.current_view, self.leader)
+        certificate = ApiServerCertificate(getattr(controller, "api_client", None))  # its remaining lifetime
+        self.metrics = ControllerMetrics(self.current_view, self.leader, certificate)
         controller.metrics = self.metrics
         quiet = threading.Event()  # these stores never wake the controller's passes
         self.extra: tuple[Store, ...] = ()

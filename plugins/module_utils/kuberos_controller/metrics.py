@@ -14,6 +14,8 @@ and the histogram are kept by the controller as it acts. Names and labels are li
   ``kuberos_module_max_latency_ms{namespace, deployment, module}``
 - ``kuberos_reconcile_duration_seconds`` (histogram), ``kuberos_controller_leader{identity}``
 - ``kuberos_module_scaling_total{deployment, module, reason}``: scaling steps (docs/scaling.md)
+- ``kuberos_apiserver_certificate_expiry_seconds{endpoint}``: what the API server's serving certificate has left
+  (``certificates.py``)
 """
 
 from __future__ import annotations
@@ -134,10 +136,34 @@ class ViewCollector:
         yield leader
 
 
+class CertificateCollector:
+    """The API server certificate's remaining lifetime (``certificates.ApiServerCertificate``), read at scrape time."""
+
+    def __init__(self, certificate):
+        self.certificate = certificate
+
+    def describe(self):
+        return []
+
+    def collect(self):
+        from prometheus_client.core import GaugeMetricFamily
+
+        found = self.certificate.remaining()
+        if found is None:
+            return
+        expiry = GaugeMetricFamily(
+            "kuberos_apiserver_certificate_expiry_seconds",
+            "Seconds until the serving certificate of the API server the controller talks to expires.",
+            labels=("endpoint",),
+        )
+        expiry.add_metric((found[0],), found[1])
+        yield expiry
+
+
 class ControllerMetrics:
     """The registry of one controller process."""
 
-    def __init__(self, view_of, leader_of):
+    def __init__(self, view_of, leader_of, certificate=None):
         from prometheus_client import CollectorRegistry, Counter, Histogram  # imported when a controller runs one
 
         self.registry = CollectorRegistry(auto_describe=False)
@@ -157,6 +183,8 @@ class ControllerMetrics:
             ("deployment", "module", "reason"), registry=self.registry,
         )  # fmt: skip
         self.registry.register(ViewCollector(view_of, leader_of))
+        if certificate is not None:
+            self.registry.register(CertificateCollector(certificate))
 
     def scaled(self, deployment: str, module: str, reason: str) -> None:
         self.scaling.labels(deployment, module, reason).inc()
