@@ -23,6 +23,12 @@ def _located(error):
     return "" if str(error).startswith("lines") else "does not name lines"
 
 
+def _busy():
+    end = time.process_time() + fuzz_bounds.TIME_LIMIT_S + 0.1
+    while time.process_time() < end:  # work, not waiting: CPU time
+        pass
+
+
 def _grow():
     block = bytearray(300 * 1024 * 1024)
     block[::4096] = b"x" * len(block[::4096])  # touch every page: resident, not only reserved
@@ -41,7 +47,7 @@ def test_a_result_and_a_located_refusal_pass():
         pytest.param(_refuse("must be from 1 to 10000"), "does not name lines", id="unlocated"),
         pytest.param(_refuse("lines: bad \x1b[2J"), "a control character", id="control-character"),
         pytest.param(_refuse('lines: Traceback (most recent call last):\n  File "x"'), "Python's text", id="python-text"),
-        pytest.param(lambda: time.sleep(fuzz_bounds.TIME_LIMIT_S + 0.1), r"over 2\.0 s", id="slow"),
+        pytest.param(_busy, r"s of CPU \(over 2\.0 s\)", id="slow"),
     ],
 )
 def test_a_case_breaking_the_rule_fails(call, expected):
@@ -54,6 +60,12 @@ def test_a_case_over_the_memory_bound_fails(monkeypatch):
     monkeypatch.setattr(fuzz_bounds, "TIME_LIMIT_S", 60.0)
     with pytest.raises(AssertionError, match="MiB at peak"):
         run_case("bounds", _grow, KuberosError, _located)
+
+
+def test_a_case_that_waits_past_the_wall_bound_fails(monkeypatch):
+    monkeypatch.setattr(fuzz_bounds, "WALL_LIMIT_S", 0.3)
+    with pytest.raises(AssertionError, match=r"over 0\.3 s\)"):
+        run_case("bounds", lambda: time.sleep(0.5), KuberosError, _located)
 
 
 def test_a_hang_is_stopped(monkeypatch):
