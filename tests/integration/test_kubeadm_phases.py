@@ -262,6 +262,7 @@ set -e
 case "$1 $2" in
   "config validate") exec {real} "$@" ;;
   "token create") echo "kubeadm join {endpoint} --token {token} --discovery-token-ca-cert-hash {ca_hash} " ;;
+  "token delete") echo "$3" >> "{seen}/../deleted-tokens"; echo "bootstrap token \"$3\" deleted" ;;
   "init phase") printf '[upload-certs] Storing the certificates\\n[upload-certs] Using certificate key:\\n{key}\\n' ;;
   "init --config"|"join --config")
     dir=$(dirname "$3"); cp "$3" "{seen}/$(basename "$dir")-$1.yaml"
@@ -305,8 +306,14 @@ def test_roles_join_with_secrets_that_never_show(kubeadm, tmp_path):
     assert len(tasks["Create a bootstrap token for the joining workers"]) == 1
     assert len(tasks["Upload the control-plane certificates for the joining control planes"]) == 1
     assert all(o.get("censored") for o in tasks["Create a bootstrap token for the joining workers"].values())
+    # Each spent token deleted once the joins are done (the control planes', then the workers'), by its id only.
+    assert (tmp_path / "deleted-tokens").read_text().split() == ["k8sabc", "k8sabc"]
+    deletes = [*tasks["Delete the control planes' bootstrap token (spent)"].values(),
+               *tasks["Delete the workers' bootstrap token (spent)"].values()]  # fmt: skip
+    assert len(deletes) == 2 and all(o.get("censored") for o in deletes), deletes
 
     second, stats, _tasks = play(inventory, playbook, "--diff")
     assert second.returncode == 0, second.stdout[-4000:]
     assert all(s["changed"] == 0 and s["failures"] == 0 for s in stats.values()), stats
     assert len(list(seen.iterdir())) == len(HOSTS)  # nobody joined twice
+    assert len((tmp_path / "deleted-tokens").read_text().split()) == 2  # and no token was made or deleted again

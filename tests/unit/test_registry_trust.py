@@ -20,6 +20,7 @@ from hostile_registry import (
     manifest,
     manifest_basic,
     redirect_to,
+    send,
     token,
     trickle,
 )
@@ -126,6 +127,17 @@ def test_a_declared_length_over_the_cap_is_refused_before_reading(hostile):
     hostile.routes = {"/v2/": huge_declared(10**12)}
     with pytest.raises(api.RegistryError, match=r"answered with more than 4 MiB"):
         client(hostile).check()
+
+
+def test_a_head_of_a_large_blob_is_no_answer_over_the_cap(hostile):
+    """A HEAD's Content-Length is the size of the blob a GET would send: the lab pushes layers of hundreds of MiB."""
+
+    def large_blob(handler):
+        send(handler, 200, {"Content-Length": str(500 * 1024 * 1024), "Docker-Content-Digest": DIGEST})
+
+    hostile.routes = {"/v2/app/blobs/" + DIGEST: large_blob}
+    status, _headers, body = client(hostile)._request("HEAD", f"/v2/app/blobs/{DIGEST}", "app", ok=(200, 404))
+    assert (status, body) == (200, b"")
 
 
 @pytest.mark.parametrize("headers_too", [False, True], ids=["body", "headers"])

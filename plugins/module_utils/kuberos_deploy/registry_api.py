@@ -104,7 +104,8 @@ class RegistryApi:
             deadline.watch(connection.sock)
             connection.request(method, target, body=body, headers={"User-Agent": "kuberos", **headers})
             response = connection.getresponse()
-            data = read_capped(response, f"registry {self.address} ({host})", cap, deadline)
+            # a HEAD's Content-Length is the size of what a GET would send (a blob's): there is no body to read
+            data = b"" if method == "HEAD" else read_capped(response, f"registry {self.address} ({host})", cap, deadline)
             return response.status, response.headers, data
         except (OSError, http.client.HTTPException) as error:
             deadline.check()
