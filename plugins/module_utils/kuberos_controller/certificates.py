@@ -25,14 +25,13 @@ TIMEOUT_S = 5.0
 log = logging.getLogger("kuberos.controller")
 
 
-def serving_certificate_expiry(host: str, port: int, ca_file: str | None, now: float | None = None,
-                               timeout: float = TIMEOUT_S) -> float:  # fmt: skip
+def serving_certificate_expiry(host: str, port: int, ca_file: str | None, timeout: float = TIMEOUT_S) -> float:
     """Seconds until the certificate the TLS server at ``host:port`` presents expires (negative once expired),
     verified against ``ca_file`` (None: the system's CAs) and ``host``. OSError or ssl.SSLError on failure."""
     context = ssl.create_default_context(cafile=ca_file)
     with socket.create_connection((host, port), timeout=timeout) as raw, context.wrap_socket(raw, server_hostname=host) as tls:
         not_after = tls.getpeercert()["notAfter"]
-    return ssl.cert_time_to_seconds(not_after) - (time.time() if now is None else now)
+    return ssl.cert_time_to_seconds(not_after) - time.time()
 
 
 def endpoint_of(configuration) -> tuple[str, int, str | None]:

@@ -25,7 +25,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.api 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.bounded import (
     Deadline,
     ReadBoundExceeded,
-    read_capped,
+    exchange,
 )
 
 log = logging.getLogger("kuberos.controller.signals")
@@ -54,13 +54,11 @@ def _get(url: str, timeout: float) -> bytes:
     with Deadline(where, timeout) as deadline:
         connection = connection_class(parts.hostname, parts.port, timeout=timeout)
         try:
-            connection.connect()
-            deadline.watch(connection.sock)
-            connection.request("GET", parts.path + (f"?{parts.query}" if parts.query else ""))
-            response = connection.getresponse()
-            body = read_capped(response, where, MAX_ANSWER, deadline)
-            if response.status != 200:
-                raise OSError(f"{url}: HTTP {response.status}")
+            status, _headers, body = exchange(
+                connection, deadline, "GET", parts.path + (f"?{parts.query}" if parts.query else ""), where, MAX_ANSWER
+            )
+            if status != 200:
+                raise OSError(f"{url}: HTTP {status}")
             return body
         except ReadBoundExceeded as exc:
             raise OSError(str(exc)) from None

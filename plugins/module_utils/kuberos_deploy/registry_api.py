@@ -25,7 +25,7 @@ import urllib.parse
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_kube.bounded import (
     Deadline,
     ReadBoundExceeded,
-    read_capped,
+    exchange,
 )
 
 MANIFEST_TYPES = (
@@ -100,13 +100,8 @@ class RegistryApi:
         parts = urllib.parse.urlsplit(url)
         target = urllib.parse.urlunsplit(("", "", parts.path or "/", parts.query, ""))
         try:
-            connection.connect()
-            deadline.watch(connection.sock)
-            connection.request(method, target, body=body, headers={"User-Agent": "kuberos", **headers})
-            response = connection.getresponse()
-            # a HEAD's Content-Length is the size of what a GET would send (a blob's): there is no body to read
-            data = b"" if method == "HEAD" else read_capped(response, f"registry {self.address} ({host})", cap, deadline)
-            return response.status, response.headers, data
+            return exchange(connection, deadline, method, target, f"registry {self.address} ({host})", cap, body,
+                            {"User-Agent": "kuberos", **headers})  # fmt: skip
         except (OSError, http.client.HTTPException) as error:
             deadline.check()
             raise self._connection_error(error, image) from None
@@ -125,10 +120,10 @@ class RegistryApi:
         return RegistryError(f"registry {self.address}: cannot connect ({error}) (image {image})")
 
     def _exchange(self, method: str, url: str, image: str, headers: dict, body, cap: int, authorization: str | None,
-                  scope: set) -> tuple:  # fmt: skip
+                  scope: set, deadline_s: float | None = None) -> tuple:  # fmt: skip
         """``_send`` following redirects (at most ``MAX_REDIRECTS``): ``authorization`` goes only to an origin in
         ``scope``, never across a redirect to another origin; a redirect to plain http is refused unless insecure."""
-        with Deadline(f"registry {self.address}", self._deadline_s) as deadline:
+        with Deadline(f"registry {self.address}", deadline_s or self._deadline_s) as deadline:
             for _hop in range(MAX_REDIRECTS + 1):
                 sent = dict(headers)
                 if authorization and origin(url) in scope:
@@ -187,15 +182,9 @@ class RegistryApi:
         whose challenge names a bearer token service is answered once with a token from it."""
         if not url.startswith(("https://", "http://")):
             url = f"{self.scheme}://{self.address}{url}"
-        if deadline_s is not None:
-            saved, self._deadline_s = self._deadline_s, deadline_s
-        try:
-            status, answer, data = self._exchange(
-                method, url, image, dict(headers or {}), body, MAX_BODY, self._bearer or self._basic, {self._origin}
-            )
-        finally:
-            if deadline_s is not None:
-                self._deadline_s = saved
+        status, answer, data = self._exchange(
+            method, url, image, dict(headers or {}), body, MAX_BODY, self._bearer or self._basic, {self._origin}, deadline_s
+        )
         if status in ok:
             return status, answer, data
         challenge = (answer.get("WWW-Authenticate") or "") if status == 401 else ""

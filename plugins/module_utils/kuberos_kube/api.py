@@ -11,6 +11,7 @@ objects are built. A test gives ``Kube`` its own ``clients`` (objects with the t
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import threading
@@ -118,9 +119,11 @@ def bearer_clients(host: str, token: str, ca_cert: str | None = None) -> dict:
     return clients_of(client.ApiClient(configuration))
 
 
-def _bounded_pools(api) -> None:
-    """Make the connections of ``api`` register their sockets with the thread's active ``Deadline`` (a new socket
-    when it is opened, a kept-alive one when it is taken from the pool), so a deadline ends a blocked read at once."""
+@functools.cache
+def _watched_pools() -> dict:
+    """urllib3's pool classes whose connections register their sockets with the thread's active ``Deadline`` (a new
+    socket when it is opened, a kept-alive one when it is taken from the pool), so a deadline ends a blocked read at
+    once. Made once (urllib3 is imported only when a cluster is used)."""
     from urllib3.connection import HTTPConnection, HTTPSConnection
     from urllib3.connectionpool import HTTPConnectionPool, HTTPSConnectionPool
 
@@ -143,13 +146,17 @@ def _bounded_pools(api) -> None:
 
     http_conn = type("WatchedHTTPConnection", (Watched, HTTPConnection), {})
     https_conn = type("WatchedHTTPSConnection", (Watched, HTTPSConnection), {})
-    pools = {
+    return {
         "http": type("WatchedHTTPConnectionPool", (WatchedPool, HTTPConnectionPool), {"ConnectionCls": http_conn}),
         "https": type("WatchedHTTPSConnectionPool", (WatchedPool, HTTPSConnectionPool), {"ConnectionCls": https_conn}),
     }
+
+
+def _bounded_pools(api) -> None:
+    """The connections of ``api`` can be bounded (``_watched_pools``)."""
     manager = getattr(getattr(api, "rest_client", None), "pool_manager", None)
     if manager is not None and hasattr(manager, "pool_classes_by_scheme"):
-        manager.pool_classes_by_scheme = pools
+        manager.pool_classes_by_scheme = _watched_pools()
 
 
 def clients_of(api) -> dict:

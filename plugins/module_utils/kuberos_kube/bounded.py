@@ -88,6 +88,19 @@ def too_large(host: str, cap: int) -> ReadBoundExceeded:
     return ReadBoundExceeded(f"{host} answered with more than {mib(cap)} (the size limit of one answer)")
 
 
+def exchange(connection, deadline: Deadline, method: str, target: str, where: str, cap: int, body=None,
+             headers: dict | None = None) -> tuple:  # fmt: skip
+    """One request on an ``http.client`` connection under ``deadline``: connected, its socket watched, the answer
+    read up to ``cap`` (none for a HEAD: its Content-Length is what a GET would send, a blob's size). (status,
+    headers, body bytes)."""
+    connection.connect()
+    deadline.watch(connection.sock)
+    connection.request(method, target, body=body, headers=headers or {})
+    response = connection.getresponse()
+    data = b"" if method == "HEAD" else read_capped(response, where, cap, deadline)
+    return response.status, response.headers, data
+
+
 def read_capped(response, host: str, cap: int, deadline: Deadline | None = None) -> bytes:
     """The whole body of ``response`` (an http.client or urllib3 response), at most ``cap`` bytes: a declared
     Content-Length over the cap is refused before reading; else it is read in pieces up to the cap."""
