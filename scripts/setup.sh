@@ -49,9 +49,9 @@ command -v shellcheck >/dev/null 2>&1 || missing+=(shellcheck)  # ansible-test s
 # The local cluster's real nodes: CNI plugins, umoci and debootstrap to build the images they run, and the CNCF
 # distribution registry (docker-registry) that serves them to the nodes. The lab machines of the kubeadm and site
 # tests: systemd-nspawn (systemd-container) booting a debootstrap root, and a static busybox for their network checks;
-# sudo for site.yml's become on the SSH lab hosts.
+# sudo for site.yml's become on the SSH lab hosts; keepalived for the virtual IP's test (three namespaces hold it).
 for package in containerd runc conntrack socat iptables ethtool gpg containernetworking-plugins umoci debootstrap gcc libc6-dev \
-  docker-registry systemd-container busybox-static sudo; do
+  docker-registry systemd-container busybox-static sudo keepalived; do
   dpkg-query -W -f '${Status}' "$package" 2>/dev/null | grep -q 'install ok installed' || missing+=("$package")
 done
 if [ ${#missing[@]} -gt 0 ]; then

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import glob
 import json
 import os
 import re
@@ -59,6 +60,16 @@ CATALOG_BASE = yml(
         launch: ros2 launch planner planner.launch.py
     """
 )
+
+
+def wireguard_private_keys(root_pattern: str) -> list[str]:
+    """The WireGuard private keys under every root filesystem matching ``root_pattern`` (a glob): what the wireguard
+    role wrote to ``etc/wireguard/*.key``, to check none appears in an output."""
+    found = []
+    for path in sorted(glob.glob(os.path.join(root_pattern, "etc", "wireguard", "*.key"))):
+        with open(path, encoding="utf-8") as handle:
+            found.append(handle.read().strip())
+    return found
 
 
 def venv_tool(name: str) -> str:

@@ -29,6 +29,13 @@ options:
     description: Validate the resource model here (V(false) leaves it to the module the model is given to).
     type: bool
     default: true
+  without:
+    description:
+      - Hosts to leave out of the model, as if they were not in the inventory (C(playbooks/remove_node.yml)
+        passes the deployments without the host it removes).
+    type: list
+    elements: str
+    default: []
 """
 
 EXAMPLES = r"""
@@ -51,7 +58,10 @@ from ansible_collections.kuberos.platform.plugins.plugin_utils.plain_data import
 
 
 @reports_kuberos_errors
-def fleet_inventory(groups, hostvars, validate=True):
+def fleet_inventory(groups, hostvars, validate=True, without=()):
+    if without:
+        gone = set(without)
+        groups = {name: [h for h in hosts if h not in gone] for name, hosts in groups.items()}
     raw = plain(raw_inventory(groups, hostvars))
     if validate:
         load_inventory(raw)  # validates: every problem named by host and variable

@@ -108,6 +108,11 @@ options:
   certificate_key:
     description: The certificate key, or the output of C(kubeadm init phase upload-certs --upload-certs).
     type: str
+  init_host:
+    description:
+      - The control plane that runs C(kubeadm init). Unset, the first of O(control_planes); empty, none does (the
+        cluster exists, and every control plane without a node joins it, the first one too when it was rebuilt).
+    type: str
 """
 
 EXAMPLES = r"""
@@ -132,7 +137,7 @@ _value:
   type: dict
   contains:
     action:
-      description: C(init) (the first control plane), C(join-control-plane) or C(join-worker).
+      description: C(init) (O(init_host), by default the first control plane), C(join-control-plane) or C(join-worker).
       type: str
     node_name:
       description: The node name the host registers.
@@ -179,7 +184,9 @@ _SETTINGS = (
 
 
 @reports_kuberos_errors
-def kubeadm_config(raw, hostvars, host, control_planes, extra_labels=None, join_command=None, certificate_key=None, **settings):
+def kubeadm_config(
+    raw, hostvars, host, control_planes, extra_labels=None, join_command=None, certificate_key=None, init_host=None, **settings
+):
     unknown = sorted(set(settings) - {*_SETTINGS, "control_plane_schedulable"})
     if unknown:
         raise SpecError([Problem("kubeadm_config", name, "unknown option") for name in unknown], "invalid filter options")
@@ -203,6 +210,7 @@ def kubeadm_config(raw, hostvars, host, control_planes, extra_labels=None, join_
         extra_labels=plain(extra_labels or {}),
         join_command=None if join_command in (None, "") else str(join_command),
         certificate_key=None if certificate_key in (None, "") else str(certificate_key),
+        init_host=None if init_host is None else str(init_host),
     )
 
 

@@ -23,3 +23,8 @@ def host_address(variables, host: str) -> str:
         if variables.get(key) not in (None, ""):
             return str(variables[key])
     return str(host)
+
+
+def node_name(variables, host: str) -> str:
+    """A host's Kubernetes node name: its ``kuberos_node_name``, else its inventory name (as kubeadm_config names it)."""
+    return str(variables.get("kuberos_node_name") or host)

@@ -313,7 +313,7 @@ def replacements(real, namespace, instance, old):
     return [p for p in pods if p.metadata.name != old.metadata.name and pod_ready(p) and not p.metadata.deletion_timestamp]
 
 
-@pytest.mark.parametrize("how", ["container", "pod"])
+@pytest.mark.parametrize("how", [pytest.param("container", marks=pytest.mark.full), "pod"])
 def test_a_fleet_discovery_server_killed_and_restarted_and_who_still_meets_the_participants_that_ran_before(real, deployed, how):
     """A talker runs in an edge module's container; the fleet's first discovery server is killed (SIGKILL, as a crash):
     its container (the kubelet starts it again in the same pod, at the same address) or its pod (no grace: its
@@ -362,7 +362,7 @@ def test_a_fleet_discovery_server_killed_and_restarted_and_who_still_meets_the_p
     )
 
 
-@pytest.mark.parametrize("how", ["killed", "stopped", "stopped-together"])
+@pytest.mark.parametrize("how", ["killed", pytest.param("stopped", marks=pytest.mark.full), "stopped-together"])
 def test_the_fleets_discovery_servers_restarted_in_turn_a_module_started_after_meets_one_that_ran_before(real, deployed, how):
     """A talker starts in an edge module's container; then the fleet's two discovery server pods are deleted in turn,
     each replaced by its Deployment (a new pod address behind the same Service address) before the next goes:

@@ -240,18 +240,15 @@ def test_roles_leave_joined_hosts_alone_and_a_second_run_changes_nothing(kubeadm
 
     first, stats, tasks = play(inventory, playbook)
     assert first.returncode == 0, first.stdout[-4000:] + first.stderr[-2000:]
-    assert {h: s["changed"] for h, s in stats.items()} == {h: int(h == "edge-1") for h in HOSTS}  # edge-1 wrote its config
-    written = tmp_path / "etc" / "edge-1" / "kubeadm-init.yaml"
-    assert oct(written.stat().st_mode & 0o777) == "0o600"
-    assert yaml.safe_load_all(written.read_text()).__next__()["kind"] == "InitConfiguration"
-    assert tasks["Run kubeadm init"]["edge-1"].get("changed") is False  # creates: admin.conf
+    # The cluster exists (the control planes hold it), so nobody inits, nor joins: nothing changes, on the first
+    # control plane neither (no API server answers here, and none is needed: nobody joins).
+    assert all(s["changed"] == 0 for s in stats.values()), stats
+    assert all(outcome.get("skipped") for outcome in tasks["Run kubeadm init"].values()), tasks["Run kubeadm init"]
 
     second, stats, tasks = play(inventory, playbook)
     assert second.returncode == 0, second.stdout[-4000:]
     assert all(s["changed"] == 0 and s["failures"] == 0 for s in stats.values()), stats
-    assert sorted(_files(tmp_path / "etc")) == sorted(
-        [f"{h}/kubelet.conf" for h in HOSTS] + ["edge-1/admin.conf", "edge-1/kubeadm-init.yaml"]
-    )
+    assert sorted(_files(tmp_path / "etc")) == sorted([f"{h}/kubelet.conf" for h in HOSTS] + ["edge-1/admin.conf"])
 
 
 # A stand-in for the cluster side of kubeadm: `config validate` is the real kubeadm; `token create` and `init phase

@@ -11,17 +11,20 @@ The scenarios on lab machines (``kubeadm_init``, ``kubeadm_join``, ``cilium``) r
 taints, kube-proxy, pod traffic across nodes, a NetworkPolicy refusing, a second run changing nothing. They take about
 12 minutes of a two-core machine, so ``make test`` checks only their playbooks' syntax (``molecule syntax``) and
 ``make molecule`` (``KUBEROS_MACHINE_SCENARIOS=1``) runs them whole: the loop of someone working on one of those roles.
+``make test`` checks only the syntax of ``node_prereqs`` and ``wireguard`` too (about 5 minutes whole; marked ``full``:
+``make test-full`` runs them): the site chain runs both roles on every machine, its
+cloud VM's pods reach the site through the tunnel, its second ``site.yml`` changes nothing, and it checks that no
+WireGuard private key appears in ``site.yml``'s output.
 """
 
 from __future__ import annotations
 
-import glob
 import os
 import re
 import subprocess
 
 import pytest
-from helpers import ROOT, VENV_BIN
+from helpers import ROOT, VENV_BIN, wireguard_private_keys
 from sshlab import missing_requirements
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines
@@ -52,12 +55,7 @@ def molecule(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
 
 def lab_secrets(scenario: str) -> list[str]:
     """The private keys the scenario's roles generated on its hosts (WireGuard keys)."""
-    found = []
-    pattern = os.path.expanduser(f"~/.ansible/tmp/molecule.*.{scenario}/lab/hosts/*/etc/wireguard/*.key")
-    for path in glob.glob(pattern):
-        with open(path, encoding="utf-8") as handle:
-            found.append(handle.read().strip())
-    return found
+    return wireguard_private_keys(os.path.expanduser(f"~/.ansible/tmp/molecule.*.{scenario}/lab/hosts/*"))
 
 
 def uses_machines(scenario: str) -> bool:
@@ -67,6 +65,13 @@ def uses_machines(scenario: str) -> bool:
 
 
 MACHINE_SCENARIOS_ENV = "KUBEROS_MACHINE_SCENARIOS"
+
+
+# Scenarios on SSH hosts whose roles the site chain also runs on its seven machines, with the same outcomes checked
+# there (containerd and the kubelets' settings working on every node, pods across the tunnel, a second run changing
+# nothing, no WireGuard private key in the output): run whole they are marked full (make test-full), and make test
+# checks their syntax.
+CHAIN_COVERED = ("node_prereqs", "wireguard")
 
 
 def run_whole(scenario: str) -> bool:
@@ -79,7 +84,7 @@ def test_there_are_scenarios():
     assert all(uses_machines(name) for name in ("kubeadm_init", "kubeadm_join", "cilium")) and not uses_machines("wireguard")
 
 
-@pytest.mark.parametrize("scenario", [name for name in SCENARIOS if not run_whole(name)])
+@pytest.mark.parametrize("scenario", [name for name in SCENARIOS if not run_whole(name) or name in CHAIN_COVERED])
 def test_scenario_syntax(scenario):
     """A scenario not run whole here still parses: its converge playbook, its roles and their variables' names."""
     done = molecule("syntax", "-s", scenario, timeout=300)
@@ -88,7 +93,9 @@ def test_scenario_syntax(scenario):
     assert re.search(rf"{scenario} (➜|>) syntax: Executed: Successful", output), output[-3000:]
 
 
-@pytest.mark.parametrize("scenario", [name for name in SCENARIOS if run_whole(name)])
+@pytest.mark.parametrize(
+    "scenario", [pytest.param(n, marks=pytest.mark.full) if n in CHAIN_COVERED else n for n in SCENARIOS if run_whole(n)]
+)
 def test_scenario(scenario):
     problems = machines.missing_requirements() if uses_machines(scenario) else missing_requirements()
     if problems:

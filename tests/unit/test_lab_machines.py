@@ -23,6 +23,19 @@ def test_kubeadm_images_are_named_as_kubeadm_names_them():
     assert mirror["coredns"] == "mirror.site.example:5000/k8s/coredns:v1.14.7"
 
 
+def test_the_etcd_image_carries_etcds_own_tools_as_upstreams_does():
+    """registry.k8s.io/etcd holds etcdctl and etcdutl beside etcd; so does the lab's (the backup runs etcdctl in the
+    pod, the restore etcdutl from the image)."""
+    built = {name: f"/cache/bin/{name}-v3.5.35" for name in ("etcd", "etcdctl", "etcdutl")}
+    assert kubeadm_images.image_files("etcd", built) == [
+        ("/usr/local/bin/etcd", "/cache/bin/etcd-v3.5.35"),
+        ("/usr/local/bin/etcdctl", "/cache/bin/etcdctl-v3.5.35"),
+        ("/usr/local/bin/etcdutl", "/cache/bin/etcdutl-v3.5.35"),
+    ]
+    assert kubeadm_images.image_files("coredns", {"coredns": "/c"}) == [("/coredns", "/c")]
+    assert kubeadm_images.image_files("kube-apiserver", {"kube-apiserver": "/a"}) == [("/usr/local/bin/kube-apiserver", "/a")]
+
+
 def test_pinned_versions_are_the_local_clusters():
     versions = kubeadm_images.pinned_versions()
     assert set(versions) == {"kubernetes", "etcd", "coredns"}
@@ -75,3 +88,12 @@ def test_image_files_never_land_outside_the_image(tmp_path):
     assert kubeadm_images.inside(str(rootfs), "/usr/bin/cilium-agent") == str(rootfs / "usr" / "bin" / "cilium-agent")
     with pytest.raises(ImageBuildError, match="outside the image"):
         kubeadm_images.inside(str(rootfs), "/etc/service/available/felix/run")
+
+
+def test_the_longest_outage_runs_from_the_first_unanswered_sample_to_the_next_answer():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.site_operations import longest_outage
+
+    assert longest_outage([]) == 0.0 and longest_outage([(0.0, True), (0.5, True)]) == 0.0
+    samples = [(0.0, True), (0.5, False), (1.0, False), (1.5, True), (2.0, False), (2.5, True)]
+    assert longest_outage(samples) == 1.0  # 0.5 -> 1.5; the second outage is 0.5
+    assert longest_outage([(0.0, True), (0.5, False), (3.0, False)]) == 2.5  # never answered again: to the last sample

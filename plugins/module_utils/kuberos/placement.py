@@ -127,6 +127,14 @@ class Placement:
         where.update({r.name: r.node for r in self.robot_servers})
         return where
 
+    def on_node(self, node: str) -> list[str]:
+        """What this placement runs on ``node``, by name: module instances (of this cluster), the fleets' discovery
+        and bridge servers, the robots' own servers. Removing the node needs a pass of every deployment whose
+        placement names one (a fleet's servers are in every record of the fleet)."""
+        names = [name for name, where in self.pinned().items() if where == node]
+        names += [b.name for servers in self.bridges.values() for b in servers if b.node == node]
+        return sorted(set(names))
+
     def to_dict(self) -> dict:
         return {
             "apiVersion": PLACEMENT_API_VERSION,

@@ -528,9 +528,13 @@ def kubeadm_config(
     extra_labels: dict | None = None,
     join_command: str | None = None,
     certificate_key: str | None = None,
+    init_host: str | None = None,
 ) -> dict:
     """What kubeadm needs on ``host``: the action (init, join-control-plane, join-worker), the documents and
     their YAML, the labels the kubelet sets and those left to the API, the taints, the API endpoint.
+
+    ``init_host`` is the control plane that runs ``kubeadm init`` (None: the first of ``control_plane_hosts``; '': none,
+    the cluster exists and every control plane joins it, the first one too when it was rebuilt).
 
     ``node_names`` maps inventory hosts to node names, ``addresses`` maps hosts to ``{address, vpn_address}``;
     ``settings`` holds the keyword arguments of ``cluster_settings``.
@@ -579,7 +583,7 @@ def kubeadm_config(
         raise SpecError(problems, "invalid kubeadm settings")
     site = cluster_settings(control_planes, **(settings or {}))
     self_labels, refused = kubelet_labels(wanted)
-    if host == control_plane_hosts[0]:
+    if host == (control_plane_hosts[0] if init_host is None else init_host):
         action, documents, secrets = INIT, init_documents(machine, site, self_labels), JoinSecrets()
     else:
         secrets = join_secrets(join_command, certificate_key)

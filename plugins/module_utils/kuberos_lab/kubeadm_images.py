@@ -12,17 +12,24 @@ One image per program, one layer each, as upstream's distroless images are made:
 ``<repository>/kube-apiserver``, ``kube-controller-manager``, ``kube-scheduler`` (tag: the Kubernetes version)
     the static program at ``/usr/local/bin/<name>`` (kubeadm's static pods run ``<name>`` from PATH).
 ``<repository>/etcd:<etcd version>-0``
-    ``/usr/local/bin/etcd``; the tag is etcd's version in kubeadm's form (``3.5.35-0``). kubeadm's default etcd for
-    Kubernetes 1.34 is 3.6; the project builds etcd 3.5, which Kubernetes 1.34 supports, so the site's
-    ClusterConfiguration names it (``kuberos_etcd_image_tag``).
+    ``/usr/local/bin/etcd`` with etcd's own tools beside it, ``etcdctl`` and ``etcdutl`` (as upstream's image: the
+    site's backup runs etcdctl inside the etcd pod, its restore etcdutl from this image); the tag is etcd's version
+    in kubeadm's form (``3.5.35-0``). kubeadm's default etcd for Kubernetes 1.34 is 3.6; the project builds etcd
+    3.5, which Kubernetes 1.34 supports, so the site's ClusterConfiguration names it (``kuberos_etcd_image_tag``).
 ``<repository>/kube-proxy``
     ``/usr/local/bin/kube-proxy`` plus this machine's ``iptables`` (the nft and legacy variants, with
     iptables-restore and -save), ``conntrack`` and the shared libraries they load, found with ``ldd``: what
     upstream's distroless-iptables base holds for kube-proxy.
 ``<repository>/coredns/coredns:<CoreDNS version>`` (``<repository>/coredns:<version>`` for a mirror)
     ``/coredns``, the entrypoint, as the published image; kubeadm's Deployment passes ``-conf``.
-``<repository>/pause:3.10.1``
-    The project's pause image (``local_images``), under the name kubeadm and the sandbox setting use.
+``<repository>/pause:<tag>``
+    The project's pause image (``local_images``), under the name kubeadm of that Kubernetes minor uses
+    (`PAUSE_TAGS`: ``3.10.1`` for 1.34, ``3.10`` for 1.33; the sandbox setting's default is 1.34's).
+
+The pinned Kubernetes version is the default; an older one (``--kubernetes-version``, `build_all`'s
+``kubernetes_version``) builds the control plane's and kube-proxy's images from that version's programs (built with
+``KUBERNETES_VERSION=<version> roles/local_cluster/files/build-binaries.sh``) with the same etcd and CoreDNS: a lab
+site at that version that an upgrade then takes to the pinned one (`machines.site_vars`).
 
 Each archive is keyed by the recipe and the bytes it holds, cached under ``<cache_dir>/images/kubeadm/``; builds
 happen in ``tmp/`` and are renamed into place. Needs root (root-owned files), umoci and ldd.
@@ -47,6 +54,9 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab impor
 RECIPE_VERSION = "1"
 DEFAULT_REPOSITORY = "registry.k8s.io"
 PAUSE_TAG = "3.10.1"  # kubeadm 1.34's sandbox image
+# The pause image kubeadm of each Kubernetes minor asks for (`kubeadm config images list`); kubeadm's preflight pulls
+# it, so a lab site at that version needs it under this name.
+PAUSE_TAGS = {"1.33": "3.10", "1.34": PAUSE_TAG}
 PATH_ENV = "PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
 # What kube-proxy's iptables mode runs (upstream's distroless-iptables ships these).
 IPTABLES_PROGRAMS = ("/usr/sbin/xtables-nft-multi", "/usr/sbin/xtables-legacy-multi", "/usr/sbin/conntrack")
@@ -82,16 +92,47 @@ def coredns_repository(repository: str) -> str:
     return f"{repository}/coredns/coredns" if repository == DEFAULT_REPOSITORY else f"{repository}/coredns"
 
 
+def kubernetes_minor(kubernetes_version: str) -> str:
+    """``v1.33.7`` -> ``1.33``."""
+    match = re.fullmatch(r"v(1\.\d+)\.\d+", kubernetes_version)
+    if not match:
+        raise li.ImageBuildError(f"a Kubernetes release looks like v1.34.4, got {kubernetes_version!r}")
+    return match.group(1)
+
+
+def pause_tag(kubernetes_version: str) -> str:
+    """The pause image's tag kubeadm of ``kubernetes_version`` names (PAUSE_TAGS)."""
+    minor = kubernetes_minor(kubernetes_version)
+    if minor not in PAUSE_TAGS:
+        raise li.ImageBuildError(
+            f"which pause image kubeadm {minor} asks for is not known here: add it to kubeadm_images.PAUSE_TAGS "
+            f"(kubeadm config images list --kubernetes-version {kubernetes_version})"
+        )
+    return PAUSE_TAGS[minor]
+
+
 def references(repository: str, kubernetes_version: str, etcd_version: str, coredns_version: str) -> dict[str, str]:
-    """{program: image reference} for the images kubeadm runs, with the project's etcd and CoreDNS versions."""
+    """{program: image reference} for the images kubeadm of ``kubernetes_version`` runs, with the project's etcd and
+    CoreDNS versions."""
     found = {
         name: f"{repository}/{name}:{kubernetes_version}"
         for name in ("kube-apiserver", "kube-controller-manager", "kube-scheduler", "kube-proxy")
     }
     found["etcd"] = f"{repository}/etcd:{etcd_tag(etcd_version)}"
     found["coredns"] = f"{coredns_repository(repository)}:{coredns_version}"
-    found["pause"] = f"{repository}/pause:{PAUSE_TAG}"
+    found["pause"] = f"{repository}/pause:{pause_tag(kubernetes_version)}"
     return found
+
+
+# The tools an image carries beside its program, each at /usr/local/bin/<tool>, built at the program's version.
+IMAGE_TOOLS = {"etcd": ("etcdctl", "etcdutl")}
+
+
+def image_files(program: str, binaries: dict[str, str]) -> list[tuple[str, str]]:
+    """(path in the image, built program here) of ``program``'s image: the program (``/coredns`` for CoreDNS, as the
+    published image; ``/usr/local/bin/<name>`` for the others) and its tools (IMAGE_TOOLS)."""
+    path = "/coredns" if program == "coredns" else f"/usr/local/bin/{program}"
+    return [(path, binaries[program]), *((f"/usr/local/bin/{tool}", binaries[tool]) for tool in IMAGE_TOOLS.get(program, ()))]
 
 
 def _libraries(program: str) -> list[str]:
@@ -188,7 +229,7 @@ def build(
     log=print,
 ) -> dict[str, str]:
     """Build (or reuse) every image kubeadm runs: {reference: OCI archive}. ``binaries``: program -> path of the
-    built program (kube-apiserver, kube-controller-manager, kube-scheduler, kube-proxy, etcd, coredns);
+    built program (kube-apiserver, kube-controller-manager, kube-scheduler, kube-proxy, etcd, etcdctl, etcdutl, coredns);
     ``pause_archive``: the project's pause image (local_images), renamed."""
     li._require_programs("umoci", "ldd")
     images = os.path.join(os.path.abspath(os.path.expanduser(cache_dir)), "images")
@@ -205,9 +246,7 @@ def build(
             if program == "pause":
                 key = _content_key(reference, _file_digest(pause_archive))
             else:
-                source = binaries[program]
-                inside = "/coredns" if program == "coredns" else f"/usr/local/bin/{program}"
-                files = [(inside, source)]
+                files = image_files(program, binaries)
                 if program == "kube-proxy":
                     files += _iptables_files()
                     links = {f"/usr/sbin/{name}": target for name, target in IPTABLES_LINKS.items()}
@@ -301,24 +340,41 @@ def pinned_versions() -> dict[str, str]:
     return found
 
 
-def build_all(cache_dir: str, repository: str = DEFAULT_REPOSITORY, log=print) -> dict[str, str]:
-    """Every image kubeadm runs at the pinned versions, from the built programs in ``<cache_dir>/bin``."""
+def build_all(
+    cache_dir: str, repository: str = DEFAULT_REPOSITORY, log=print, kubernetes_version: str | None = None
+) -> dict[str, str]:
+    """Every image kubeadm runs, from the built programs in ``<cache_dir>/bin``: at the pinned versions, or with
+    ``kubernetes_version`` the control plane's and kube-proxy's at that release (etcd and CoreDNS stay the pinned
+    ones, which the lab's site names whatever its Kubernetes version)."""
     versions = pinned_versions()
+    kubernetes = kubernetes_version or versions["kubernetes"]
+    pause_tag(kubernetes)  # a version whose pause image is unknown fails before anything is built
     cache = os.path.abspath(os.path.expanduser(cache_dir))
     binaries = {
-        name: os.path.join(cache, "bin", f"{name}-{versions['kubernetes']}")
+        name: os.path.join(cache, "bin", f"{name}-{kubernetes}")
         for name in ("kube-apiserver", "kube-controller-manager", "kube-scheduler", "kube-proxy")
     }
-    binaries["etcd"] = os.path.join(cache, "bin", f"etcd-{versions['etcd']}")
+    for name in ("etcd", *IMAGE_TOOLS["etcd"]):
+        binaries[name] = os.path.join(cache, "bin", f"{name}-{versions['etcd']}")
     binaries["coredns"] = os.path.join(cache, "bin", f"coredns-{versions['coredns']}")
     missing = [path for path in binaries.values() if not os.path.exists(path)]
     if missing:
-        raise li.ImageBuildError(f"not built yet: {', '.join(missing)} (make binaries WITH_NODES=1)")
+        hint = "make binaries WITH_NODES=1" if kubernetes == versions["kubernetes"] else build_command(kubernetes)
+        raise li.ImageBuildError(f"not built yet: {', '.join(missing)} ({hint})")
     pause_archive = li.build_pause(REPO_ROOT, cache, log=log)
     return build(
-        cache, binaries, pause_archive, repository=repository, kubernetes_version=versions["kubernetes"],
+        cache, binaries, pause_archive, repository=repository, kubernetes_version=kubernetes,
         etcd_version=versions["etcd"], coredns_version=versions["coredns"], log=log,
     )  # fmt: skip
+
+
+def build_command(kubernetes_version: str) -> str:
+    """How the programs a lab site at ``kubernetes_version`` needs are built: those of ``make binaries WITH_KUBEADM=1
+    WITH_NODES=1`` at that release."""
+    return (
+        f"KUBERNETES_VERSION={kubernetes_version} SKIP_KUBECTL=1 SKIP_KUBEADM=0 SKIP_NODES=0 "
+        "roles/local_cluster/files/build-binaries.sh"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -326,10 +382,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
     parser.add_argument("--repository", default=DEFAULT_REPOSITORY)
     parser.add_argument("--json", action="store_true", help="print {reference: archive} as JSON")
+    parser.add_argument("--kubernetes-version", help="an older release than the pinned one (its programs built)")
     args = parser.parse_args(argv)
     log = (lambda message: print(message, file=sys.stderr)) if args.json else print
     try:
-        found = build_all(args.cache_dir, args.repository, log=log)
+        found = build_all(args.cache_dir, args.repository, log=log, kubernetes_version=args.kubernetes_version)
     except li.ImageBuildError as error:
         print(f"kubeadm images: {error}", file=sys.stderr)
         return 2

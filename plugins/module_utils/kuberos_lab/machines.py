@@ -52,6 +52,7 @@ import contextlib
 import fcntl
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -596,6 +597,29 @@ class MachineLab:
                 os.kill(machine.leader, signal.SIGKILL)  # the machine's PID namespace ends with its PID 1
         self._stop(machine)
 
+    def rebuild(self, name: str, log=print) -> None:
+        """Replace one machine by a new one of the same name and address, as a failed host rebuilt from a bare disk:
+        its power cut, its disk (the overlay's upper layer, containerd's state) and its network stack (interfaces,
+        addresses, netfilter rules: a new kernel's) thrown away, booted fresh from the image, with a new SSH host key
+        (known_hosts rewritten)."""
+        machine = self.machines[name]
+        self.power_off(name)
+        self._unmount(name)
+        self._remove_cgroups(name)
+        for part in ("upper", "work", "containerd"):
+            _remove_tree(self.home(name, part))
+        run("ip", "netns", "delete", self.netns(name), check=False)
+        run("ip", "link", "delete", self.veth(name), check=False)
+        self._prepare(machine, build_image(self.cache_dir or "~/.cache/kuberos", log))
+        self._routes()
+        self.save()
+        self._boot(machine)
+        self.save()
+        self._wait_booted(machine, time.monotonic() + BOOT_TIMEOUT)
+        self.save()
+        self.write_known_hosts()
+        log(f"lab machines: {name} rebuilt ({machine.address})")
+
     def exec(self, name: str, *command: str, check: bool = True, timeout: float = 60) -> subprocess.CompletedProcess:
         """Run a command inside a machine (all its namespaces), as root."""
         machine = self.machines[name]
@@ -697,26 +721,64 @@ def _port_open(address: str, port: int) -> bool:
     return False
 
 
-def site_vars(cache_dir: str, log=print) -> dict:
+def _release(version: str) -> tuple[int, ...]:
+    """``v1.33.7`` -> (1, 33, 7)."""
+    match = re.fullmatch(r"v(\d+)\.(\d+)\.(\d+)", version)
+    if not match:
+        raise MachineError(f"a Kubernetes release looks like v1.34.4, got {version!r}")
+    return tuple(int(part) for part in match.groups())
+
+
+def kubernetes_programs(cache: str, version: str, names: tuple[str, ...] = ("kubelet", "kubeadm")) -> dict[str, str]:
+    """{program: path} of the built ``names`` at ``version`` in ``<cache>/bin``; MachineError naming the build that
+    makes them when one is missing."""
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import kubeadm_images
+
+    found = {name: os.path.join(cache, "bin", f"{name}-{version}") for name in names}
+    missing = [path for path in found.values() if not os.path.exists(path)]
+    if missing:
+        pinned = kubeadm_images.pinned_versions()["kubernetes"]
+        hint = "make binaries WITH_KUBEADM=1 WITH_NODES=1" if version == pinned else kubeadm_images.build_command(version)
+        raise MachineError(f"not built yet: {', '.join(missing)} ({hint})")
+    return found
+
+
+def site_vars(cache_dir: str, log=print, kubernetes_version: str | None = None) -> dict:
     """The lab's choices for the cluster setup roles, as inventory variables (each a documented role variable a real
     site may set too): the cgroupfs driver (systemd in a machine does not own the cgroup controllers the lab mounts),
     kubelet and kubeadm from the programs built here instead of the package repository, the images kubeadm runs
     preloaded from archives built here (with Cilium's, built from its Go module, and a busybox image for network
-    checks), Cilium as the pod network (``kuberos_cni``), and the etcd and CoreDNS versions the project builds."""
+    checks), Cilium as the pod network (``kuberos_cni``), and the etcd and CoreDNS versions the project builds.
+
+    ``kubernetes_version`` (None: the pinned one) builds the site at an older release, to be upgraded to the pinned
+    one: its kubelet and kubeadm, and the images of both releases (kubeadm's images at the pinned version are preloaded
+    or mirrored too, as a site stages them before an upgrade); ``kuberos_lab_upgrade_binaries`` then names the pinned
+    release's kubelet and kubeadm (and kubectl when built) for the upgrade to install. etcd and CoreDNS stay the
+    pinned ones, which both releases support. The sandbox image stays the role's default (1.34's pause 3.10.1, built
+    too): kubeadm 1.33 asks for pause 3.10 (preloaded as well) and only warns that the runtime's differs."""
     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import cilium_images, kubeadm_images
 
     versions = kubeadm_images.pinned_versions()
+    kubernetes = kubernetes_version or versions["kubernetes"]
+    older = kubernetes != versions["kubernetes"]
+    if older and _release(kubernetes) >= _release(versions["kubernetes"]):
+        raise MachineError(f"the lab builds a site at an older release than the pinned {versions['kubernetes']}: {kubernetes}")
     cache = os.path.abspath(os.path.expanduser(cache_dir))
-    images = kubeadm_images.build_all(cache, log=log)
+    binaries = kubernetes_programs(cache, kubernetes)
+    upgrade_binaries = {}
+    if older:
+        upgrade_binaries = kubernetes_programs(cache, versions["kubernetes"])
+        kubectl = os.path.join(cache, "bin", f"kubectl-{versions['kubernetes']}")
+        if os.path.exists(kubectl):
+            upgrade_binaries["kubectl"] = kubectl
+    images = kubeadm_images.build_all(cache, log=log, kubernetes_version=kubernetes if older else None)
+    if older:
+        images.update(kubeadm_images.build_all(cache, log=log))  # what the upgrade to the pinned release runs
     images.update(cilium_images.build(cache, log=log))
     toolbox, archive = kubeadm_images.build_toolbox(cache, log=log)
     images[toolbox] = archive
-    binaries = {name: os.path.join(cache, "bin", f"{name}-{versions['kubernetes']}") for name in ("kubelet", "kubeadm")}
-    missing = [path for path in binaries.values() if not os.path.exists(path)]
-    if missing:
-        raise MachineError(f"not built yet: {', '.join(missing)} (make binaries WITH_KUBEADM=1 WITH_NODES=1)")
-    return {
-        "kuberos_kubernetes_version": versions["kubernetes"],
+    chosen = {
+        "kuberos_kubernetes_version": kubernetes,
         "kuberos_cgroup_driver": "cgroupfs",
         "kuberos_etcd_image_tag": kubeadm_images.etcd_tag(versions["etcd"]),
         "kuberos_coredns_image_tag": versions["coredns"],
@@ -737,6 +799,9 @@ def site_vars(cache_dir: str, log=print) -> dict:
         "node_prereqs_load_modules": False,  # the machines share this kernel: its modules are not theirs to load
         "node_prereqs_apt_update_cache": False,  # no mirror: the machine image holds the packages
     }
+    if older:
+        chosen["kuberos_lab_upgrade_binaries"] = upgrade_binaries  # the pinned release's, for the upgrade's nodes
+    return chosen
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -763,6 +828,7 @@ def main(argv: list[str] | None = None) -> int:
     up.add_argument("--subnet", default="10.213.0", help="the lab's /24, as its first three octets")
     up.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
     up.add_argument("--site-vars", action="store_true", help="also build the images kubeadm runs and write DIR/site_vars.yml")
+    up.add_argument("--kubernetes-version", help="with --site-vars: an older release than the pinned one (site_vars)")
     up.add_argument(
         "--mirror", action="store_true",
         help="with --site-vars: serve those images from a registry on the lab's bridge, the machines' mirror, instead of "
@@ -774,6 +840,7 @@ def main(argv: list[str] | None = None) -> int:
         "site-images", help="build (or reuse) the images the machines' cluster runs (kubeadm's, Cilium's); print them"
     )
     images.add_argument("--cache-dir", default=os.environ.get("KUBEROS_CACHE_DIR") or "~/.cache/kuberos")
+    images.add_argument("--kubernetes-version", help="an older release than the pinned one, and the pinned one's (site_vars)")
     down = sub.add_parser("down", help="power off, remove mounts, cgroups, namespaces and links")
     down.add_argument("--state", required=True)
     down.add_argument("--remove", action="store_true", help="also delete the machines' files and the state")
@@ -782,7 +849,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "root":
             print(build_image(args.cache_dir))
         elif args.command == "site-images":
-            print("\n".join(site_vars(args.cache_dir)["node_prereqs_image_archives"]))
+            chosen = site_vars(args.cache_dir, kubernetes_version=args.kubernetes_version)
+            print("\n".join(chosen["node_prereqs_image_archives"]))
         elif args.command == "up":
             specs = []
             for text in args.machine:
@@ -799,7 +867,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.site_vars:
                 import yaml
 
-                chosen = site_vars(args.cache_dir)
+                chosen = site_vars(args.cache_dir, kubernetes_version=args.kubernetes_version)
                 if args.mirror:
                     from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import site_lab
 

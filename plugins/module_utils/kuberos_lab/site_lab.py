@@ -25,6 +25,14 @@ resolver here), the site network behind the hub, and the site's registry mirror:
 (`kuberos_lab.registry`, TLS, pulls without credentials as from a site's internal mirror) serving the images the
 specs name (``ghcr.io/kuberos/...``, ``ros:jazzy-ros-base``) for ``ghcr.io`` and ``docker.io``.
 
+``KUBEROS_SITE_KUBERNETES_VERSION`` (unset or empty: the pinned release, ``local_cluster_kubernetes_version``) builds
+the site at an older Kubernetes release, to test an upgrade to the pinned one on it: its programs built first with
+``KUBERNETES_VERSION=<release> SKIP_KUBECTL=1 SKIP_KUBEADM=0 SKIP_NODES=0 roles/local_cluster/files/build-binaries.sh``.
+The site's ``kuberos_kubernetes_version``, kubelet and kubeadm are that release's; the mirror serves kubeadm's images
+of both releases (the older one's and the pinned one's, with pause 3.10 and 3.10.1), and the inventory's
+``kuberos_lab_upgrade_binaries`` names the pinned release's kubelet and kubeadm (`machines.site_vars`). A 1.33 release
+to use here: v1.33.13 (the Go module proxy here does not serve seven of v1.33.7's staging modules at v0.33.7).
+
     python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.site_lab up --state DIR
     ansible-playbook playbooks/site.yml -i DIR/inventory
     python -m ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.site_lab down --state DIR
@@ -69,6 +77,7 @@ CONTROL_PLANES = ("edge-a", "edge-b", "edge-c")  # machine and node names
 CLOUD_VM = "gpu-vm-1"  # joins with its address inside the WireGuard tunnel as node IP (SiteLab.vpn_address)
 UNUSED_ADDRESS = f"{SUBNET}.99"  # no lab machine has it: a robot there never answers
 NEW_ROBOT = "fetch-03"  # its inventory name, machine and node name: register_robot.yml adds it to the inventory
+KUBERNETES_VERSION_ENV = "KUBEROS_SITE_KUBERNETES_VERSION"  # an older release to build the site at (module docstring)
 RECAP = re.compile(r"^(\S+)\s+: ok=(\d+)\s+changed=(\d+)\s+unreachable=(\d+)\s+failed=(\d+)", re.MULTILINE)
 
 
@@ -101,6 +110,11 @@ def _host_entries(group: dict):
     for child in (group.get("children") or {}).values():
         if isinstance(child, dict):
             yield from _host_entries(child)
+
+
+def site_kubernetes_version() -> str | None:
+    """The Kubernetes release the site is built at: KUBEROS_SITE_KUBERNETES_VERSION, None (the pinned one) unset."""
+    return os.environ.get(KUBERNETES_VERSION_ENV, "").strip() or None
 
 
 class SiteLab:
@@ -156,8 +170,9 @@ class SiteLab:
         vpn_network = self._sample_var("wireguard_network")
         self.machines.routes[vpn_network] = MACHINES[hub][0]  # this machine is the site's router
         self.machines.up(specs, log=self.log)
-        site_vars = lab_machines.site_vars(self.cache_dir, log=self.log)
-        # The site pulls what each node runs from its mirror, instead of every archive copied to every machine.
+        site_vars = lab_machines.site_vars(self.cache_dir, log=self.log, kubernetes_version=site_kubernetes_version())
+        # The site pulls what each node runs from its mirror, instead of every archive copied to every machine (with
+        # an older release: both releases' images, those of the upgrade too).
         archives = site_vars.pop("node_prereqs_image_archives")
         self.write_inventory(site_vars, self._mirror(archives))
         return site_vars

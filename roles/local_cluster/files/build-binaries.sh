@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Build a local Kubernetes control plane (kube-apiserver, kube-controller-manager,
-# kube-scheduler, kubectl), etcd and kwok, and for real nodes kubelet, kube-proxy and
-# CoreDNS, from their Go modules, with the ordinary
+# kube-scheduler, kubectl), etcd with its tools (etcdctl, etcdutl) and kwok, and for real
+# nodes kubelet, kube-proxy and CoreDNS, from their Go modules, with the ordinary
 # `go` client and the Go module proxy only (no release downloads, no images).
 #
 # Binaries land in a cache outside the repository, keyed by version:
@@ -22,7 +22,7 @@ usage() {
 Usage: $SCRIPT_NAME [--print-paths] [--help]
 
 Build kube-apiserver, kube-controller-manager, kube-scheduler, kubectl, kubeadm,
-etcd and kwok (and kubelet, kube-proxy and CoreDNS for real nodes) from the Go module proxy into a version-keyed cache. Programs already in the
+etcd, etcdctl, etcdutl and kwok (and kubelet, kube-proxy and CoreDNS for real nodes) from the Go module proxy into a version-keyed cache. Programs already in the
 cache (and answering --version with the expected version) are not rebuilt.
 
 Options:
@@ -34,6 +34,7 @@ Options:
 Environment (defaults in brackets):
   KUBERNETES_VERSION   k8s.io/kubernetes release              [v1.34.4]
   ETCD_VERSION         go.etcd.io/etcd/server/v3 release      [v3.5.35]
+                       (etcdctl and etcdutl: go.etcd.io/etcd/{etcdctl,etcdutl}/v3 at the same version)
   KWOK_VERSION         sigs.k8s.io/kwok release               [v0.8.0]
   COREDNS_VERSION      github.com/coredns/coredns release     [v1.14.7]
   SKIP_KUBECTL=1       do not build (or require) kubectl      [0]
@@ -83,12 +84,15 @@ K8S_PROGRAMS=(kube-apiserver kube-controller-manager kube-scheduler)
 [[ $SKIP_KUBECTL == 1 ]] || K8S_PROGRAMS+=(kubectl)
 [[ $SKIP_KUBEADM == 1 ]] || K8S_PROGRAMS+=(kubeadm)
 [[ $SKIP_NODES == 1 ]] || K8S_PROGRAMS+=(kubelet kube-proxy)
-PROGRAMS=("${K8S_PROGRAMS[@]}" etcd kwok)
+# etcd's own tools go wherever etcd goes: upstream's etcd image carries them, and so does the lab's (the site's
+# backup, restore and health checks run them inside the etcd pod or from its image).
+ETCD_PROGRAMS=(etcd etcdctl etcdutl)
+PROGRAMS=("${K8S_PROGRAMS[@]}" "${ETCD_PROGRAMS[@]}" kwok)
 [[ $SKIP_NODES == 1 ]] || PROGRAMS+=(coredns)
 
 version_of() {
   case $1 in
-    etcd) echo "$ETCD_VERSION" ;;
+    etcd | etcdctl | etcdutl) echo "$ETCD_VERSION" ;;
     kwok) echo "$KWOK_VERSION" ;;
     coredns) echo "$COREDNS_VERSION" ;;
     *) echo "$KUBERNETES_VERSION" ;;
@@ -107,6 +111,8 @@ binary_ok() {
              want="$KUBERNETES_VERSION" ;;
     etcd) out=$(timeout 60 "$file" --version 2>&1) || return 1
           want="etcd Version: ${ETCD_VERSION#v}" ;;
+    etcdctl | etcdutl) out=$(timeout 60 "$file" version 2>&1) || return 1
+                       want="$name version: ${ETCD_VERSION#v}" ;;
     kwok) out=$(timeout 60 "$file" --version 2>&1) || return 1
           want="${KWOK_VERSION}" ;;
     coredns) out=$(timeout 60 "$file" -version 2>&1) || return 1
@@ -133,6 +139,8 @@ about() {
   case $1 in
     kubernetes) if [[ $2 == "kube-apiserver kube-controller-manager kube-scheduler" ]]; then echo "about 6 min $when"; fi ;;
     etcd) echo "about 40 s $when" ;;
+    etcdctl) echo "about 40 s $when, seconds after etcd (they share its packages)" ;;
+    etcdutl) echo "seconds after etcd or etcdctl (it shares their packages)" ;;
     kwok) echo "about 1.5 min $when" ;;
     coredns) echo "about 2 min $when" ;;
   esac
@@ -145,7 +153,9 @@ install_binary() {
   local name=$1 built=$2 dest
   dest=$(path_of "$name")
   STEP="checking $name"
-  binary_ok "$name" "$built" || die "$name built at $built but does not report version $(version_of "$name"): $("$built" --version 2>&1 | head -3)"
+  local ask=--version
+  [[ $name != etcdctl && $name != etcdutl ]] || ask=version
+  binary_ok "$name" "$built" || die "$name built at $built but does not report version $(version_of "$name"): $("$built" "$ask" 2>&1 | head -3)"
   mv -f "$built" "$dest"
 }
 
@@ -228,38 +238,57 @@ build_kubernetes() {
 
 # --- etcd ----------------------------------------------------------------------
 
+# The Go module whose main package is program $1.
+etcd_module_of() {
+  case $1 in
+    etcd) echo go.etcd.io/etcd/server/v3 ;;
+    etcdctl) echo go.etcd.io/etcd/etcdctl/v3 ;;
+    etcdutl) echo go.etcd.io/etcd/etcdutl/v3 ;;
+  esac
+}
+
+# etcd, etcdctl and etcdutl at ETCD_VERSION, each from its own module in its own wrapper module (each program built
+# with the dependency versions its own module requires, as upstream builds it).
 build_etcd() {
-  wanted etcd || return 0
-  local t0=$SECONDS wrap="$WORK_DIR/etcd-$ETCD_VERSION" mod=go.etcd.io/etcd/server/v3 go_line
+  local p
+  for p in "${ETCD_PROGRAMS[@]}"; do
+    wanted "$p" && build_etcd_program "$p"
+  done
+  return 0
+}
+
+build_etcd_program() {
+  local name=$1 mod go_line
+  mod=$(etcd_module_of "$name")
+  local t0=$SECONDS wrap="$WORK_DIR/$name-$ETCD_VERSION"
   STEP="resolving $mod@$ETCD_VERSION"
   log "$STEP"
   go_line=$("$GO" list -m -f '{{.GoVersion}}' "$mod@$ETCD_VERSION") \
     || die "cannot resolve $mod@$ETCD_VERSION from ${GOPROXY:-the Go module proxy}"
-  # etcd's server go.mod replaces its sibling modules with ../api etc.; as a
-  # dependency of a wrapper module those replaces are ignored and the published
-  # go.etcd.io/etcd/{api,client,pkg,raft} versions it requires are used.
+  # etcd's modules replace their sibling modules with ../api etc.; as a dependency of a wrapper module those
+  # replaces are ignored and the published go.etcd.io/etcd/{api,client,pkg,raft,server} versions it requires are used.
   mkdir -p "$wrap"
-  printf 'module kuberos.local/build/etcd\n\ngo %s\n\nrequire %s %s\n' \
-    "$go_line" "$mod" "$ETCD_VERSION" >"$wrap/go.mod.new"
+  printf 'module kuberos.local/build/%s\n\ngo %s\n\nrequire %s %s\n' \
+    "$name" "$go_line" "$mod" "$ETCD_VERSION" >"$wrap/go.mod.new"
   mv -f "$wrap/go.mod.new" "$wrap/go.mod"
-  STEP="downloading modules for etcd $ETCD_VERSION"
+  STEP="downloading modules for $name $ETCD_VERSION"
   log "$STEP..."
   with_progress "$STEP" -- in_dir "$wrap" run_logged "$wrap.download.log" "$GO" list -mod=mod -deps "$mod" \
-    || die "module download/resolution failed for etcd $ETCD_VERSION (log: $wrap.download.log)"
+    || die "module download/resolution failed for $name $ETCD_VERSION (log: $wrap.download.log)"
   log "modules ready ($(downloads_in "$wrap.download.log"))"
-  record_time "etcd modules (resolve+download)" $((SECONDS - t0))
+  record_time "$name modules (resolve+download)" $((SECONDS - t0))
 
   local t1=$SECONDS out
-  out=$(mktemp -d "$BIN_DIR/.build-etcd.XXXXXX"); TMP_DIRS+=("$out")
-  STEP="building etcd $ETCD_VERSION"
-  log "building etcd $ETCD_VERSION ($(index_of etcd)/$TOTAL)..."
+  out=$(mktemp -d "$BIN_DIR/.build-$name.XXXXXX"); TMP_DIRS+=("$out")
+  STEP="building $name $ETCD_VERSION"
+  log "building $name $ETCD_VERSION ($(index_of "$name")/$TOTAL)..."
   BUILD_LOG="$wrap.build.log" PACKAGES_TOTAL=$(packages_in "$wrap.download.log")
-  with_progress --about "$(about etcd)" --status packages_compiled "$STEP" -- \
+  with_progress --about "$(about "$name")" --status packages_compiled "$STEP" -- \
       in_dir "$wrap" run_logged "$BUILD_LOG" "$GO" build -v -mod=mod -p "$BUILD_JOBS" -trimpath -ldflags "-s -w" \
-      -o "$out/etcd" "$mod" \
-    || die "go build failed for etcd $ETCD_VERSION (log: $BUILD_LOG)"
-  install_binary etcd "$out/etcd"
-  record_time "etcd build" $((SECONDS - t1))
+      -o "$out/$name" "$mod" \
+    || die "go build failed for $name $ETCD_VERSION (log: $BUILD_LOG)"
+  install_binary "$name" "$out/$name"
+  record_time "$name build" $((SECONDS - t1))
 }
 
 # --- kwok ----------------------------------------------------------------------
@@ -357,4 +386,4 @@ STEP="finishing"
 # --- summary -------------------------------------------------------------------
 
 print_summary 9
-log "versions: kubernetes $KUBERNETES_VERSION, etcd $ETCD_VERSION, kwok $KWOK_VERSION, coredns $COREDNS_VERSION; total wall time $(fmt_secs $((SECONDS - T_START)))"
+log "versions: kubernetes $KUBERNETES_VERSION, etcd $ETCD_VERSION (with etcdctl, etcdutl), kwok $KWOK_VERSION, coredns $COREDNS_VERSION; total wall time $(fmt_secs $((SECONDS - T_START)))"
