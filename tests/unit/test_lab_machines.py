@@ -97,3 +97,37 @@ def test_the_longest_outage_runs_from_the_first_unanswered_sample_to_the_next_an
     samples = [(0.0, True), (0.5, False), (1.0, False), (1.5, True), (2.0, False), (2.5, True)]
     assert longest_outage(samples) == 1.0  # 0.5 -> 1.5; the second outage is 0.5
     assert longest_outage([(0.0, True), (0.5, False), (3.0, False)]) == 2.5  # never answered again: to the last sample
+
+
+def test_a_playbook_past_its_time_limit_is_stopped_with_every_process_it_started(tmp_path):
+    # A stand-in for ansible-playbook whose forked worker holds the output's pipe and waits forever, as a worker does
+    # on a connection through a virtual IP that moved: subprocess.run's own timeout would wait on that pipe for ever.
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.site_lab import run_bounded
+
+    marker = tmp_path / "worker.pid"
+    script = (
+        "import os, sys, time\n"
+        "print('PLAY [all]', flush=True)\n"
+        "if os.fork() == 0:\n"
+        f"    open({str(marker)!r}, 'w').write(str(os.getpid())); time.sleep(600)\n"
+        "time.sleep(600)\n"
+    )
+    started = time.monotonic()
+    done = run_bounded([sys.executable, "-c", script], 2)
+    assert time.monotonic() - started < 20
+    assert done.returncode == 124 and "PLAY [all]" in done.stdout and "stopped after 2 s" in done.stdout, done
+    worker = int(marker.read_text())
+    time.sleep(0.5)
+    assert not os.path.exists(f"/proc/{worker}") or _process_state(worker) == "Z", f"the forked worker {worker} still runs"
+    quick = run_bounded([sys.executable, "-c", "print('ok')"], 30)
+    assert quick.returncode == 0 and quick.stdout == "ok\n" and isinstance(quick, subprocess.CompletedProcess)
+
+
+def _process_state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat", encoding="utf-8") as stat:
+        return stat.read().rsplit(") ", 1)[-1][:1]

@@ -46,6 +46,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -83,6 +84,32 @@ RECAP = re.compile(r"^(\S+)\s+: ok=(\d+)\s+changed=(\d+)\s+unreachable=(\d+)\s+f
 
 class SiteLabError(RuntimeError):
     """The lab site could not be made; the message says what and why."""
+
+
+PLAYBOOK_TIMEOUT = 900  # site.yml from bare machines takes 5 to 8 minutes here; upgrade.yml passes its own
+
+
+def run_bounded(command: list[str], timeout: float, **options) -> subprocess.CompletedProcess:
+    """Run ``command`` in a session of its own, its output captured; past ``timeout`` seconds the whole session is
+    killed (ansible-playbook's forked workers too: they hold the output's pipes, and one waiting on a dead connection
+    would keep ``subprocess.run``'s own timeout waiting forever) and the result says so, with return code 124."""
+    process = subprocess.Popen(
+        command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True, **options,
+    )  # fmt: skip
+    try:
+        stdout, stderr = process.communicate(timeout=timeout)
+        return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(process.pid, signal.SIGKILL)
+        try:
+            stdout, stderr = process.communicate(timeout=30)
+        except subprocess.TimeoutExpired:  # a process that left the session still holds a pipe
+            process.kill()
+            stdout, stderr = "", ""
+        said = f"\n{os.path.basename(command[0])}: stopped after {timeout:.0f} s (its time limit), every process it started with it\n"
+        return subprocess.CompletedProcess(command, 124, (stdout or "") + said, (stderr or "") + said)
 
 
 def recap(stdout: str) -> dict[str, dict[str, int]]:
@@ -253,8 +280,9 @@ class SiteLab:
         return self.inventory
 
     # -- playbooks -----------------------------------------------------------------------------------------------
-    def playbook(self, name: str, *extra: str, timeout: float = 1800) -> subprocess.CompletedProcess:
-        """Run playbooks/<name> against the lab's inventory; ``result.recap`` has the per-host counts."""
+    def playbook(self, name: str, *extra: str, timeout: float = PLAYBOOK_TIMEOUT) -> subprocess.CompletedProcess:
+        """Run playbooks/<name> against the lab's inventory; ``result.recap`` has the per-host counts. A run past
+        ``timeout`` is stopped whole (`run_bounded`) and comes back failed, saying so."""
         env = {
             **os.environ,
             "ANSIBLE_CONFIG": os.path.join(self.root, "ansible.cfg"),
@@ -263,7 +291,7 @@ class SiteLab:
         }
         binary = os.path.join(os.path.dirname(sys.executable), "ansible-playbook")
         command = [binary, os.path.join("playbooks", name), "-i", self.inventory, *extra]
-        result = subprocess.run(command, cwd=self.root, env=env, capture_output=True, text=True, timeout=timeout, check=False)
+        result = run_bounded(command, timeout, cwd=self.root, env=env)
         result.recap = recap(result.stdout)
         with open(self.path(f"{name.replace('/', '_')}-{int(time.time())}.log"), "w", encoding="utf-8") as handle:
             handle.write(result.stdout + "\n--- stderr ---\n" + result.stderr)
@@ -593,7 +621,7 @@ class SiteChain:
         self.kube: Kube | None = None  # the chain's own reads and writes
         self.core = None  # the typed CoreV1Api under it, for the test's own assertions
 
-    def _play(self, name: str, *extra: str, timeout: float = 1800) -> subprocess.CompletedProcess:
+    def _play(self, name: str, *extra: str, timeout: float = PLAYBOOK_TIMEOUT) -> subprocess.CompletedProcess:
         started = time.monotonic()
         result = self.lab.playbook(name, *extra, timeout=timeout)
         result.seconds = time.monotonic() - started
@@ -703,9 +731,7 @@ class SiteChain:
             "--fleet", fleet, "--cycles", str(cycles), "--time-limit", str(time_limit),
         ]  # fmt: skip
         started = time.monotonic()
-        done = subprocess.run(
-            command, cwd=self.lab.root, env=env, capture_output=True, text=True, timeout=time_limit + 120, check=False
-        )
+        done = run_bounded(command, time_limit + 120, cwd=self.lab.root, env=env)
         summary = {}
         with contextlib.suppress(ValueError):
             summary = json.loads(done.stdout[done.stdout.index("{\n") :])
