@@ -108,7 +108,7 @@ def run_bounded(command: list[str], timeout: float, **options) -> subprocess.Com
         except subprocess.TimeoutExpired:  # a process that left the session still holds a pipe
             process.kill()
             stdout, stderr = "", ""
-        said = f"\n{os.path.basename(command[0])}: stopped after {timeout:.0f} s (its time limit), every process it started with it\n"
+        said = f"\n{os.path.basename(command[0])}: stopped after {timeout:.0f} s (its limit), with every process it started\n"
         return subprocess.CompletedProcess(command, 124, (stdout or "") + said, (stderr or "") + said)
 
 
