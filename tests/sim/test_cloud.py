@@ -20,7 +20,7 @@ from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import ca
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.errors import SpecError  # noqa: E402
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos.inventory import load_inventory  # noqa: E402
 
-pytestmark = pytest.mark.sim
+# pure computation, no hosts nor processes: the api lane (tests/conftest.py), beside the host lane
 
 BUDGET = {"max_vms": 2, "instance_types": {"t3.small": {"cpu": 1, "memory": "2Gi"}}}
 SITE = {

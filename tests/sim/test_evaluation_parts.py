@@ -11,7 +11,7 @@ from kuberos_sim import metrics, report, scenario
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import service
 
-pytestmark = pytest.mark.sim
+# pure computation, no hosts nor processes: the api lane (tests/conftest.py), beside the host lane
 
 
 def raw_inventory(robots: int, strategy: str = "") -> dict:

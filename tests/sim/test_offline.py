@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import pytest
 from kuberos_pnp import offline
 from kuberos_pnp.planning import Planner
 
-pytestmark = pytest.mark.sim
+# pure computation, no hosts nor processes: the api lane (tests/conftest.py), beside the host lane
 
 
 def test_offline_loop_places_every_target():

@@ -7,7 +7,7 @@ import pytest
 from kuberos_pnp import perception_core as P
 from kuberos_pnp import world as W
 
-pytestmark = pytest.mark.sim
+# pure computation, no hosts nor processes: the api lane (tests/conftest.py), beside the host lane
 
 
 @pytest.mark.parametrize("seed,n", [(0, 2), (1, 3), (4, 4), (7, 3), (11, 4)])

@@ -13,7 +13,7 @@ from kuberos_pnp import planning as PL
 from kuberos_pnp import tasks
 from kuberos_pnp import world as W
 
-pytestmark = pytest.mark.sim
+# pure computation, no hosts nor processes: the api lane (tests/conftest.py), beside the host lane
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from kuberos_pnp import trajectory as T
 
-pytestmark = pytest.mark.sim
+# pure computation, no hosts nor processes: the api lane (tests/conftest.py), beside the host lane
 
 V = np.array([2.175] * 4 + [2.61] * 3)
 A = np.full(7, 4.0)

@@ -7,7 +7,7 @@ import pytest
 from kuberos_pnp import world as W
 from scipy.spatial.transform import Rotation
 
-pytestmark = pytest.mark.sim
+pytestmark = pytest.mark.sim  # pure, but kept in the host lane: tests/unit/test_lanes.py's example of a host-lane file of seconds
 
 
 def _run(seed: int) -> tuple[list, np.ndarray]:
