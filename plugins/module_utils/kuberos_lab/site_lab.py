@@ -552,9 +552,9 @@ def fleet_isolation_check(kube: Kube, toolbox: str, fleet_namespace: str, node: 
                 kube.delete("Namespace", namespace)
 
 
-def etcd_members(machines, name: str) -> list[str]:
-    """etcd's member names as one control plane's etcd lists them (its v3 HTTP gateway, with the health-check
-    client certificate kubeadm made on that machine)."""
+def etcd_gateway(machines, name: str, path: str, body: bytes | None = None) -> dict:
+    """One request to control plane ``name``'s etcd through its v3 HTTP gateway (POST with ``body``, else GET), with
+    the health-check client certificate kubeadm made on that machine; the answer's JSON, read up to 1 MiB, in 10 s."""
     import http.client
     import ssl
 
@@ -563,11 +563,16 @@ def etcd_members(machines, name: str) -> list[str]:
     context.load_cert_chain(os.path.join(pki, "healthcheck-client.crt"), os.path.join(pki, "healthcheck-client.key"))
     connection = http.client.HTTPSConnection(machines.machines[name].address, 2379, context=context, timeout=10)
     try:
-        connection.request("POST", "/v3/cluster/member/list", body=b"{}")
-        response = connection.getresponse()
-        return sorted(member.get("name", "") for member in json.load(response).get("members", []))
+        connection.request("POST" if body is not None else "GET", path, body=body)
+        return json.loads(connection.getresponse().read(1 << 20) or b"{}")
     finally:
         connection.close()
+
+
+def etcd_members(machines, name: str) -> list[str]:
+    """etcd's member names as one control plane's etcd lists them."""
+    listed = etcd_gateway(machines, name, "/v3/cluster/member/list", b"{}")
+    return sorted(member.get("name", "") for member in listed.get("members", []))
 
 
 def vip_holders(machines, control_planes) -> list[str]:

@@ -5,16 +5,14 @@ etcd answers them. Every wait is bounded in time."""
 
 from __future__ import annotations
 
-import http.client
-import json
-import os
-import ssl
 import threading
 import time
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.site_lab import (
     CONTROL_PLANES,
     SiteChain,
+    etcd_gateway,
+    etcd_members,
     nodes,
     vip_holders,
     wait_for,
@@ -68,21 +66,9 @@ class VipSampler(Sampler):
 
 
 def etcd_health(machines, name: str) -> dict:
-    """Control plane ``name``'s etcd: its member list (names) and whether it says it is healthy (``/health``), through
-    its v3 HTTP gateway with the health-check client certificate kubeadm made on that machine."""
-    pki = os.path.join(machines.rootfs(name), "etc", "kubernetes", "pki", "etcd")
-    context = ssl.create_default_context(cafile=os.path.join(pki, "ca.crt"))
-    context.load_cert_chain(os.path.join(pki, "healthcheck-client.crt"), os.path.join(pki, "healthcheck-client.key"))
-    found = {}
-    for path, body in (("/v3/cluster/member/list", b"{}"), ("/health", None)):
-        connection = http.client.HTTPSConnection(machines.machines[name].address, 2379, context=context, timeout=10)
-        try:
-            connection.request("POST" if body else "GET", path, body=body)
-            found[path] = json.loads(connection.getresponse().read(1 << 20) or b"{}")
-        finally:
-            connection.close()
-    members = sorted(m.get("name", "") for m in found["/v3/cluster/member/list"].get("members", []))
-    return {"members": members, "healthy": str(found["/health"].get("health")) == "true"}
+    """Control plane ``name``'s etcd: its member list (names) and whether it says it is healthy (``/health``)."""
+    health = etcd_gateway(machines, name, "/health")
+    return {"members": etcd_members(machines, name), "healthy": str(health.get("health")) == "true"}
 
 
 def replace_control_plane(chain: SiteChain, machine: str, timeout: float = 600, run=None) -> dict:
