@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import yaml
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import kubeadm_images, machines
@@ -131,3 +132,19 @@ def test_a_playbook_past_its_time_limit_is_stopped_with_every_process_it_started
 def _process_state(pid: int) -> str:
     with open(f"/proc/{pid}/stat", encoding="utf-8") as stat:
         return stat.read().rsplit(") ", 1)[-1][:1]
+
+
+def test_a_lab_left_up_by_an_interrupted_run_is_refused_before_anything_is_made(tmp_path, monkeypatch):
+    lab = machines.MachineLab(str(tmp_path / "state"), tag="zq")
+    lab.machines["edge-a"] = machines.Machine("edge-a", ["control_plane"], "10.0.0.11", uuid="u")  # this lab's own
+    present = {"/var/run/netns/zq-edge-a", "/var/run/netns/zq-fetch-01"}
+    monkeypatch.setattr(machines.os.path, "exists", lambda path: path in present)
+    assert lab.stale(["fetch-01", "fetch-02"]) == ["zq-fetch-01"]
+    monkeypatch.setattr(machines, "missing_requirements", lambda: [])
+    made = []
+    monkeypatch.setattr(machines, "build_image", lambda *args: made.append("image"))
+    with pytest.raises(machines.MachineError) as refused:
+        lab.up([("edge-a", ["control_plane"]), ("fetch-01", ["robots"])], log=made.append)
+    said = str(refused.value)
+    assert "zq-fetch-01" in said and "zq-edge-a" not in said and " down --state" in said, said
+    assert made == [] and not (tmp_path / "state").exists()

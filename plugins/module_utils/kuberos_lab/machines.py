@@ -307,12 +307,23 @@ class MachineLab:
     def machine_name(self, name: str) -> str:
         return f"{self.tag}-{name}"
 
+    def stale(self, names: list[str]) -> list[str]:
+        """Of machines this lab is about to make, the network namespaces that exist already: another lab's, left up."""
+        return [self.netns(name) for name in names if os.path.exists(f"/var/run/netns/{self.netns(name)}")]
+
     # -- lifecycle -----------------------------------------------------------------------------------------------
     def up(self, specs: list[tuple[str, list[str]] | tuple[str, list[str], str]], log=print) -> MachineLab:
         """Make and boot every machine ``(name, groups[, networks])``; write the inventory and known_hosts."""
         problems = missing_requirements()
         if problems:
             raise MachineError("lab machines need: " + ", ".join(problems))
+        stale = self.stale([spec[0] for spec in specs if spec[0] not in self.machines])
+        if stale:
+            raise MachineError(
+                f"lab machines of an earlier run are still up here ({', '.join(stale)}: their network namespaces "
+                f"exist), an interrupted test's perhaps: take that lab down first (python -m {__name__} down --state "
+                "<its state folder> --remove, or site_lab's down), or remove them (machinectl list; ip netns list)"
+            )
         os.makedirs(self.state, exist_ok=True)
         image = build_image(self.cache_dir or "~/.cache/kuberos", log)
         if not os.path.exists(self.admin_key):
