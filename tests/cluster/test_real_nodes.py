@@ -362,7 +362,9 @@ def test_a_fleet_discovery_server_killed_and_restarted_and_who_still_meets_the_p
     )
 
 
-@pytest.mark.parametrize("how", ["killed", pytest.param("stopped", marks=pytest.mark.full), "stopped-together"])
+@pytest.mark.parametrize(
+    "how", [pytest.param("killed", marks=pytest.mark.full), pytest.param("stopped", marks=pytest.mark.full), "stopped-together"]
+)
 def test_the_fleets_discovery_servers_restarted_in_turn_a_module_started_after_meets_one_that_ran_before(real, deployed, how):
     """A talker starts in an edge module's container; then the fleet's two discovery server pods are deleted in turn,
     each replaced by its Deployment (a new pod address behind the same Service address) before the next goes:
@@ -1138,6 +1140,7 @@ PARTNER_PORTS = {
 PARTNER_BASE, PARTNER_TAG = 245, "kq"  # the partner's real nodes: addresses 10.245-247.x, names kq...
 
 
+@pytest.mark.full  # make test: the bridge between real processes (tests/integration/test_bridge.py), a partner cluster on kwok
 def test_the_bridge_runs_as_pods_between_this_cluster_and_a_partner_cluster_of_real_nodes(real, deployed, tmp_path_factory):
     """A second cluster of real nodes (partner-1, its own control plane, addresses and ports) registered as the
     third-party cluster ``partner-real``; a module placed there answers robot-1's pings across the bridge: the
