@@ -313,7 +313,7 @@ def replacements(real, namespace, instance, old):
     return [p for p in pods if p.metadata.name != old.metadata.name and pod_ready(p) and not p.metadata.deletion_timestamp]
 
 
-@pytest.mark.parametrize("how", [pytest.param("container", marks=pytest.mark.full), "pod"])
+@pytest.mark.parametrize("how", [pytest.param("container", marks=pytest.mark.full), pytest.param("pod", marks=pytest.mark.full)])
 def test_a_fleet_discovery_server_killed_and_restarted_and_who_still_meets_the_participants_that_ran_before(real, deployed, how):
     """A talker runs in an edge module's container; the fleet's first discovery server is killed (SIGKILL, as a crash):
     its container (the kubelet starts it again in the same pod, at the same address) or its pod (no grace: its

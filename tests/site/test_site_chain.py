@@ -29,7 +29,7 @@ WireGuard tunnel. In order:
 8. ``etcd_backup.yml`` (a 0600 snapshot here), the app's deployment record deleted, ``etcd_restore.yml`` refused
    without its confirmation and run with it: the record back, the nodes Ready, the app Ready;
 8b. ``certificates.yml -e renew=true``: every control plane's API server certificate ends later, one control plane at a
-   time, the API through the virtual IP answering throughout;
+   time, the API through the virtual IP answering throughout (marked ``full``: ``make test-full``);
 9. undeploy removes every pod of the app; then the edge worker is removed cleanly;
 10. the control plane that holds the virtual IP (the first) is powered off: the API answers through the same endpoint;
 11. that control plane rebuilt from a bare disk (the VPN's hub too), a robot powered off and one in the inventory that
@@ -37,7 +37,8 @@ WireGuard tunnel. In order:
     stale etcd member removed, tokens from a control plane that serves), three healthy etcd members, the cloud VM back
     through the rebuilt hub, never two holders of the virtual IP; the run succeeds, names both robots once, labels
     what joined and makes no Node for the robot that never joined (nor for the removed hosts);
-12. ``reset.yml`` takes the site apart: every machine that answers is clean, the one powered off is named;
+12. ``reset.yml`` takes the site apart: every machine that answers is clean, the one powered off is named (marked
+    ``full``: ``make test-full``; ``remove_node.yml`` resets two machines with the same role in step 7 and 9);
 13. teardown leaves this machine as it was.
 
 Needs root, systemd-nspawn, debootstrap, and the programs ``make test`` builds (skipped locally without them, a
@@ -396,6 +397,7 @@ def test_site_yml_leaves_a_powered_off_robot_and_one_that_never_joined_and_says_
     assert chain.figures["site_run_with_robot_offline_ok"], chain.figures
 
 
+@pytest.mark.full  # make test: remove_node.yml resets two machines with the same role (node_reset) above
 def test_reset_yml_takes_the_site_apart(chain):
     done = site_removal.reset_site(chain, site_removal.inventory_name(CONTROL_PLANES[0]), sorted(chain.lab.machines.machines))
     assert done["result"].returncode == 0, _tail(done["result"])
