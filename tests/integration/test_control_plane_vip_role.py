@@ -26,8 +26,9 @@ def _run(tmp_path, state: str) -> subprocess.CompletedProcess:
         "vars": {"control_plane_vip_state": state, "control_plane_vip_config_dir": str(config)},
     }]}]  # fmt: skip
     (tmp_path / "play.yml").write_text(yaml.safe_dump(play))
+    # check mode: a keepalived on this machine stays as it is
     command = [venv_tool("ansible-playbook"), str(tmp_path / "play.yml"), "-i", str(tmp_path / "hosts.yml"),
-               "--limit", "edge-a,edge-c", "--check"]  # fmt: skip: check mode: keepalived here stays as it is
+               "--limit", "edge-a,edge-c", "--check"]  # fmt: skip
     env = {"ANSIBLE_CONFIG": f"{ROOT}/ansible.cfg", "ANSIBLE_NOCOLOR": "1", "PATH": "/usr/bin:/bin:/usr/sbin:/sbin"}
     return subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300, check=False)
 
