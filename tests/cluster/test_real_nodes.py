@@ -60,7 +60,11 @@ from real_tier import (
 
 sys.path.insert(0, os.path.join(ROOT, ".collections"))
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos import labels
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import RealNodes, snapshot_host
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import (
+    RealNodes,
+    snapshot_changes,
+    snapshot_host,
+)
 
 pytestmark = [pytest.mark.cluster, pytest.mark.real_nodes]
 
@@ -1321,6 +1325,6 @@ def test_teardown_leaves_the_host_as_it_was(real):
     again = real.stop(state="absent")
     assert again.returncode == 0 and again.changed == 0, again.stdout[-6000:]
     after = snapshot_host()
-    differences = {k: (real.before[k], after[k]) for k in real.before if real.before[k] != after[k]}
+    differences = snapshot_changes(real.before, after)
     assert not differences, json.dumps(differences, indent=1)[:6000]
     assert not os.path.exists(real.state_dir)

@@ -19,6 +19,7 @@ WireGuard private key appears in ``site.yml``'s output.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -28,7 +29,7 @@ from helpers import ROOT, VENV_BIN, wireguard_private_keys
 from sshlab import missing_requirements
 
 from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab import machines
-from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import snapshot_host
+from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import snapshot_changes, snapshot_host
 
 pytestmark = pytest.mark.molecule
 
@@ -115,4 +116,4 @@ def test_scenario(scenario):
         molecule("destroy", "-s", scenario, timeout=300)
     if before is not None:  # the machines' teardown leaves the host as it was: mounts, cgroups, links, sysctls, ...
         after = snapshot_host()
-        assert after == before, {key: (before[key], after[key]) for key in before if before[key] != after[key]}
+        assert after == before, json.dumps(snapshot_changes(before, after), indent=1)[:6000]

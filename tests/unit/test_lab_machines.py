@@ -148,3 +148,16 @@ def test_a_lab_left_up_by_an_interrupted_run_is_refused_before_anything_is_made(
     said = str(refused.value)
     assert "zq-fetch-01" in said and "zq-edge-a" not in said and " down --state" in said, said
     assert made == [] and not (tmp_path / "state").exists()
+
+
+def test_a_host_snapshots_difference_names_the_leftovers_not_two_lists():
+    from ansible_collections.kuberos.platform.plugins.module_utils.kuberos_lab.real_nodes import snapshot_changes
+
+    before = {"cgroups": ["cpu/user.slice", "cpu/k8s.io"], "sysctls": {"net.ipv4.ip_forward": "0"}, "links": ["lo"]}
+    after = {"cgroups": ["cpu/k8s.io", "cpu/user.slice", "memory/k8s.io"], "sysctls": {"net.ipv4.ip_forward": "1"}}
+    after["links"] = ["lo"]
+    assert snapshot_changes(before, after) == {
+        "cgroups": {"gone": [], "new": ["memory/k8s.io"]},
+        "sysctls": {"gone": ["net.ipv4.ip_forward=0"], "new": ["net.ipv4.ip_forward=1"]},
+    }
+    assert snapshot_changes(before, dict(before)) == {}

@@ -811,6 +811,21 @@ def _mount_points() -> list[str]:
     return points
 
 
+def snapshot_changes(before: dict, after: dict) -> dict:
+    """What differs between two ``snapshot_host()`` records, per part: the entries gone and the new ones (a setting
+    as ``name=value``), so that a failure names the leftover instead of two long lists."""
+    changes = {}
+    for key in before:
+        old, new = before[key], after.get(key)
+        if old == new:
+            continue
+        if isinstance(old, dict):
+            old, new = (sorted(f"{k}={v}" for k, v in side.items()) for side in (old, new or {}))
+        gone, added = sorted(set(old) - set(new or [])), sorted(set(new or []) - set(old))
+        changes[key] = {"gone": gone, "new": added} if gone or added else {"order or count": (old, new)}
+    return changes
+
+
 def snapshot_host() -> dict:
     """What the real nodes may change on the host, to compare before and after: network namespaces, links,
     mounts, cgroups, root namespace routes and iptables rules, sysctls, CNI state, processes of the tier."""

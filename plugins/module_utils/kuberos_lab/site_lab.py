@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import os
 import re
@@ -580,6 +581,12 @@ def vip_holders(machines, control_planes) -> list[str]:
     return [n for n in control_planes if f"inet {VIP}/" in machines.exec(n, "ip", "-4", "-o", "addr", check=False).stdout]
 
 
+def _held_elsewhere(machines, holder: str) -> str:
+    """The control plane holding the virtual IP if it is not ``holder`` (empty otherwise)."""
+    now = vip_holder(machines, CONTROL_PLANES)
+    return now if now != holder else ""
+
+
 def vip_holder(machines, control_planes) -> str:
     """The control plane that holds the virtual IP now (empty when none does)."""
     return next(iter(vip_holders(machines, control_planes)), "")
@@ -805,6 +812,27 @@ class SiteChain:
     def _nodes_within(self, seconds: float) -> list[dict]:
         """Every node, the request bounded by ``seconds`` (an API server behind a lost virtual IP may not answer)."""
         return Kube(self.kube.clients, read_timeout=seconds).list("Node")
+
+    def hand_vip_to(self, machine: str, timeout: float = 60) -> None:
+        """Move the virtual IP to control plane ``machine`` as an operator would: keepalived stopped on the holder
+        (it gives the address up at once, to the highest priority left: the first control plane's is the highest) and
+        started again there (keepalived's nopreempt: it comes back as a backup), until ``machine`` holds it. Where the
+        address is after an etcd restore or a renewal depends on which API server came back first."""
+        machines = self.lab.machines
+        for _turn in CONTROL_PLANES:
+            holder = vip_holder(machines, CONTROL_PLANES)
+            if holder == machine:
+                return
+            if not holder:
+                raise SiteLabError(f"no control plane holds the virtual IP {VIP}")
+            machines.exec(holder, "systemctl", "stop", "keepalived")
+            try:
+                moved = functools.partial(_held_elsewhere, machines, holder)
+                wait_for(f"the virtual IP away from {holder}", moved, timeout, 0.5)
+            finally:
+                machines.exec(holder, "systemctl", "start", "keepalived")
+            self.log(f"site chain: the virtual IP handed from {holder} to {vip_holder(machines, CONTROL_PLANES)}")
+        raise SiteLabError(f"the virtual IP did not reach {machine}: held by {vip_holders(machines, CONTROL_PLANES)}")
 
     def lose_vip_holder(self, timeout: float = 120) -> str:
         """Cut the power of the control plane holding the virtual IP (its PID 1 killed) and wait until the API
