@@ -111,7 +111,7 @@ class ApiSampler:
         return max((b - a for a, b in itertools.pairwise(times)), default=0.0)
 
 
-def renew_certificates(chain, timeout: float = 900):
+def renew_certificates(chain, timeout: float = site_lab.PLAYBOOK_TIMEOUT):
     """certificates.yml with renewal, one control plane at a time, while the API is sampled through the virtual IP.
     Records ``cert_renew_s``, ``cert_not_after_moved`` (every control plane's API server certificate ends later than
     before), ``api_unavailable_during_renew_max_s``, ``api_samples_during_renew`` and ``api_sample_widest_gap_s``.
@@ -164,7 +164,7 @@ def _ready_nodes(kube: Kube) -> set[str]:
     return {name for name, node in site_lab.nodes(kube).items() if node["ready"]}
 
 
-def backup_and_restore(chain, namespace: str, configmap_name: str, timeout: float = 900) -> dict:
+def backup_and_restore(chain, namespace: str, configmap_name: str, timeout: float = site_lab.PLAYBOOK_TIMEOUT) -> dict:
     """etcd_backup.yml into ``<lab state>/etcd-backups``, then the ConfigMap ``namespace/configmap_name`` (which must
     exist: the test passes a deployment record) deleted, etcd_restore.yml refused without the confirmation and run
     with it. Records ``etcd_backup_s``, ``etcd_restore_s``, ``etcd_restore_refused_unconfirmed``,
